@@ -104,9 +104,7 @@ class VectorQuantizerEMA(nn.Module):
             raise ValueError(f"VectorQuantizerEMA: expected inputs with last dimension {self.dim}, got shape {tuple(z.shape)}")
         with torch.autocast(device_type=z.device.type, enabled=False):
             segments = z.detach().reshape(-1, self.code_dim).float()
-            # ||c - e||^2 up to ||c||^2, which does not change the argmin: one fp32 GEMM.
-            distances = torch.addmm(self.codebook.pow(2).sum(1), segments, self.codebook.t(), alpha=-2.0)
-            flat_indices = distances.argmin(1)
+            flat_indices = self._nearest_code(segments)
             # Quantize with the codebook as it is before this call's EMA update (F.embedding returns a new tensor).
             codes = F.embedding(flat_indices, self.codebook)
             loss = self.beta * (z.reshape(-1, self.code_dim).float() - codes).pow(2).sum(1).mean()
@@ -116,10 +114,27 @@ class VectorQuantizerEMA(nn.Module):
         return quantized, loss, flat_indices.view(*z.shape[:-1], self.groups)
 
     @torch.no_grad()
+    def _nearest_code(self, segments: torch.Tensor) -> torch.Tensor:
+        """argmin_j ||c - e_j||^2 for each fp32 row c, as ||e_j||^2 - 2 c.e_j (||c||^2 does not change the argmin).
+
+        On CPU the (rows, n_embed) distance matrix is built in blocks of about 2M entries: a single block of tens of MB
+        is a fresh mmap on every call, and zero-filling its pages costs more than the arithmetic. `min(1).indices` picks
+        the same (first) minimum as `argmin(1)` but is about 2.5x faster on CPU in torch 2.13.
+        """
+        rows_per_block = len(segments) if segments.is_cuda else max(1, 2**21 // self.n_embed)
+        squared_norms, codebook_t = self.codebook.pow(2).sum(1), self.codebook.t()
+        return torch.cat(
+            [
+                torch.addmm(squared_norms, block, codebook_t, alpha=-2.0).min(1).indices
+                for block in segments.split(rows_per_block)
+            ]
+        )
+
+    @torch.no_grad()
     def _ema_update(self, segments: torch.Tensor, flat_indices: torch.Tensor) -> None:
         """One pooled EMA step over all segments of the batch (the codebook is shared, so one update, not G)."""
         counts = torch.bincount(flat_indices, minlength=self.n_embed).float()
-        sums = F.one_hot(flat_indices, self.n_embed).float().t() @ segments  # a GEMM: deterministic, unlike index_add
+        sums = code_sums(segments, flat_indices, self.n_embed, use_gemm=segments.device.type != "cpu")
         self.ema_count.mul_(self.decay).add_(counts, alpha=1.0 - self.decay)
         self.ema_sum.mul_(self.decay).add_(sums, alpha=1.0 - self.decay)
         total = self.ema_count.sum()
@@ -142,6 +157,18 @@ class VectorQuantizerEMA(nn.Module):
                 f"VectorQuantizerEMA: expected indices with last dimension {self.groups}, got {tuple(indices.shape)}"
             )
         return F.embedding(indices, self.codebook).flatten(-2)
+
+
+def code_sums(segments: torch.Tensor, indices: torch.Tensor, n_embed: int, use_gemm: bool) -> torch.Tensor:
+    """Sum of the rows of `segments` assigned to each code, shape (n_embed, code_dim), deterministic on every device.
+
+    index_add_ is sequential (so deterministic) and about 60x faster on CPU, but uses atomics on CUDA; there the sums are
+    a one-hot GEMM instead, whose order of accumulation is fixed.
+    """
+    if not use_gemm:
+        return torch.zeros(n_embed, segments.shape[1], device=segments.device).index_add_(0, indices, segments)
+    one_hot = torch.zeros(len(indices), n_embed, device=segments.device).scatter_(1, indices.unsqueeze(1), 1.0)
+    return one_hot.t() @ segments
 
 
 def factor_match(indices_a: torch.Tensor, indices_b: torch.Tensor) -> torch.Tensor:

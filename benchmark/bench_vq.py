@@ -21,7 +21,7 @@ import torch.nn as nn
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from vq import VectorQuantizerEMA  # noqa: E402
+from vq import VectorQuantizerEMA
 
 
 @dataclass
@@ -86,7 +86,8 @@ if __name__ == "__main__":
 
     with torch.no_grad():
         linear_ms = median_ms(lambda: linear(z), args)
-    print(f"torch {torch.__version__}, device {args.device}, {torch.get_num_threads()} CPU threads, {platform.processor() or platform.machine()}")
+    cpu = platform.processor() or platform.machine()
+    print(f"torch {torch.__version__}, device {args.device}, {torch.get_num_threads()} CPU threads ({cpu})")
     print(f"batch {args.batch}, dim {args.dim}, n_embed {args.n_embed}; median of {args.blocks} blocks x {args.iters} calls\n")
     print("| G | quantize (update=False) | quantize + EMA update | + backward | vs Linear fwd (train call) |")
     print("|---|---|---|---|---|")

@@ -6,7 +6,8 @@
 For each G it times three calls on the same (batch, dim) fp32 input: quantization alone (`update=False`, as when
 acting), quantization plus the pooled EMA update (a training call), and that training call with the backward pass of
 the commitment loss and the straight-through gradient. Each figure is the median over `--blocks` blocks of
-`--iters` calls, after `--warmup` calls; vectors/s counts batch rows (each row is G segments).
+`--iters` calls, after `--warmup` calls, with the interquartile range of the blocks; vectors/s counts batch rows (each row
+is G segments).
 """
 
 import platform
@@ -40,16 +41,16 @@ class Args:
     """torch CPU threads (0 = torch's default)"""
     warmup: int = 10
     """untimed calls before timing"""
-    iters: int = 50
+    iters: int = 10
     """calls per timed block"""
-    blocks: int = 5
-    """timed blocks; the median is reported"""
+    blocks: int = 21
+    """timed blocks; the median is reported (many short blocks resist the noise of a shared machine)"""
     seed: int = 1
     """random seed"""
 
 
-def median_ms(fn, args: Args) -> float:
-    """Median milliseconds per call of fn over args.blocks blocks of args.iters calls."""
+def time_ms(fn, args: Args) -> tuple[float, float, float]:
+    """Median, first and third quartile of the milliseconds per call of fn over args.blocks blocks of args.iters calls."""
     sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)
     for _ in range(args.warmup):
         fn()
@@ -61,7 +62,13 @@ def median_ms(fn, args: Args) -> float:
             fn()
         sync()
         per_call.append((time.perf_counter() - start) / args.iters * 1e3)
-    return statistics.median(per_call)
+    quartiles = statistics.quantiles(per_call, n=4) if len(per_call) > 1 else [per_call[0]] * 3
+    return quartiles[1], quartiles[0], quartiles[2]
+
+
+def cell(timing: tuple[float, float, float], batch: int) -> str:
+    median, low, high = timing
+    return f"{median:.2f} ms [{low:.2f}-{high:.2f}] ({batch / median * 1e3 / 1e6:.2f} M vec/s)"
 
 
 if __name__ == "__main__":
@@ -69,7 +76,7 @@ if __name__ == "__main__":
     for flag, value in (("--batch", args.batch), ("--dim", args.dim), ("--n-embed", args.n_embed)):
         if value < 1:
             raise SystemExit(f"error: {flag} must be >= 1, got {value}")
-    if min(args.warmup, args.iters, args.blocks) < 0 or args.iters < 1 or args.blocks < 1:
+    if args.warmup < 0 or args.iters < 1 or args.blocks < 1:
         raise SystemExit("error: --warmup must be >= 0, --iters and --blocks >= 1")
     bad_groups = [g for g in args.groups if g < 1 or args.dim % g]
     if bad_groups:
@@ -85,26 +92,24 @@ if __name__ == "__main__":
     linear = nn.Linear(args.dim, args.dim).to(device)
 
     with torch.no_grad():
-        linear_ms = median_ms(lambda: linear(z), args)
+        linear_ms = time_ms(lambda: linear(z), args)
     cpu = platform.processor() or platform.machine()
     print(f"torch {torch.__version__}, device {args.device}, {torch.get_num_threads()} CPU threads ({cpu})")
-    print(f"batch {args.batch}, dim {args.dim}, n_embed {args.n_embed}; median of {args.blocks} blocks x {args.iters} calls\n")
-    print("| G | quantize (update=False) | quantize + EMA update | + backward | vs Linear fwd (train call) |")
+    print(f"batch {args.batch}, dim {args.dim}, n_embed {args.n_embed}; ", end="")
+    print(f"median [interquartile range] of {args.blocks} blocks x {args.iters} calls\n")
+    print("| G | quantize (update=False) | quantize + EMA update | + backward | train call / Linear fwd |")
     print("|---|---|---|---|---|")
     for groups in args.groups:
         vq = VectorQuantizerEMA(args.dim, args.n_embed, groups).to(device)
         with torch.no_grad():
-            act_ms = median_ms(lambda vq=vq: vq(z, update=False), args)
-            train_ms = median_ms(lambda vq=vq: vq(z), args)
+            act_ms = time_ms(lambda vq=vq: vq(z, update=False), args)
+            train_ms = time_ms(lambda vq=vq: vq(z), args)
 
         def train_step(vq=vq):
             quantized, loss, _ = vq(z_grad)
             (quantized.sum() + loss).backward()
 
-        backward_ms = median_ms(train_step, args)
-
-        def cell(ms: float) -> str:
-            return f"{ms:.3f} ms ({args.batch / ms * 1e3 / 1e6:.2f} M vec/s)"
-
-        print(f"| {groups} | {cell(act_ms)} | {cell(train_ms)} | {cell(backward_ms)} | {train_ms / linear_ms:.1f}x |")
-    print(f"| Linear({args.dim}, {args.dim}) fwd | {cell(linear_ms)} | | | 1.0x |")
+        backward_ms = time_ms(train_step, args)
+        cells = " | ".join(cell(timing, args.batch) for timing in (act_ms, train_ms, backward_ms))
+        print(f"| {groups} | {cells} | {train_ms[0] / linear_ms[0]:.1f}x |")
+    print(f"| Linear({args.dim}, {args.dim}) fwd | {cell(linear_ms, args.batch)} | | | 1.0x |")

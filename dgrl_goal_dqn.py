@@ -512,7 +512,7 @@ if __name__ == "__main__":
         torch.as_tensor(column, device=device)
         for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
     )
-    rep_optimizer = torch.optim.Adam(rep.parameters(), lr=args.rep_learning_rate)
+    rep_optimizer = torch.optim.Adam(rep.parameters(), lr=args.rep_learning_rate, fused=True)
     for rep_step in range(args.rep_steps):
         batch = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
         z = embedder(rep, torch.cat([walk_cells[batch], walk_next[batch]]))
@@ -550,7 +550,9 @@ if __name__ == "__main__":
         rep.train()
         target_rep = make_target(rep)
     q_optimizer = torch.optim.Adam(
-        list(q_network.parameters()) + (list(rep.encoder.parameters()) if args.finetune else []), lr=args.learning_rate
+        list(q_network.parameters()) + (list(rep.encoder.parameters()) if args.finetune else []),
+        lr=args.learning_rate,
+        fused=True,
     )
     target_network = make_target(q_network)
 

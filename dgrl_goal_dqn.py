@@ -80,7 +80,7 @@ class Args:
     """replay memory size"""
     gamma: float = 0.99
     """discount factor"""
-    target_network_frequency: int = 200
+    target_network_frequency: int = 50
     """training steps between hard copies of the target network (codebook included)"""
     batch_size: int = 128
     """replay batch size"""
@@ -128,6 +128,9 @@ class Args:
     """commitment-loss weight"""
     vq_decay: float = 0.99
     """EMA decay of the codebook"""
+    vq_dead_code_steps: int = 50
+    """restart a code unused for this many pre-training updates at a random current segment (0 = off, as in the paper;
+    without it G=4 and G=8 collapse to 1 and 3 active codes here, see the docs)"""
 
 
 # --- Environment ------------------------------------------------------------------------------------------------------
@@ -290,7 +293,9 @@ def make_env(layout: MazeLayout, goal_cells: np.ndarray, args: Args, idx: int, r
 class Representation(nn.Module):
     """phi: 80x80x3 uint8 -> R^embed_dim, with the heads of its self-supervised objective and, for DGRL, the bottleneck."""
 
-    def __init__(self, embed_dim: int, rep: str, groups: int, n_embed: int, vq_beta: float, vq_decay: float):
+    def __init__(
+        self, embed_dim: int, rep: str, groups: int, n_embed: int, vq_beta: float, vq_decay: float, dead_code_steps: int = 0
+    ):
         super().__init__()
         self.encoder = nn.Sequential(
             nn.Conv2d(3, 16, 8, stride=4),
@@ -307,7 +312,13 @@ class Representation(nn.Module):
             self.psi_next = nn.Linear(embed_dim, 64)
         else:
             self.decoder = nn.Sequential(nn.Linear(embed_dim, 256), nn.ReLU(), nn.Linear(256, 80 * 80 * 3))
-        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta=vq_beta, decay=vq_decay) if groups else None  # DGRL
+        self.vq = (  # DGRL
+            VectorQuantizerEMA(
+                embed_dim, n_embed, groups, beta=vq_beta, decay=vq_decay, dead_code_steps=dead_code_steps
+            )  # DGRL
+            if groups  # DGRL
+            else None  # DGRL
+        )  # DGRL
 
     def embed(self, images: torch.Tensor) -> torch.Tensor:
         return self.encoder(images.permute(0, 3, 1, 2).float() / 255.0)
@@ -350,6 +361,17 @@ def intrinsic_bonus(
     if codes_state is not None:
         return factor_match(codes_state, codes_goal)  # DGRL
     return F.cosine_similarity(z_state, z_goal, dim=-1)
+
+
+def bonus_quality(bonus: np.ndarray, layout: MazeLayout) -> tuple[float, float]:
+    """How well a (cell, goal) bonus matrix tracks the maze: its correlation with minus the shortest-path distance over
+    all pairs of distinct cells, and the fraction of moves one step closer to a goal that strictly raise the bonus."""
+    off_diagonal = ~np.eye(layout.n_cells, dtype=bool)
+    flat_bonus = bonus[off_diagonal]
+    correlation = 0.0 if flat_bonus.std() == 0 else float(np.corrcoef(flat_bonus, -layout.distances[off_diagonal])[0, 1])
+    closer = layout.distances[layout.next_cell] < layout.distances[:, None, :]  # (cell, action, goal)
+    raised = bonus[layout.next_cell] > bonus[:, None, :]
+    return correlation, float(raised[closer].mean())
 
 
 def random_walks(layout: MazeLayout, n_transitions: int, walk_length: int, rng: np.random.Generator):
@@ -450,6 +472,8 @@ def validate(args: Args) -> None:
             errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
     if args.rep_steps < 0 or args.learning_starts < 0:
         errors.append("--rep-steps and --learning-starts must be >= 0")
+    if args.vq_dead_code_steps < 0:
+        errors.append(f"--vq-dead-code-steps must be >= 0; got {args.vq_dead_code_steps}")
     if not 0.0 <= args.vq_decay < 1.0:
         errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -473,7 +497,9 @@ if __name__ == "__main__":
     layout = MazeLayout(args.env_id)
     train_goals, novel_goals = goal_split(layout, args.n_train_goals, args.goal_seed)
     embedder = CellEmbedder(layout, args.noise, device, rng)
-    rep = Representation(args.embed_dim, args.rep, args.groups, args.n_embed, args.vq_beta, args.vq_decay).to(device)
+    rep = Representation(
+        args.embed_dim, args.rep, args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps
+    ).to(device)
     q_network = QNetwork(args.embed_dim, args.hidden_dim).to(device)
 
     def report(tag: str, reached: np.ndarray, steps: np.ndarray, goals: np.ndarray) -> str:
@@ -545,7 +571,16 @@ if __name__ == "__main__":
         n_active = active_codes(all_codes, args.n_embed).item()  # DGRL
         writer.add_scalar("vq/active_codes", n_active, 0)  # DGRL
         print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
-    print(f"pre-training: {args.rep_steps} steps, {args.rep} loss {rep_loss.item():.3f}, {time.time() - start_time:.1f} s")
+    pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
+    pair_codes = (None, None) if all_codes is None else (all_codes[pairs[:, 0]], all_codes[pairs[:, 1]])
+    all_bonus = intrinsic_bonus(all_z[pairs[:, 0]], all_z[pairs[:, 1]], *pair_codes).view(layout.n_cells, -1)
+    correlation, step_closer = bonus_quality(all_bonus.cpu().numpy(), layout)
+    writer.add_scalar("charts/bonus_distance_corr", correlation, 0)
+    writer.add_scalar("charts/bonus_step_closer", step_closer, 0)
+    print(
+        f"pre-training: {args.rep_steps} steps, {args.rep} loss {rep_loss.item():.3f}, {time.time() - start_time:.1f} s; "
+        f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
+    )
     if args.finetune:
         rep.train()
         target_rep = make_target(rep)

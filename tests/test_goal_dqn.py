@@ -152,6 +152,15 @@ def test_bonuses_factor_match_and_cosine():
     torch.testing.assert_close(gdqn.intrinsic_bonus(z_state, z_goal, None, None), torch.tensor([0.0, 1.0, -1.0]))
 
 
+def test_bonus_quality_of_perfect_constant_and_reversed_bonuses():
+    layout = gdqn.MazeLayout("LoopWorld")
+    distances = layout.distances.astype(float)
+    assert gdqn.bonus_quality(-distances, layout) == pytest.approx((1.0, 1.0))
+    assert gdqn.bonus_quality(np.ones_like(distances), layout) == (0.0, 0.0)
+    correlation, step_closer = gdqn.bonus_quality(distances, layout)
+    assert correlation == pytest.approx(-1.0) and step_closer == 0.0
+
+
 def test_infonce_loss_on_a_toy_batch():
     anchors = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
     positives = torch.tensor([[2.0, 0.0], [1.0, 1.0]])

@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The README's main job: the continuous goal-DQN (--groups 0) against DGRL (--groups 16) on SpiralWorld, trained on
+# 8 goals and evaluated on those and on 4 novel goals; 2 seeds each, two runs at a time (a few minutes on 2 CPU cores).
+# Prints a results table and writes results/quick_spiralworld.{png,md}.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYTHON=${PYTHON:-.venv/bin/python}
+export OMP_NUM_THREADS=1  # two single-threaded runs side by side beat one run on two threads
+tag="quick$(date +%Y%m%d%H%M%S)"
+for seed in 1 2; do
+  for groups in 0 16; do
+    "$PYTHON" dgrl_goal_dqn.py --env-id SpiralWorld --n-train-goals 8 --groups "$groups" --seed "$seed" \
+      --exp-name "$tag" > "/tmp/${tag}_G${groups}_s${seed}.log" &
+  done
+  wait
+  tail -n 1 /tmp/"${tag}"_G*_s"${seed}".log
+done
+"$PYTHON" benchmark/plot.py --runs-dir runs --match "__${tag}__" --out results/quick_spiralworld \
+  --tags eval/train_success_rate eval/novel_success_rate eval/novel_total_steps \
+  --title "SpiralWorld, 8 training goals, 4 novel goals: goal-DQN (G0) vs DGRL (G16)"

@@ -1,0 +1,124 @@
+"""Learning curves (mean +- std over seeds) and a results table from TensorBoard logs.
+
+    python benchmark/plot.py --runs-dir runs --match "__study__" --tags eval/novel_total_steps eval/train_success_rate \
+        --out docs/img/goal_dqn_study
+
+A run directory is named `{setting}__{exp_name}__{seed}__{timestamp}` as the scripts name them; runs that differ only
+in seed and timestamp form one setting. Each setting's curves are put on a common step grid (the steps its runs share)
+and averaged. The table gives, per setting and tag, the final value and the average over all evaluations (an
+area-under-the-curve summary that rewards learning early), each as mean +- std over seeds. Writes OUT.png and OUT.md.
+"""
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import tyro
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+
+@dataclass
+class Args:
+    runs_dir: str = "runs"
+    """folder holding one sub-folder of TensorBoard event files per run"""
+    match: str = ""
+    """regular expression a run's folder name must contain to be included"""
+    tags: list[str] = field(default_factory=lambda: ["eval/train_success_rate", "eval/novel_total_steps"])
+    """scalar tags to plot and tabulate, one panel each"""
+    panel_by: str = ""
+    """regular expression with one group, e.g. '^([^_]+__K\\d+)': one figure row per distinct match (default: one row)"""
+    out: str = "results/plot"
+    """output path without extension: OUT.png and OUT.md are written"""
+    title: str = ""
+    """figure title"""
+
+
+def setting_of(run_name: str) -> str:
+    """The run name without its last two fields (seed and timestamp)."""
+    return "__".join(run_name.split("__")[:-2])
+
+
+def load_runs(runs_dir: Path, match: str, tags: list[str]) -> dict[str, list[dict[str, tuple[np.ndarray, np.ndarray]]]]:
+    """{setting: [one {tag: (steps, values)} per seed]} for every run folder whose name matches."""
+    settings: dict[str, list] = {}
+    for run in sorted(path for path in runs_dir.iterdir() if path.is_dir() and re.search(match, path.name)):
+        accumulator = EventAccumulator(str(run), size_guidance={"scalars": 0})
+        accumulator.Reload()
+        available = set(accumulator.Tags()["scalars"])
+        curves = {}
+        for tag in tags:
+            if tag in available:
+                events = accumulator.Scalars(tag)
+                curves[tag] = (np.array([e.step for e in events]), np.array([e.value for e in events]))
+        if curves:
+            settings.setdefault(setting_of(run.name), []).append(curves)
+    return settings
+
+
+def aggregate(seeds: list[dict], tag: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(common steps, values of shape (seeds, steps)) of one tag, on the steps every seed logged."""
+    curves = [seed[tag] for seed in seeds if tag in seed]
+    if not curves:
+        return None
+    steps = curves[0][0]
+    for other_steps, _ in curves[1:]:
+        steps = np.intersect1d(steps, other_steps)
+    return steps, np.stack([values[np.searchsorted(seed_steps, steps)] for seed_steps, values in curves])
+
+
+def summary(values: np.ndarray) -> str:
+    return f"{values.mean():.3g} +- {values.std():.2g}"
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    runs_dir = Path(args.runs_dir)
+    if not runs_dir.is_dir():
+        raise SystemExit(f"error: --runs-dir {runs_dir} is not a folder")
+    settings = load_runs(runs_dir, args.match, args.tags)
+    if not settings:
+        raise SystemExit(f"error: no run in {runs_dir} matches --match {args.match!r} and logs any of --tags {args.tags}")
+
+    def panel_key(setting: str) -> str:
+        found = re.search(args.panel_by, setting) if args.panel_by else None
+        return found.group(1) if found and found.groups() else ""
+
+    panels = sorted({panel_key(setting) for setting in settings})
+    figure, axes = plt.subplots(len(panels), len(args.tags), figsize=(5 * len(args.tags), 3.6 * len(panels)), squeeze=False)
+    rows = []
+    for row, panel in enumerate(panels):
+        for setting in sorted(s for s in settings if panel_key(s) == panel):
+            cells = [setting.replace("__", " "), str(len(settings[setting]))]
+            for column, tag in enumerate(args.tags):
+                aggregated = aggregate(settings[setting], tag)
+                if aggregated is None:
+                    cells.append("n/a")
+                    continue
+                steps, values = aggregated
+                mean, std = values.mean(0), values.std(0)
+                axis = axes[row, column]
+                (line,) = axis.plot(steps, mean, label=setting.replace(panel, "").strip("_").replace("__", " ") or setting)
+                axis.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+                axis.set_title(f"{panel.replace('__', ' ')} {tag}".strip(), fontsize=9)
+                axis.set_xlabel("environment steps")
+                cells.append(f"{summary(values[:, -1])} (avg {summary(values.mean(1))})")
+            rows.append(cells)
+        for axis in axes[row]:
+            axis.legend(fontsize=7)
+            axis.grid(alpha=0.3)
+    if args.title:
+        figure.suptitle(args.title)
+    figure.tight_layout()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out.with_suffix(".png"), dpi=110)
+    header = "| setting | seeds | " + " | ".join(f"{tag}: final (avg over evals)" for tag in args.tags) + " |"
+    table = "\n".join([header, "|" + "---|" * (len(args.tags) + 2)] + ["| " + " | ".join(cells) + " |" for cells in rows])
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    print(f"\nwrote {out.with_suffix('.png')} and {out.with_suffix('.md')}")

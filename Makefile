@@ -3,15 +3,18 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: run test lint bench-vq clean-venv
+.PHONY: run demo-vq test lint bench-vq study-goal-dqn clean-venv
 
 $(VENV)/installed: requirements.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt
 	touch $@
 
-# The main job on its built-in default: the vq demo until the maze study lands.
+# The main job on its built-in default: goal-DQN vs DGRL on SpiralWorld with novel goals (a few minutes on a CPU).
 run: $(VENV)/installed
+	PYTHON=$(PY) bash benchmark/goal_dqn_quick.sh
+
+demo-vq: $(VENV)/installed
 	$(PY) vq.py
 
 # The whole test suite: lint, format check, unit tests and smoke runs.
@@ -24,6 +27,9 @@ lint: $(VENV)/installed
 
 bench-vq: $(VENV)/installed
 	$(PY) benchmark/bench_vq.py
+
+study-goal-dqn: $(VENV)/installed
+	PYTHON=$(PY) bash benchmark/goal_dqn.sh
 
 clean-venv:
 	rm -rf $(VENV)

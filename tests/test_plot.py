@@ -1,0 +1,50 @@
+"""benchmark/plot.py: settings grouped over seeds, mean and std on the common steps, table and figure written."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+from torch.utils.tensorboard import SummaryWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def write_run(runs_dir: Path, name: str, values: dict[int, float]) -> None:
+    writer = SummaryWriter(str(runs_dir / name))
+    for step, value in values.items():
+        writer.add_scalar("eval/novel_success_rate", value, step)
+    writer.close()
+
+
+def test_plot_groups_seeds_and_summarises_the_common_steps(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, "SpiralWorld__K8__G16__demo__1__100", {1000: 0.0, 2000: 0.5, 3000: 1.0})
+    write_run(runs, "SpiralWorld__K8__G16__demo__2__200", {1000: 0.5, 2000: 0.5, 3000: 0.5, 4000: 0.0})
+    write_run(runs, "SpiralWorld__K8__G0__demo__1__300", {1000: 0.25, 2000: 0.25, 3000: 0.25})
+    write_run(runs, "SpiralWorld__K8__G0__other__1__400", {1000: 9.0})  # excluded by --match
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/plot.py"), "--runs-dir", str(runs), "--match", "__demo__"]
+        + ["--tags", "eval/novel_success_rate", "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    table = (tmp_path / "out.md").read_text().splitlines()
+    assert (tmp_path / "out.png").stat().st_size > 1000
+    rows = {line.split(" | ")[0].strip("| "): line for line in table[2:]}
+    assert set(rows) == {"SpiralWorld K8 G0 demo", "SpiralWorld K8 G16 demo"}
+    # G16: steps 1000-3000 are common; final values 1.0 and 0.5 -> 0.75 +- 0.25; per-seed averages 0.5 and 0.5.
+    assert "| 2 | 0.75 +- 0.25 (avg 0.5 +- 0)" in rows["SpiralWorld K8 G16 demo"]
+    assert "| 1 | 0.25 +- 0 (avg 0.25 +- 0)" in rows["SpiralWorld K8 G0 demo"]
+
+
+def test_plot_fails_clearly_when_nothing_matches(tmp_path):
+    (tmp_path / "runs").mkdir()
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/plot.py"), "--runs-dir", str(tmp_path / "runs"), "--match", "nothing"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode != 0 and "no run in" in result.stderr

@@ -542,7 +542,7 @@ if __name__ == "__main__":
     for rep_step in range(args.rep_steps):
         batch = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
         z = embedder(rep, torch.cat([walk_cells[batch], walk_next[batch]]))
-        _, vq_loss, codes = rep(z, update=True)  # one pooled update for s and s': the mean of their commitment losses
+        _, vq_loss, codes = rep(z, update=True)  # DGRL: one pooled update for s and s', the mean of their commitment losses
         z_state, z_next = z.chunk(2)
         if args.rep == "infomax":
             anchors = rep.psi_state_action(torch.cat([z_state, F.one_hot(walk_actions[batch], len(MOVES)).float()], 1))
@@ -551,7 +551,7 @@ if __name__ == "__main__":
             clean_images = embedder.all_images[walk_cells[batch]].flatten(1).float() / 255.0
             rep_loss = F.mse_loss(torch.sigmoid(rep.decoder(z_state)), clean_images)
         rep_optimizer.zero_grad()
-        (rep_loss + vq_loss).backward()
+        (rep_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
         rep_optimizer.step()
         if rep_step % 100 == 0 or rep_step == args.rep_steps - 1:
             writer.add_scalar("losses/rep_loss", rep_loss.item(), rep_step)

@@ -88,11 +88,19 @@ if __name__ == "__main__":
         found = re.search(args.panel_by, setting) if args.panel_by else None
         return found.group(1) if found and found.groups() else ""
 
+    def short_labels(names: list[str]) -> dict[str, str]:
+        """Each setting named by the fields that tell it apart from the others in its panel."""
+        fields = [name.split("__") for name in names]
+        varying = [i for i in range(max(map(len, fields))) if len({f[i] if i < len(f) else "" for f in fields}) > 1]
+        return {name: " ".join(f[i] for i in varying if i < len(f)) or name for name, f in zip(names, fields, strict=True)}
+
     panels = sorted({panel_key(setting) for setting in settings})
     figure, axes = plt.subplots(len(panels), len(args.tags), figsize=(5 * len(args.tags), 3.6 * len(panels)), squeeze=False)
     rows = []
     for row, panel in enumerate(panels):
-        for setting in sorted(s for s in settings if panel_key(s) == panel):
+        panel_settings = sorted(s for s in settings if panel_key(s) == panel)
+        labels = short_labels(panel_settings)
+        for setting in panel_settings:
             cells = [setting.replace("__", " "), str(len(settings[setting]))]
             for column, tag in enumerate(args.tags):
                 aggregated = aggregate(settings[setting], tag)
@@ -102,7 +110,7 @@ if __name__ == "__main__":
                 steps, values = aggregated
                 mean, std = values.mean(0), values.std(0)
                 axis = axes[row, column]
-                (line,) = axis.plot(steps, mean, label=setting.replace(panel, "").strip("_").replace("__", " ") or setting)
+                (line,) = axis.plot(steps, mean, label=f"{labels[setting]} (n={len(values)})")
                 axis.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
                 axis.set_title(f"{panel.replace('__', ' ')} {tag}".strip(), fontsize=9)
                 axis.set_xlabel("environment steps")

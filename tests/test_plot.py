@@ -7,6 +7,7 @@ from pathlib import Path
 from torch.utils.tensorboard import SummaryWriter
 
 ROOT = Path(__file__).resolve().parents[1]
+PLOT_FLAGS = ["--tags", "eval/novel_success_rate", "--out"]
 
 
 def write_run(runs_dir: Path, name: str, values: dict[int, float]) -> None:
@@ -23,8 +24,16 @@ def test_plot_groups_seeds_and_summarises_the_common_steps(tmp_path):
     write_run(runs, "SpiralWorld__K8__G0__demo__1__300", {1000: 0.25, 2000: 0.25, 3000: 0.25})
     write_run(runs, "SpiralWorld__K8__G0__other__1__400", {1000: 9.0})  # excluded by --match
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/plot.py"), "--runs-dir", str(runs), "--match", "__demo__"]
-        + ["--tags", "eval/novel_success_rate", "--out", str(tmp_path / "out")],
+        [
+            sys.executable,
+            str(ROOT / "benchmark/plot.py"),
+            "--runs-dir",
+            str(runs),
+            "--match",
+            "__demo__",
+            *PLOT_FLAGS,
+            str(tmp_path / "out"),
+        ],
         capture_output=True,
         text=True,
         timeout=120,

@@ -8,7 +8,7 @@ encoder pre-trained on random-walk transitions with Deep InfoMax (DRIML's InfoNC
 equal to the fraction of the G factors whose codes match between state and goal. The baseline (`--groups 0`) is the
 same agent on continuous embeddings, with a bonus equal to their cosine similarity.
 
-    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 16       # paper setting, DGRL (CPU, ~20 s)
+    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 16       # paper setting, DGRL (about 1 min)
     python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 0        # the continuous goal-DQN
     python dgrl_goal_dqn.py --env-id SpiralWorld --n-train-goals 8 --groups 8      # then tested on 4 novel goals
     python dgrl_goal_dqn.py --total-timesteps 2000 --rep-steps 50                  # a quick CPU smoke run

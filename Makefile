@@ -3,11 +3,12 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: run demo-vq test lint bench-vq study-goal-dqn clean-venv
+.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist clean-venv
 
-$(VENV)/installed: requirements.txt
+$(VENV)/installed: requirements.txt requirements-nodeps.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-nodeps.txt
 	touch $@
 
 # The main job on its built-in default: goal-DQN vs DGRL on SpiralWorld with novel goals (a few minutes on a CPU).
@@ -30,6 +31,9 @@ bench-vq: $(VENV)/installed
 
 study-goal-dqn: $(VENV)/installed
 	PYTHON=$(PY) bash benchmark/goal_dqn.sh
+
+study-mnist: $(VENV)/installed
+	PYTHON=$(PY) bash benchmark/mnist.sh
 
 clean-venv:
 	rm -rf $(VENV)

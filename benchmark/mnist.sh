@@ -20,6 +20,10 @@ echo "study: 6 runs in $(( $(date +%s) - start )) s of wall-clock"
   --tags factor/factor1/digit_acc factor/factor1/colour_acc factor/factor2/digit_acc factor/factor2/colour_acc \
   factor/swap/shape1_colour2 factor/swap/colour1_shape2 factor/both/digit_acc factor/both/colour_acc \
   factor/test/reconstruction_mse factor/real/digit_acc
+rm -f docs/img/mnist_factors.png  # single-point "curves" say nothing here: the table and the figures below do
 for groups in 2 0; do
-  cp "runs/$(ls runs | grep "^ColorMNIST__G${groups}__${tag}__1__")/factors.png" "docs/img/mnist_factors_G${groups}.png"
+  for seed in 1 2 3; do
+    run=$(ls runs | grep "^ColorMNIST__G${groups}__${tag}__${seed}__")
+    cp "runs/$run/factors.png" "docs/img/mnist_factors_G${groups}_seed${seed}.png"
+  done
 done

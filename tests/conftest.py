@@ -1,8 +1,31 @@
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(autouse=True)
 def _seed_everything():
     """Every test starts from the same torch random state, so a failure reproduces."""
     torch.manual_seed(0)
+
+
+@pytest.fixture
+def run_script(tmp_path):
+    """Run a project script as a user would, in a fresh working directory, on one thread, with a 5-minute cap."""
+
+    def run(script: str, *flags: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, str(ROOT / script), *flags],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
+        )
+
+    return run

@@ -2,8 +2,6 @@
 
 import math
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -241,17 +239,6 @@ TINY = ["--total-timesteps", "400", "--learning-starts", "100", "--rep-steps", "
 TINY += ["--eval-frequency", "200", "--batch-size", "16", "--buffer-size", "1000", "--max-episode-steps", "30"]
 
 
-def run_script(tmp_path, *flags):
-    return subprocess.run(
-        [sys.executable, str(ROOT / "dgrl_goal_dqn.py"), *flags],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
-    )
-
-
 @pytest.mark.parametrize(
     "flags",
     [
@@ -262,8 +249,8 @@ def run_script(tmp_path, *flags):
     ],
     ids=["baseline", "dgrl-checkpoint", "dgrl-finetune-noise-ae", "baseline-finetune-video"],
 )
-def test_smoke_run(tmp_path, flags):
-    result = run_script(tmp_path, *TINY, *flags)
+def test_smoke_run(tmp_path, run_script, flags):
+    result = run_script("dgrl_goal_dqn.py", *TINY, *flags)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.count("step ") == 2 and "novel" in result.stdout
     assert len(list((tmp_path / "runs").glob("*/events.out.tfevents.*"))) == 1
@@ -271,7 +258,7 @@ def test_smoke_run(tmp_path, flags):
         (checkpoint,) = (tmp_path / "runs").glob("*/dgrl_goal_dqn.cleanrl_model")
         saved = torch.load(checkpoint)
         assert "vq.codebook" in saved["representation"] and "vq.ema_count" in saved["representation"]
-        evaluated = run_script(tmp_path, "--groups", "8", "--checkpoint", str(checkpoint))
+        evaluated = run_script("dgrl_goal_dqn.py", "--groups", "8", "--checkpoint", str(checkpoint))
         assert evaluated.returncode == 0, evaluated.stderr[-3000:]
         assert "train goals" in evaluated.stdout and "novel goals" in evaluated.stdout
     if "--capture-video" in flags:
@@ -287,8 +274,8 @@ def test_smoke_run(tmp_path, flags):
         (["--env-id", "Nowhere"], "SpiralWorld"),
     ],
 )
-def test_bad_flags_fail_before_any_work(tmp_path, flags, message):
-    result = run_script(tmp_path, *flags)
+def test_bad_flags_fail_before_any_work(tmp_path, run_script, flags, message):
+    result = run_script("dgrl_goal_dqn.py", *flags)
     assert result.returncode != 0
     assert re.search(message, result.stderr), result.stderr[-2000:]
     assert not (tmp_path / "runs").exists()

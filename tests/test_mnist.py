@@ -5,8 +5,6 @@ import os
 import pickle
 import re
 import struct
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -127,20 +125,9 @@ def test_the_dgrl_factor_of_a_latent_is_one_code():
 TINY = ["--epochs", "1", "--train-size", "1000", "--classifier-epochs", "1", "--n-swap-pairs", "200", "--hidden-dim", "64"]
 
 
-def run_script(tmp_path, *flags):
-    return subprocess.run(
-        [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"},
-    )
-
-
 @pytest.mark.parametrize("groups", ["2", "0"])
-def test_smoke_run(tmp_path, groups):
-    result = run_script(tmp_path, *TINY, "--groups", groups, "--save-model")
+def test_smoke_run(tmp_path, run_script, groups):
+    result = run_script("dgrl_mnist.py", *TINY, "--groups", groups, "--save-model")
     assert result.returncode == 0, result.stderr[-3000:]
     for line in ("accuracy on reconstructions", "factor1", "factor2", "swap (factor 1 of A, factor 2 of B)"):
         assert line in result.stdout
@@ -148,7 +135,7 @@ def test_smoke_run(tmp_path, groups):
     assert (run / "factors.png").stat().st_size > 1000 and list(run.glob("events.out.tfevents.*"))
     saved = torch.load(run / "dgrl_mnist.cleanrl_model")
     assert ("vq.codebook" in saved["model"]) == (groups != "0")
-    evaluated = run_script(tmp_path, *TINY, "--groups", groups, "--checkpoint", str(run / "dgrl_mnist.cleanrl_model"))
+    evaluated = run_script("dgrl_mnist.py", *TINY, "--groups", groups, "--checkpoint", str(run / "dgrl_mnist.cleanrl_model"))
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
     assert "epoch" not in evaluated.stdout and "accuracy on reconstructions" in evaluated.stdout
 
@@ -164,7 +151,7 @@ def test_smoke_run(tmp_path, groups):
         (["--data-dir", "/nonexistent"], r"--data-dir /nonexistent has no train-images-idx3-ubyte"),
     ],
 )
-def test_bad_flags_fail_before_any_work(tmp_path, flags, message):
-    result = run_script(tmp_path, *flags)
+def test_bad_flags_fail_before_any_work(tmp_path, run_script, flags, message):
+    result = run_script("dgrl_mnist.py", *flags)
     assert result.returncode != 0 and re.search(message, result.stderr), result.stderr[-2000:]
     assert not (tmp_path / "runs").exists()

@@ -2,7 +2,6 @@
 
 import math
 import re
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -12,7 +11,6 @@ import torch.nn.functional as F
 
 import dgrl_goal_dqn as gdqn
 
-ROOT = Path(__file__).resolve().parents[1]
 SPIRAL_ORDER = [0, 6, 12, 18, 24, 30, 31, 32, 33, 34, 35, 29, 23, 17, 11, 5, 4, 3, 2, 1, 7, 13, 19, 25, 26, 27, 28, 22, 16, 10]
 SPIRAL_ORDER += [9, 8, 14, 20, 21, 15]  # the corridor of the reference layout, from the start corner to the centre
 

@@ -13,8 +13,6 @@ import torch
 
 import dgrl_mnist as mnist
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def write_idx(path: Path, array: np.ndarray, compress: bool) -> None:
     header = struct.pack(">HBB", 0, 0x08, array.ndim) + struct.pack(f">{array.ndim}I", *array.shape)

@@ -415,13 +415,22 @@ def evaluate(rep, q_network, embedder, layout: MazeLayout, goal_cells: np.ndarra
     device = embedder.device
     goals = torch.as_tensor(goal_cells, device=device)
     next_cell = torch.as_tensor(layout.next_cell, device=device)
-    goal_features, _, _ = rep(embedder(rep, goals))
+
+    def cell_features(cells: torch.Tensor) -> torch.Tensor:
+        return rep(embedder(rep, cells))[0]
+
+    if embedder.noise == 0:  # every observation is one of the maze's distinct images: encode them once, then look up
+        table = cell_features(torch.arange(layout.n_cells, device=device))
+
+        def cell_features(cells: torch.Tensor) -> torch.Tensor:
+            return table[cells]
+
+    goal_features = cell_features(goals)
     cells = torch.full_like(goals, START_CELL)
     steps = torch.full_like(goals, max_steps)
     reached = torch.zeros_like(goals, dtype=torch.bool)
     for t in range(max_steps):
-        state_features, _, _ = rep(embedder(rep, cells))
-        actions = q_network(state_features, goal_features).argmax(1)
+        actions = q_network(cell_features(cells), goal_features).argmax(1)
         cells = torch.where(reached, cells, next_cell[cells, actions])
         arrived = (cells == goals) & ~reached
         steps[arrived] = t + 1
@@ -591,9 +600,11 @@ if __name__ == "__main__":
     )
     target_network = make_target(q_network)
 
+    lookup = not args.finetune and args.noise == 0  # frozen phi, noiseless images: features are a 36-row table
+
     def features(model: Representation, cells: torch.Tensor, update: bool = False):
         """(features, continuous embedding, commitment loss, codes) of the observations of `cells` under `model`."""
-        if not args.finetune and args.noise == 0:  # frozen and noiseless: a table lookup
+        if lookup:
             return all_features[cells], all_z[cells], all_z.new_zeros(()), None if all_codes is None else all_codes[cells]
         z = embedder(model, cells)
         features_, vq_loss_, codes_ = model(z, update=update)
@@ -620,7 +631,7 @@ if __name__ == "__main__":
             actions = envs.action_space.sample()
         else:
             with torch.no_grad():
-                if args.noise == 0 and not args.finetune:
+                if lookup:
                     state_features, goal_features = all_features[infos["cell"]], all_features[infos["goal_cell"]]
                 else:
                     images = torch.as_tensor(
@@ -653,15 +664,16 @@ if __name__ == "__main__":
             actions_t = torch.as_tensor(actions_buffer[batch], device=device)
             with torch.no_grad():
                 target_model = target_rep if args.finetune else rep
-                next_features, z_next, _, codes_next = features(target_model, cells[:, 1])
-                goal_target_features, z_goal, _, codes_goal = features(target_model, cells[:, 2])
-                bonus = intrinsic_bonus(z_next, z_goal, codes_next, codes_goal)
+                next_goal_cells = torch.cat([cells[:, 1], cells[:, 2]])
+                next_goal_features, next_goal_z, _, next_goal_codes = features(target_model, next_goal_cells)
+                next_codes, goal_codes = (None, None) if next_goal_codes is None else next_goal_codes.chunk(2)
+                bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)
                 rewards_t = torch.as_tensor(rewards_buffer[batch], device=device) + args.bonus_coef * bonus
-                target_q = target_network(next_features, goal_target_features)
+                target_q = target_network(*next_goal_features.chunk(2))
                 if args.double_dqn:
-                    online_next = features(rep, cells[:, 1])[0] if args.finetune else next_features
-                    online_goal = features(rep, cells[:, 2])[0] if args.finetune else goal_target_features
-                    next_values = target_q.gather(1, q_network(online_next, online_goal).argmax(1, keepdim=True)).squeeze(1)
+                    online_features = features(rep, next_goal_cells)[0] if args.finetune else next_goal_features
+                    next_actions = q_network(*online_features.chunk(2)).argmax(1, keepdim=True)
+                    next_values = target_q.gather(1, next_actions).squeeze(1)
                 else:
                     next_values = target_q.max(1).values
                 td_target = (

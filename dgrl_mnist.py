@@ -344,7 +344,7 @@ if __name__ == "__main__":
         model.load_state_dict(torch.load(args.checkpoint, map_location=device)["model"])
     else:
         optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
-        steps_per_epoch, global_step = -(-n_train // args.batch_size), 0
+        global_step = 0
         for epoch in range(args.epochs):
             model.train()
             for batch in torch.randperm(n_train, generator=generator).to(device).split(args.batch_size):
@@ -379,10 +379,11 @@ if __name__ == "__main__":
             print(f"checkpoint: {path}")
 
     # Referees: classifiers of digit and colour trained on real Color-MNIST, scored on the real test images first.
-    digit_classifier = train_classifier(lambda i: painted("train", i), labels["train"], 10, args, device, generator)
-    colour_classifier = train_classifier(
-        lambda i: painted("train", i), colours["train"], args.n_colours, args, device, generator
-    )
+    def painted_train(indices: torch.Tensor) -> torch.Tensor:
+        return painted("train", indices)
+
+    digit_classifier = train_classifier(painted_train, labels["train"], 10, args, device, generator)
+    colour_classifier = train_classifier(painted_train, colours["train"], args.n_colours, args, device, generator)
     test_images = painted("test", torch.arange(len(labels["test"]), device=device))
     results = {
         "real/digit_acc": (predict(digit_classifier, test_images) == labels["test"]).float().mean().item(),

@@ -185,7 +185,7 @@ def test_random_walks_follow_the_maze():
 class _OneHotEmbedder:
     """Stands in for CellEmbedder: the embedding of a cell is its one-hot vector."""
 
-    device = torch.device("cpu")
+    device, noise = torch.device("cpu"), 0.0
 
     def __call__(self, rep, cells):
         return F.one_hot(cells, 36).float()

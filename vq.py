@@ -197,8 +197,10 @@ def update_target(target: nn.Module, source: nn.Module, tau: float = 1.0) -> Non
     A Polyak loop over parameters() alone would leave a target network's codebook at its initial value forever.
     tau=1 is a hard copy (DQN); small tau a soft update (TD3, SAC).
     """
-    for target_param, source_param in zip(target.parameters(), source.parameters(), strict=True):
-        target_param.lerp_(source_param, tau)
+    target_params, source_params = list(target.parameters()), list(source.parameters())
+    if len(target_params) != len(source_params):
+        raise ValueError(f"update_target: {len(target_params)} target parameters vs {len(source_params)} source parameters")
+    torch._foreach_lerp_(target_params, source_params, tau)  # one fused call: a per-tensor loop costs ~1 ms per TD3 update
     for target_buffer, source_buffer in zip(target.buffers(), source.buffers(), strict=True):
         target_buffer.copy_(source_buffer)
 

@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist clean-venv
+.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest clean-venv
 
 $(VENV)/installed: requirements.txt requirements-nodeps.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,9 @@ study-goal-dqn: $(VENV)/installed
 
 study-mnist: $(VENV)/installed
 	PYTHON=$(PY) bash benchmark/mnist.sh
+
+study-hrac-keychest: $(VENV)/installed
+	PYTHON=$(PY) bash benchmark/hrac_keychest.sh
 
 clean-venv:
 	rm -rf $(VENV)

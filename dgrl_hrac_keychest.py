@@ -780,7 +780,7 @@ if __name__ == "__main__":
     segment_start = np.zeros((N, 3), dtype=np.float32)
     segment_reward = np.zeros(N, dtype=np.float32)
     frames_since_adjacency, man_updates, evaluations = 0, 0, 0
-    recent_returns, last_print = [], {}
+    recent_returns = []
     rollout = controller_rollout(envs, envs.reset(seed=args.seed)[0], explore_goals)
     stop = []  # Ctrl-C or SIGTERM ends the run after the current step, with the checkpoint saved and the logs flushed
     for signal_number in (signal.SIGINT, signal.SIGTERM):

@@ -783,8 +783,13 @@ if __name__ == "__main__":
     recent_returns = []
     rollout = controller_rollout(envs, envs.reset(seed=args.seed)[0], explore_goals)
     stop = []  # Ctrl-C or SIGTERM ends the run after the current step, with the checkpoint saved and the logs flushed
+
+    def request_stop(number, frame):
+        stop.append(number)
+        signal.signal(number, signal.SIG_DFL)  # a second Ctrl-C or SIGTERM stops at once
+
     for signal_number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signal_number, lambda number, frame: stop.append(number))
+        signal.signal(signal_number, request_stop)
     while frames < args.total_timesteps and not stop:
         observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = next(rollout)
         rows = np.arange(N)

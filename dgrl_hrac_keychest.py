@@ -518,10 +518,11 @@ def controller_goal_inputs(goal_ae: GoalAutoencoder | None, goals: torch.Tensor)
 
 
 @torch.no_grad()
-def evaluate(envs: KeyChestVecEnv, actor, controller, goal_ae, args: Args, device, frames: list | None = None):
+def evaluate(envs: KeyChestVecEnv, actor, controller, goal_ae, args: Args, device, frames=None, random_subgoals=False):
     """One episode per env (random starts): deterministic subgoals every k steps, sampled low-level actions, as the
     original. Returns (mean return, mean distance from a segment's last cell to its subgoal, fraction of segments whose
-    subgoal was reached). With `frames`, env 0's episode is appended to it as RGB images."""
+    subgoal was reached). With `frames`, env 0's episode is appended to it as RGB images. With `random_subgoals`, the
+    high level is replaced by uniform random subgoals: the reference that tells what the high level adds."""
     n = envs.num_envs
     observations, _ = envs.reset()
     returns, running = np.zeros(n), np.ones(n, dtype=bool)
@@ -532,7 +533,7 @@ def evaluate(envs: KeyChestVecEnv, actor, controller, goal_ae, args: Args, devic
     for step in range(args.max_episode_steps):
         states = torch.as_tensor(observations, device=device)
         if step % args.k == 0:
-            goals = actor(states)
+            goals = torch.rand(n, 2, device=device) * actor.scale if random_subgoals else actor(states)
             goal_inputs = controller_goal_inputs(goal_ae, goals)
             reached_in_segment.zero_()
         if frames is not None and running[0]:
@@ -659,8 +660,14 @@ if __name__ == "__main__":
                 raise SystemExit(f"--checkpoint {args.checkpoint} was saved with --groups {saved['args']['groups']}")
             if module is not None:
                 module.load_state_dict(saved[name])
-        mean_return, distance, reach = evaluate(eval_envs, actor, controller, goal_ae, args, device)
-        print(f"{args.eval_episodes} episodes: return {mean_return:.2f}, subgoal distance {distance:.2f}, reached {reach:.0%}")
+        for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
+            mean_return, distance, reach = evaluate(
+                eval_envs, actor, controller, goal_ae, args, device, random_subgoals=random_subgoals
+            )
+            print(
+                f"{args.eval_episodes} episodes{label}: return {mean_return:.2f}, subgoal distance {distance:.2f}, "
+                f"reached {reach:.0%}"
+            )
         raise SystemExit(0)
 
     if args.track:
@@ -901,6 +908,7 @@ if __name__ == "__main__":
             if episodes % args.eval_frequency == 0:
                 video = [] if args.capture_video and evaluations % 10 == 0 else None
                 mean_return, distance, reach = evaluate(eval_envs, actor, controller, goal_ae, args, device, video)
+                random_return = evaluate(eval_envs, actor, controller, goal_ae, args, device, random_subgoals=True)[0]
                 if dgrl:
                     with torch.no_grad():
                         cell_codes = goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]  # DGRL
@@ -909,6 +917,7 @@ if __name__ == "__main__":
                 evaluations += 1
                 sps = int(frames / (time.time() - start_time))
                 writer.add_scalar("eval/return", mean_return, frames)
+                writer.add_scalar("eval/return_random_subgoals", random_return, frames)
                 writer.add_scalar("eval/subgoal_distance", distance, frames)
                 writer.add_scalar("eval/subgoal_reach_rate", reach, frames)
                 writer.add_scalar("charts/SPS", sps, frames)
@@ -916,7 +925,8 @@ if __name__ == "__main__":
                 recent_returns = []
                 elapsed = time.time() - start_time
                 print(
-                    f"frames {frames:>8}/{args.total_timesteps}  eval return {mean_return:5.2f}  train return "
+                    f"frames {frames:>8}/{args.total_timesteps}  eval return {mean_return:5.2f} (random subgoals "
+                    f"{random_return:4.2f})  train return "
                     f"{train_return:5.2f}  subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc "
                     f"{adj_accuracy:.3f}" + (f"  distinct cells {distinct:3d}" if dgrl else "") + f"  SPS {sps}  "
                     f"{elapsed:.0f}s elapsed, {(args.total_timesteps - frames) / max(sps, 1):.0f}s left"

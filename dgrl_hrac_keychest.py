@@ -5,8 +5,9 @@ Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction 
 agent (Zhang et al., NeurIPS 2020): a TD3 high level proposes an absolute cell (row, col) every k = 10 steps, kept
 within k-step reach by an adjacency network trained with a contrastive loss; an on-policy A2C low level is rewarded
 for reaching the proposed cell. DGRL (`--groups G`) passes each subgoal through an encoder, the shared-codebook
-bottleneck of vq.py and a decoder back to the cell; the low level is conditioned on the discretized embedding instead
-of the raw subgoal. `--groups 0` is plain HRAC from the same file.
+bottleneck of vq.py and a decoder back to the grid; the low level is conditioned on (and rewarded for reaching) the
+decoded discretized subgoal instead of the raw one, or with `--dgrl-goal embedding` sees the discrete embedding
+itself. `--groups 0` is plain HRAC from the same file.
 
     python dgrl_hrac_keychest.py --groups 16            # paper setting, DGRL G=16: 2M frames (about 10 min on a CPU)
     python dgrl_hrac_keychest.py --groups 0             # HRAC
@@ -152,6 +153,10 @@ class Args:
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
     embed_dim: int = 64
     """size of the subgoal embedding (m); must be divisible by groups"""
+    dgrl_goal: Literal["decoded", "embedding"] = "decoded"
+    """what the low level gets under DGRL: the decoded discretized subgoal, a point of the grid that it is rewarded for
+    reaching (the paper appendix's encoder-bottleneck-decoder), or the discrete embedding itself, rewarded for reaching
+    the raw subgoal"""
     ae_hidden_dim: int = 128
     """hidden units of the subgoal encoder and decoder"""
     ae_lr: float = 1e-3
@@ -509,12 +514,17 @@ def propose_subgoals(actor, anet, states, args: Args, threshold: float, explore:
     return torch.where(reachable.any(1, keepdim=True), chosen, raw)
 
 
-@torch.no_grad()
-def controller_goal_inputs(goal_ae: GoalAutoencoder | None, goals: torch.Tensor) -> torch.Tensor:
-    """What the low level sees of its subgoal: the raw cell (HRAC) or its discretized embedding (DGRL)."""
+def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode: str, update: bool = False):
+    """(what the low level sees of a raw subgoal, the cell-space goal its reward and distances are measured to),
+    plus the autoencoder's (commitment loss, codes, reconstruction) for DGRL. HRAC: (g, g). DGRL "decoded": the
+    decoded discretized subgoal for both. DGRL "embedding": (discrete embedding, g). Both outputs are detached."""
     if goal_ae is None:
-        return goals
-    return goal_ae(goals, update=False)[0]  # DGRL: acting never moves the codebook
+        return goals, goals, None
+    quantized, vq_loss, codes, reconstruction = goal_ae(goals, update=update)  # DGRL
+    if mode == "embedding":  # DGRL
+        return quantized.detach(), goals, (vq_loss, codes, reconstruction)  # DGRL
+    decoded = (reconstruction * goal_ae.scale).detach()  # DGRL
+    return decoded, decoded, (vq_loss, codes, reconstruction)  # DGRL
 
 
 @torch.no_grad()
@@ -526,15 +536,13 @@ def evaluate(envs: KeyChestVecEnv, actor, controller, goal_ae, args: Args, devic
     n = envs.num_envs
     observations, _ = envs.reset()
     returns, running = np.zeros(n), np.ones(n, dtype=bool)
-    goals = torch.zeros(n, 2, device=device)
-    goal_inputs = controller_goal_inputs(goal_ae, goals)
     reached_in_segment = torch.zeros(n, dtype=torch.bool, device=device)
     distances, reached = [], []
     for step in range(args.max_episode_steps):
         states = torch.as_tensor(observations, device=device)
         if step % args.k == 0:
-            goals = torch.rand(n, 2, device=device) * actor.scale if random_subgoals else actor(states)
-            goal_inputs = controller_goal_inputs(goal_ae, goals)
+            raw_goals = torch.rand(n, 2, device=device) * actor.scale if random_subgoals else actor(states)
+            goal_inputs, goals, _ = controller_goals(goal_ae, raw_goals, args.dgrl_goal)  # acting: update=False
             reached_in_segment.zero_()
         if frames is not None and running[0]:
             frames.append(envs.frame(0, goals[0].cpu().numpy()))
@@ -647,7 +655,7 @@ if __name__ == "__main__":
         if dgrl
         else None
     )
-    controller = Controller(args.embed_dim if dgrl else 2, args.hidden_dim).to(device)  # DGRL: sees the discrete embedding
+    controller = Controller(args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2, args.hidden_dim).to(device)
     anet = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device)
     eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
     eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
@@ -655,9 +663,13 @@ if __name__ == "__main__":
 
     if args.checkpoint is not None:
         saved = torch.load(args.checkpoint, map_location=device)
+        architecture = ("groups", "dgrl_goal", "embed_dim", "n_embed", "hidden_dim", "adj_hidden_dim", "adj_embed_dim")
+        differ = [
+            f"--{key.replace('_', '-')} {saved['args'][key]}" for key in architecture if saved["args"][key] != vars(args)[key]
+        ]
+        if differ:
+            raise SystemExit(f"--checkpoint {args.checkpoint} was saved with other networks: pass {' '.join(differ)}")
         for name, module in modules.items():
-            if (module is None) != (saved[name] is None):
-                raise SystemExit(f"--checkpoint {args.checkpoint} was saved with --groups {saved['args']['groups']}")
             if module is not None:
                 module.load_state_dict(saved[name])
         for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
@@ -704,14 +716,14 @@ if __name__ == "__main__":
         Yields (states, goals, actions, next observations, real next states, rewards, terminations, truncations, infos)."""
         t_episode = np.zeros(N, dtype=np.int64)
         goals = torch.zeros(N, 2, device=device)
-        goal_inputs = controller_goal_inputs(goal_ae, goals)
+        goal_inputs = controller_goals(goal_ae, goals, args.dgrl_goal)[0]
         while True:
             states = torch.as_tensor(observations, device=device)
             new_segment = t_episode % args.k == 0
             if new_segment.any():
                 index = torch.as_tensor(np.flatnonzero(new_segment), device=device)
                 goals[index] = explore_goals(states[index])
-                goal_inputs[index] = controller_goal_inputs(goal_ae, goals[index])
+                goal_inputs[index] = controller_goals(goal_ae, goals[index], args.dgrl_goal)[0]  # the codebook stays put
             with torch.no_grad():
                 logits, _ = controller(states, goal_inputs)
                 actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
@@ -830,19 +842,19 @@ if __name__ == "__main__":
                 states_t = torch.as_tensor(episode_states[env, :length], device=device)
                 goals_t = torch.as_tensor(episode_goals[env, :length], device=device)
                 next_t = torch.as_tensor(episode_next[env, :length], device=device)
-                intrinsic = args.ctrl_reward_scale * goal_reached(next_t, goals_t, args.goal_threshold)
-                returns_t = torch.as_tensor(
-                    segment_returns(intrinsic.cpu().numpy(), args.ctrl_gamma, args.k), dtype=torch.float32, device=device
-                )
+                # DGRL: the low-level goals are recomputed from the stored raw subgoals by the current autoencoder, whose
+                # training step this is (the codebook moves here); the low level's loss does not shape the codes.
+                goal_inputs, target_goals, ae_outputs = controller_goals(goal_ae, goals_t, args.dgrl_goal, update=True)
                 if dgrl:
-                    goal_inputs, vq_loss, codes, reconstruction = goal_ae(goals_t, update=True)  # DGRL
+                    vq_loss, codes, reconstruction = ae_outputs  # DGRL
                     reconstruction_loss = F.mse_loss(reconstruction, goals_t / goal_scale)  # DGRL
                     ae_optimizer.zero_grad()  # DGRL
                     (reconstruction_loss + vq_loss).backward()  # DGRL
                     ae_optimizer.step()  # DGRL
-                    goal_inputs = goal_inputs.detach()  # DGRL: the low level's loss does not shape the codes
-                else:
-                    goal_inputs = goals_t
+                intrinsic = args.ctrl_reward_scale * goal_reached(next_t, target_goals, args.goal_threshold)
+                returns_t = torch.as_tensor(
+                    segment_returns(intrinsic.cpu().numpy(), args.ctrl_gamma, args.k), dtype=torch.float32, device=device
+                )
                 logits, values = controller(states_t, goal_inputs)
                 ctrl_loss, policy_loss, value_loss, entropy = a2c_loss(
                     logits, values, torch.as_tensor(episode_actions[env, :length], device=device), returns_t,

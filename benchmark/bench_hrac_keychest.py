@@ -68,14 +68,14 @@ def controller_seconds(groups: int, envs: kc.KeyChestVecEnv, rng: np.random.Gene
     """(acting time per frame, one A2C update on a 500-step episode) for HRAC (groups 0) or DGRL."""
     torch.manual_seed(0)
     goal_ae = kc.GoalAutoencoder(64, 128, groups, 64, 0.25, 0.99, 0) if groups else None
-    controller = kc.Controller(64 if groups else 2, 300)
+    controller = kc.Controller(2, 300)  # DGRL's default: the low level gets the decoded discretized subgoal
     ctrl_opt = torch.optim.Adam(controller.parameters(), lr=1e-4, fused=True)
     states = torch.as_tensor(rng.random((500, 3)) * 10, dtype=torch.float32)
     goals = torch.as_tensor(rng.random((500, 2)) * 10, dtype=torch.float32)
     actions, returns = torch.as_tensor(rng.integers(4, size=500)), torch.rand(500)
 
     def a2c_update():
-        goal_inputs = goals if goal_ae is None else goal_ae(goals, update=True)[0].detach()
+        goal_inputs = kc.controller_goals(goal_ae, goals, "decoded", update=True)[0]
         logits, values = controller(states, goal_inputs)
         loss = kc.a2c_loss(logits, values, actions, returns, 0.01)[0]
         ctrl_opt.zero_grad()
@@ -83,7 +83,7 @@ def controller_seconds(groups: int, envs: kc.KeyChestVecEnv, rng: np.random.Gene
         ctrl_opt.step()
 
     acting_states = torch.as_tensor(envs._observe())
-    acting_goals = kc.controller_goal_inputs(goal_ae, torch.rand(envs.num_envs, 2) * 10)
+    acting_goals = kc.controller_goals(goal_ae, torch.rand(envs.num_envs, 2) * 10, "decoded")[0]
 
     def act():
         with torch.no_grad():

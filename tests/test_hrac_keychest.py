@@ -295,6 +295,25 @@ def test_goal_autoencoder_round_trip_separates_cells():
     assert len(torch.unique(indices, dim=0)) > 110  # and almost every cell has a code tuple of its own
 
 
+def test_controller_goals_in_each_mode():
+    torch.manual_seed(0)
+    ae = kc.GoalAutoencoder(embed_dim=16, hidden_dim=32, groups=4, n_embed=8, beta=0.25, decay=0.99, dead=0)
+    goals = torch.tensor([[3.0, 4.0], [11.0, 15.0]])
+    inputs, targets, extra = kc.controller_goals(None, goals, "decoded")
+    assert inputs is goals and targets is goals and extra is None  # HRAC: the raw subgoal, rewarded as it is
+    quantized, _, _, reconstruction = ae(goals)
+    inputs, targets, _ = kc.controller_goals(ae, goals, "decoded")
+    assert torch.allclose(inputs, reconstruction * torch.as_tensor(kc.GOAL_SCALE)) and torch.equal(inputs, targets)
+    assert not inputs.requires_grad  # the low level's loss never reaches the autoencoder
+    inputs, targets, _ = kc.controller_goals(ae, goals, "embedding")
+    assert torch.equal(inputs, quantized) and inputs.shape == (2, 16) and torch.equal(targets, goals)
+    codebook = ae.vq.codebook.clone()
+    kc.controller_goals(ae, goals, "decoded")  # acting
+    assert torch.equal(ae.vq.codebook, codebook)
+    kc.controller_goals(ae, goals, "decoded", update=True)  # the autoencoder's training step
+    assert not torch.equal(ae.vq.codebook, codebook)
+
+
 def test_propose_subgoals_filters_by_adjacency():
     torch.manual_seed(0)
     args = kc.Args(n_noisy_goals=20, man_noise_sigma=5.0)
@@ -341,9 +360,10 @@ TINY = [
 ]  # fmt: skip
 
 
-@pytest.mark.parametrize("groups", ["0", "16"])
-def test_smoke_run_trains_evaluates_and_reloads(run_script, tmp_path, groups):
-    result = run_script("dgrl_hrac_keychest.py", *TINY, "--groups", groups, "--save-model", "--capture-video")
+@pytest.mark.parametrize(("groups", "dgrl_goal"), [("0", "decoded"), ("16", "decoded"), ("16", "embedding")])
+def test_smoke_run_trains_evaluates_and_reloads(run_script, tmp_path, groups, dgrl_goal):
+    flags = ("--groups", groups, "--dgrl-goal", dgrl_goal)
+    result = run_script("dgrl_hrac_keychest.py", *TINY, *flags, "--save-model", "--capture-video")
     assert result.returncode == 0, result.stderr
     assert "adjacency pre-training" in result.stdout and "eval return" in result.stdout
     assert ("distinct cells" in result.stdout) == (groups != "0")
@@ -358,18 +378,13 @@ def test_smoke_run_trains_evaluates_and_reloads(run_script, tmp_path, groups):
         assert tag in events
     assert (b"vq/perplexity" in events) == (groups != "0")
     reloaded = run_script(
-        "dgrl_hrac_keychest.py",
-        "--groups",
-        groups,
-        "--hidden-dim",
-        "32",
-        "--eval-episodes",
-        "3",
-        "--checkpoint",
-        str(checkpoint),
+        "dgrl_hrac_keychest.py", *flags, "--hidden-dim", "32", "--eval-episodes", "3", "--checkpoint", str(checkpoint)
     )
     assert reloaded.returncode == 0, reloaded.stderr
     assert re.search(r"3 episodes: return [\d.]+", reloaded.stdout)
+    assert re.search(r"3 episodes with uniform random subgoals: return [\d.]+", reloaded.stdout)
+    mismatched = run_script("dgrl_hrac_keychest.py", "--groups", "8", "--checkpoint", str(checkpoint))
+    assert mismatched.returncode != 0 and "was saved with other networks: pass --groups" in mismatched.stderr
 
 
 @pytest.mark.parametrize(

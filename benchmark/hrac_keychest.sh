@@ -23,5 +23,5 @@ done | xargs -P "$JOBS" -L 1 bash -c 'log="logs/hrac_keychest_$3_G$4_s$5.log"
     --exp-name "$3" > "$log" 2>&1
   tail -n 1 "$log"' _ "$PYTHON" "$FRAMES" "$TAG"
 "$PYTHON" benchmark/plot.py --runs-dir runs --match "__${TAG}__" --out "results/hrac_keychest_${TAG}" \
-  --tags eval/return eval/return_random_subgoals eval/subgoal_reach_rate eval/subgoal_distance charts/adjacency_accuracy \
+  --bins 20 --tags eval/return eval/return_random_subgoals eval/subgoal_reach_rate eval/subgoal_distance charts/adjacency_accuracy \
   --title "Key-Chest: HRAC (G0) vs HRAC+DGRL (G4, G8, G16), ${FRAMES} frames"

@@ -36,6 +36,9 @@ class Args:
     """output path without extension: OUT.png and OUT.md are written"""
     title: str = ""
     """figure title"""
+    bins: int = 0
+    """if > 0, average each seed's values in this many equal bins of steps over the range every seed covers, for runs
+    whose evaluation steps differ (episode-based schedules); "final" is then the last bin (0 = the exact common steps)"""
 
 
 def setting_of(run_name: str) -> str:
@@ -60,11 +63,26 @@ def load_runs(runs_dir: Path, match: str, tags: list[str]) -> dict[str, list[dic
     return settings
 
 
-def aggregate(seeds: list[dict], tag: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """(common steps, values of shape (seeds, steps)) of one tag, on the steps every seed logged."""
+def aggregate(seeds: list[dict], tag: str, bins: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+    """(common steps, values of shape (seeds, steps)) of one tag: on the steps every seed logged, or with `bins`, the
+    mean of each seed's values in each of `bins` equal bins over the steps all seeds cover (bin centres as steps; an
+    empty bin is interpolated from its neighbours)."""
     curves = [seed[tag] for seed in seeds if tag in seed]
     if not curves:
         return None
+    if bins > 0:
+        start, end = max(steps[0] for steps, _ in curves), min(steps[-1] for steps, _ in curves)
+        edges = np.linspace(start, end, bins + 1)
+        centres = (edges[:-1] + edges[1:]) / 2
+        rows = []
+        for steps, values in curves:
+            inside = (steps >= start) & (steps <= end)
+            index = np.clip(np.searchsorted(edges, steps[inside], side="right") - 1, 0, bins - 1)
+            counts = np.bincount(index, minlength=bins)
+            means = np.bincount(index, weights=values[inside], minlength=bins) / np.maximum(counts, 1)
+            filled = counts > 0
+            rows.append(np.interp(centres, centres[filled], means[filled]))
+        return centres, np.stack(rows)
     steps = curves[0][0]
     for other_steps, _ in curves[1:]:
         steps = np.intersect1d(steps, other_steps)
@@ -103,7 +121,7 @@ if __name__ == "__main__":
         for setting in panel_settings:
             cells = [setting.replace("__", " "), str(len(settings[setting]))]
             for column, tag in enumerate(args.tags):
-                aggregated = aggregate(settings[setting], tag)
+                aggregated = aggregate(settings[setting], tag, args.bins)
                 if aggregated is None:
                     cells.append("n/a")
                     continue

@@ -57,3 +57,18 @@ def test_plot_fails_clearly_when_nothing_matches(tmp_path):
         timeout=120,
     )
     assert result.returncode != 0 and "no run in" in result.stderr
+
+
+def test_plot_bins_runs_whose_evaluation_steps_differ(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, "KeyChest__G16__demo__1__100", {0: 0.0, 100: 1.0, 240: 2.0, 390: 3.0, 400: 4.0})
+    write_run(runs, "KeyChest__G16__demo__2__200", {10: 1.0, 150: 1.0, 260: 3.0, 300: 5.0, 410: 9.0})
+    flags = ["--runs-dir", str(runs), "--match", "__demo__", "--bins", "2", *PLOT_FLAGS, str(tmp_path / "out")]
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/plot.py"), *flags], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    row = (tmp_path / "out.md").read_text().splitlines()[2]
+    # Shared range [10, 400], bins [10, 205) and [205, 400]. Seed 1: (1.0) then (2, 3, 4) -> 1.0, 3.0;
+    # seed 2: (1, 1) then (3, 5) -> 1.0, 4.0. Final bin 3.0 and 4.0 -> 3.5 +- 0.5; averages 2.0 and 2.5 -> 2.25 +- 0.25.
+    assert "| 2 | 3.5 +- 0.5 (avg 2.25 +- 0.25)" in row

@@ -9,7 +9,7 @@ bottleneck of vq.py and a decoder back to the grid; the low level is conditioned
 decoded discretized subgoal instead of the raw one, or with `--dgrl-goal embedding` sees the discrete embedding
 itself. `--groups 0` is plain HRAC from the same file.
 
-    python dgrl_hrac_keychest.py --groups 16            # paper setting, DGRL G=16: 2M frames (about 10 min on a CPU)
+    python dgrl_hrac_keychest.py --groups 16            # paper setting, DGRL G=16: 2M frames (about 28 min on a CPU core)
     python dgrl_hrac_keychest.py --groups 0             # HRAC
     python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400   # smoke run
 

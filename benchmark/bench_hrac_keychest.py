@@ -1,6 +1,11 @@
 """Where the time of dgrl_hrac_keychest.py goes: environment frames/s, the cost of acting, and of each update.
 
-    python benchmark/bench_hrac_keychest.py            # about 1 min on 2 CPU cores; run nothing else meanwhile
+    python benchmark/bench_hrac_keychest.py            # about 15 s on 2 CPU cores; run nothing else meanwhile
+
+Whole-run speed, one run alone on the machine (the SPS of each progress line, and its deltas in the training phase):
+
+    python dgrl_hrac_keychest.py --groups 0 --total-timesteps 400000 --threads 1 --exp-name speed
+    python dgrl_hrac_keychest.py --groups 16 --total-timesteps 400000 --threads 1 --exp-name speed
 
 Prints one line per measurement (median of 5 blocks): the environment alone (random actions, 8 envs in one batch),
 a full acting step (low-level forward + sampling + env step, per frame), one HRAC high-level TD3 update (batch 64,
@@ -10,12 +15,15 @@ with 1 and 2 torch threads. HRAC does one TD3 update per k = 10 frames, so frame
 """
 
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import dgrl_hrac_keychest as kc
 from vq import make_target, update_target
 

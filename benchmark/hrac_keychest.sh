@@ -12,7 +12,7 @@ SEEDS=${SEEDS:-"1 2 3"}
 GROUPS_LIST=${GROUPS_LIST:-"0 4 8 16"}
 JOBS=${JOBS:-2}
 TAG=${TAG:-study}
-export OMP_NUM_THREADS=1
+export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1  # one thread a run; logs readable while a run goes
 mkdir -p logs
 for seed in $SEEDS; do
   for groups in $GROUPS_LIST; do

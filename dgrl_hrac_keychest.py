@@ -709,13 +709,14 @@ if __name__ == "__main__":
     adjacency = np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool)  # over flat cell indices; persists all run long
     visited = np.zeros(HEIGHT * WIDTH, dtype=bool)
     goal_scale = torch.as_tensor(GOAL_SCALE, device=device)
-    T, N = args.max_episode_steps, args.num_envs
+    max_steps, n_envs = args.max_episode_steps, args.num_envs
 
     def controller_rollout(envs, observations, explore_goals):
         """Generator over vector steps of the low level acting on subgoals from `explore_goals(states)` every k steps.
-        Yields (states, goals, actions, next observations, real next states, rewards, terminations, truncations, infos)."""
-        t_episode = np.zeros(N, dtype=np.int64)
-        goals = torch.zeros(N, 2, device=device)
+        Yields (observations, each env's step in its episode, raw subgoals, actions, true next observations, rewards,
+        terminations, terminations | truncations, infos)."""
+        t_episode = np.zeros(n_envs, dtype=np.int64)
+        goals = torch.zeros(n_envs, 2, device=device)
         goal_inputs = controller_goals(goal_ae, goals, args.dgrl_goal)[0]
         while True:
             states = torch.as_tensor(observations, device=device)
@@ -730,17 +731,8 @@ if __name__ == "__main__":
             next_observations, rewards, terminations, truncations, infos = envs.step(actions)
             done = terminations | truncations
             real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
-            yield (
-                observations,
-                t_episode.copy(),
-                goals.cpu().numpy().copy(),
-                actions,
-                real_next,
-                rewards,
-                terminations,
-                done,
-                infos,
-            )
+            goals_np = goals.cpu().numpy().copy()
+            yield observations, t_episode.copy(), goals_np, actions, real_next, rewards, terminations, done, infos
             t_episode = np.where(done, 0, t_episode + 1)
             observations = next_observations
 
@@ -749,14 +741,14 @@ if __name__ == "__main__":
 
     # Phase 1: random-subgoal exploration (the chest ends no episode) to learn k-step adjacency, as HRAC does first.
     frames, episodes = 0, 0
-    explore_envs = KeyChestVecEnv(N, T, args.random_action_prob, terminate_at_chest=False)
-    trajectories = np.zeros((N, T + 1), dtype=np.int64)  # flat cell index of each env's states in its current episode
+    explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
+    trajectories = np.zeros((n_envs, max_steps + 1), dtype=np.int64)  # flat cell indices of each env's current episode
     rollout = controller_rollout(explore_envs, explore_envs.reset(seed=args.seed + 200)[0], random_goals)
     while frames < args.adj_init_steps:
         observations, t_episode, _, _, real_next, _, _, done, _ = next(rollout)
-        trajectories[np.arange(N), t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
-        trajectories[np.arange(N), t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
-        frames += N
+        trajectories[np.arange(n_envs), t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
+        trajectories[np.arange(n_envs), t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
+        frames += n_envs
         for env in np.flatnonzero(done):
             mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
             episodes += 1
@@ -785,19 +777,19 @@ if __name__ == "__main__":
     # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
     # subgoals are uniform random and neither level learns.
     replay = ManagerReplay(args.man_buffer_size, rng)
-    envs = KeyChestVecEnv(N, T, args.random_action_prob)
+    envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob)
 
     def explore_goals(states: torch.Tensor) -> torch.Tensor:
         if not replay.started():
             return random_goals(states)
         return propose_subgoals(actor, anet, states, args, threshold, explore=True)
 
-    episode_states = np.zeros((N, T, 3), dtype=np.float32)
-    episode_goals = np.zeros((N, T, 2), dtype=np.float32)
-    episode_actions = np.zeros((N, T), dtype=np.int64)
-    episode_next = np.zeros((N, T, 3), dtype=np.float32)
-    segment_start = np.zeros((N, 3), dtype=np.float32)
-    segment_reward = np.zeros(N, dtype=np.float32)
+    episode_states = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
+    episode_goals = np.zeros((n_envs, max_steps, 2), dtype=np.float32)
+    episode_actions = np.zeros((n_envs, max_steps), dtype=np.int64)
+    episode_next = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
+    segment_start = np.zeros((n_envs, 3), dtype=np.float32)
+    segment_reward = np.zeros(n_envs, dtype=np.float32)
     frames_since_adjacency, man_updates, evaluations = 0, 0, 0
     recent_returns = []
     rollout = controller_rollout(envs, envs.reset(seed=args.seed)[0], explore_goals)
@@ -811,7 +803,7 @@ if __name__ == "__main__":
         signal.signal(signal_number, request_stop)
     while frames < args.total_timesteps and not stop:
         observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = next(rollout)
-        rows = np.arange(N)
+        rows = np.arange(n_envs)
         episode_states[rows, t_episode], episode_goals[rows, t_episode] = observations, goals
         episode_actions[rows, t_episode], episode_next[rows, t_episode] = actions, real_next
         # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
@@ -823,8 +815,8 @@ if __name__ == "__main__":
                 segment_start[segment_end], goals[segment_end], segment_reward[segment_end],
                 real_next[segment_end], terminations[segment_end],
             )  # fmt: skip
-        frames += N
-        frames_since_adjacency += N
+        frames += n_envs
+        frames_since_adjacency += n_envs
 
         for env in np.flatnonzero(done):
             length = int(t_episode[env]) + 1
@@ -833,9 +825,8 @@ if __name__ == "__main__":
             writer.add_scalar("charts/episodic_return", infos["episode"]["r"][env], frames)
             writer.add_scalar("charts/episodic_length", length, frames)
             writer.add_scalar("charts/success_rate", float(terminations[env]), frames)
-            cells = np.append(episode_states[env, :length, 0], real_next[env, 0]) * WIDTH
-            cells = (cells + np.append(episode_states[env, :length, 1], real_next[env, 1])).astype(np.int64)
-            mark_adjacent(adjacency, visited, cells, args.k)
+            trajectory = np.vstack([episode_states[env, :length, :2], real_next[env, :2]]).astype(np.int64)
+            mark_adjacent(adjacency, visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
 
             if replay.started():
                 # Low level: one A2C update on this episode, returns truncated at each segment's end.

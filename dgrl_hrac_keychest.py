@@ -565,6 +565,53 @@ def evaluate(envs: KeyChestVecEnv, actor, controller, goal_ae, args: Args, devic
     return returns.mean(), distances.mean().item() if len(distances) else float("nan"), reached.mean().item()
 
 
+def manager_update(
+    actor,
+    critic,
+    actor_target,
+    critic_target,
+    actor_optimizer,
+    critic_optimizer,
+    anet,
+    batch,
+    args: Args,
+    threshold: float,
+    policy_term: bool,
+):
+    """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), then
+    the actor on -Q1(s, pi(s)) (only when `policy_term`, TD3's delay) + goal_loss_coef x the adjacency loss, then
+    Polyak targets. Returns (critic loss, adjacency loss, Q1 values)."""
+    states, goals, rewards, next_states, terminals = batch
+    with torch.no_grad():
+        next_q = torch.min(*critic_target(next_states, actor_target(next_states)))
+        td_target = rewards + args.man_gamma * (1 - terminals) * next_q
+    q1, q2 = critic(states, goals)
+    critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
+    critic_optimizer.zero_grad()
+    critic_loss.backward()
+    critic_optimizer.step()
+    proposed = actor(states)
+    actor_q_loss = -critic.q1(torch.cat([states, proposed], 1)).mean() if policy_term else 0.0
+    with torch.no_grad():
+        state_embeddings = anet(states[:, :2])
+    goal_loss = ((anet(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
+    actor_optimizer.zero_grad()
+    (actor_q_loss + args.goal_loss_coef * goal_loss).backward()
+    actor_optimizer.step()
+    update_target(actor_target, actor, args.man_tau)
+    update_target(critic_target, critic, args.man_tau)
+    return critic_loss, goal_loss, q1
+
+
+def goal_autoencoder_step(optimizer, goals: torch.Tensor, reconstruction, vq_loss, goal_scale: torch.Tensor):  # DGRL
+    """One Adam step of the subgoal autoencoder on reconstruction (MSE in [0, 1]^2 units) + the commitment loss."""
+    reconstruction_loss = F.mse_loss(reconstruction, goals / goal_scale)
+    optimizer.zero_grad()
+    (reconstruction_loss + vq_loss).backward()
+    optimizer.step()
+    return reconstruction_loss
+
+
 def save_checkpoint(path: str, modules: dict[str, nn.Module | None], args: Args) -> None:
     """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
     payload = {name: None if module is None else module.state_dict() for name, module in modules.items()}
@@ -764,11 +811,8 @@ if __name__ == "__main__":
     if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
         for _ in range(args.ae_init_steps):
             goals = torch.rand(args.ae_batch_size, 2, device=device) * goal_scale  # DGRL
-            _, vq_loss, codes, reconstruction = goal_ae(goals, update=True)  # DGRL
-            reconstruction_loss = F.mse_loss(reconstruction, goals / goal_scale)  # DGRL
-            ae_optimizer.zero_grad()  # DGRL
-            (reconstruction_loss + vq_loss).backward()  # DGRL
-            ae_optimizer.step()  # DGRL
+            _, vq_loss, _, reconstruction = goal_ae(goals, update=True)  # DGRL
+            goal_autoencoder_step(ae_optimizer, goals, reconstruction, vq_loss, goal_scale)  # DGRL
     print(
         f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
         f"(loss {adj_loss:.3f}), {time.time() - start_time:.1f} s"
@@ -838,10 +882,9 @@ if __name__ == "__main__":
                 goal_inputs, target_goals, ae_outputs = controller_goals(goal_ae, goals_t, args.dgrl_goal, update=True)
                 if dgrl:
                     vq_loss, codes, reconstruction = ae_outputs  # DGRL
-                    reconstruction_loss = F.mse_loss(reconstruction, goals_t / goal_scale)  # DGRL
-                    ae_optimizer.zero_grad()  # DGRL
-                    (reconstruction_loss + vq_loss).backward()  # DGRL
-                    ae_optimizer.step()  # DGRL
+                    reconstruction_loss = goal_autoencoder_step(
+                        ae_optimizer, goals_t, reconstruction, vq_loss, goal_scale
+                    )  # DGRL
                 intrinsic = args.ctrl_reward_scale * goal_reached(next_t, target_goals, args.goal_threshold)
                 returns_t = torch.as_tensor(
                     segment_returns(intrinsic.cpu().numpy(), args.ctrl_gamma, args.k), dtype=torch.float32, device=device
@@ -857,27 +900,11 @@ if __name__ == "__main__":
 
                 # High level: max(length // k, 1) TD3 updates, as HRAC does after every episode.
                 for _ in range(max(length // args.k, 1)):
-                    states_b, goals_b, rewards_b, next_b, terminals_b = replay.sample(args.man_batch_size, device)
-                    with torch.no_grad():
-                        next_q = torch.min(*critic_target(next_b, actor_target(next_b)))
-                        td_target = rewards_b + args.man_gamma * (1 - terminals_b) * next_q
-                    q1, q2 = critic(states_b, goals_b)
-                    critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
-                    critic_optimizer.zero_grad()
-                    critic_loss.backward()
-                    critic_optimizer.step()
-                    proposed = actor(states_b)
-                    actor_q_loss = 0.0
-                    if man_updates % args.man_policy_delay == 0:  # TD3's delayed policy term: -Q1(s, pi(s))
-                        actor_q_loss = -critic.q1(torch.cat([states_b, proposed], 1)).mean()
-                    with torch.no_grad():
-                        state_embeddings = anet(states_b[:, :2])
-                    goal_loss = ((anet(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
-                    actor_optimizer.zero_grad()
-                    (actor_q_loss + args.goal_loss_coef * goal_loss).backward()
-                    actor_optimizer.step()
-                    update_target(actor_target, actor, args.man_tau)
-                    update_target(critic_target, critic, args.man_tau)
+                    critic_loss, goal_loss, q1 = manager_update(
+                        actor, critic, actor_target, critic_target, actor_optimizer, critic_optimizer, anet,
+                        replay.sample(args.man_batch_size, device), args, threshold,
+                        policy_term=man_updates % args.man_policy_delay == 0,
+                    )  # fmt: skip
                     man_updates += 1
 
                 if episodes % 10 == 0:

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import dgrl_hrac_keychest as kc
-from vq import make_target, update_target
+from vq import make_target
 
 
 def median_time(fn, repeats: int, blocks: int = 5) -> float:
@@ -50,23 +50,12 @@ def td3_seconds(rng: np.random.Generator) -> float:
     replay.add(*(rng.random((20000, d)).astype(np.float32) * 10 for d in (3, 2)), np.zeros(20000, np.float32),
                rng.random((20000, 3)).astype(np.float32) * 10, np.zeros(20000, np.float32))  # fmt: skip
     counter = [0]
+    args = kc.Args()
 
     def update():
-        states, goals, rewards, next_states, terminals = replay.sample(64, torch.device("cpu"))
-        with torch.no_grad():
-            target = rewards + 0.99 * (1 - terminals) * torch.min(*critic_target(next_states, actor_target(next_states)))
-        q1, q2 = critic(states, goals)
-        critic_opt.zero_grad()
-        (F.mse_loss(q1, target) + F.mse_loss(q2, target)).backward()
-        critic_opt.step()
-        proposed = actor(states)
-        loss = -critic.q1(torch.cat([states, proposed], 1)).mean() if counter[0] % 2 == 0 else 0.0
-        loss = loss + 20 * ((anet(proposed) - anet(states[:, :2])).norm(dim=1) - 1.1).clamp(min=0).mean()
-        actor_opt.zero_grad()
-        loss.backward()
-        actor_opt.step()
-        update_target(actor_target, actor, 0.001)
-        update_target(critic_target, critic, 0.001)
+        batch = replay.sample(64, torch.device("cpu"))
+        kc.manager_update(actor, critic, actor_target, critic_target, actor_opt, critic_opt, anet, batch, args, 1.1,
+                          policy_term=counter[0] % 2 == 0)  # fmt: skip
         counter[0] += 1
 
     return median_time(update, 100)

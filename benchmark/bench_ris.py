@@ -1,0 +1,100 @@
+"""Where the time of dgrl_ris.py goes: environment steps/s of every maze, and one RIS update with and without DGRL.
+
+    python benchmark/bench_ris.py                       # about 1 min on 2 CPU cores; run nothing else meanwhile
+    python benchmark/bench_ris.py --device cuda         # the same on a GPU (updates at the paper's batch 2048)
+
+Prints one line per measurement (median of 5 blocks): each env id stepped alone with random actions (one env, the
+script's default), acting (actor forward + sampling + env step), and one `ris_update` (HER batch sampled on the device,
+critic, high level, actor with 10 imagined subgoals, targets) for the Ant state (31-d goal) and the PointMaze state
+(2-d goal), --groups 0 and 16, at several batch sizes. RIS does one update per environment step, so training steps/s
+is about 1 / (update time + acting time).
+"""
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import dgrl_ris as ris
+from vq import make_target
+
+
+def median_time(fn, repeats: int, blocks: int = 5) -> float:
+    fn()
+    times = []
+    for _ in range(blocks):
+        start = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        times.append((time.perf_counter() - start) / repeats)
+    return statistics.median(times)
+
+
+def env_speed(env_id: str, steps: int = 1000) -> float:
+    args = ris.Args(env_id=env_id)
+    envs = ris.make_vector_env(env_id, 1, 0, False, args)
+    envs.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(steps):
+        envs.step(envs.action_space.sample())
+    envs.close()
+    return steps / (time.perf_counter() - start)
+
+
+def update_time(state_dim: int, goal_dim: int, action_dim: int, groups: int, batch: int, device: torch.device) -> float:
+    args = ris.Args(groups=groups, batch_size=batch, goal_threshold=0.5)
+    goal_input_dim = args.embed_dim if groups else goal_dim
+    actor = ris.Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
+    critic = ris.TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
+    high = ris.HighLevelPolicy(state_dim, goal_dim, args.hidden_dim).to(device)
+    encoder = ris.GoalEncoder(goal_dim, args.embed_dim, args.hidden_dim, args).to(device) if groups else None
+    nets = dict(actor=actor, critic=critic, high=high, goal_encoder=encoder)
+    nets.update(actor_target=make_target(actor), critic_target=make_target(critic))
+    critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
+    if encoder is not None:
+        critic_groups.append({"params": encoder.parameters(), "lr": args.encoder_lr})
+    optimizers = {
+        "critic": torch.optim.Adam(critic_groups, fused=True),
+        "actor": torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=True),
+        "high": torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=True),
+    }
+    replay = ris.EpisodeReplay(60_000, state_dim, action_dim, goal_dim, device)
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        replay.add_episode(
+            rng.normal(size=(600, state_dim)), rng.uniform(-1, 1, (600, action_dim)), rng.normal(size=(600, state_dim)),
+            rng.normal(size=(600, goal_dim)),
+        )  # fmt: skip
+
+    def step():
+        sample = replay.sample(batch, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
+        ris.ris_update(nets, optimizers, sample, args, goal_dim)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    return median_time(step, repeats=max(2, 2048 // batch * 2))
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--batches", type=int, nargs="+", default=[128, 256, 2048])
+    options = parser.parse_args()
+    torch.set_num_threads(options.threads)
+    device = torch.device(options.device)
+    if device.type == "cpu":
+        for env_id in (*ris.ANT_MAZES, "PointMaze_UMaze-v3", "AntMaze_UMaze-v5"):
+            print(f"env {env_id:<20} {env_speed(env_id):7.0f} steps/s (random actions, 1 env)")
+    for name, dims in (("Ant (31-d goal)", (31, 31, 8)), ("PointMaze (2-d goal)", (6, 2, 2))):
+        for batch in options.batches:
+            times = {groups: update_time(*dims, groups, batch, device) for groups in (0, 16)}
+            print(
+                f"update {name:<21} batch {batch:>5}: RIS {times[0] * 1e3:7.1f} ms, RIS+DGRL G16 {times[16] * 1e3:7.1f} ms "
+                f"({times[16] / times[0]:.2f}x), {options.threads} thread(s), {device}"
+            )

@@ -1,0 +1,856 @@
+"""DGRL on RIS in the Ant mazes: discretized goal and subgoal embeddings for Reinforcement learning with Imagined Subgoals.
+
+Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Ant
+Navigation Maze Tasks", appendix "Ant Navigation Tasks", Algorithm 1 (RIS with DGRL) and the code snippet. The agent is
+RIS (Chane-Sane et al., ICML 2021): a goal-conditioned SAC-style actor and twin critics trained with hindsight relabelling,
+a high-level policy that proposes subgoal states halfway to the goal (trained by advantage weighting over replay states),
+and an actor loss that replaces SAC's entropy term by a KL divergence to a prior policy: the target actor averaged over
+imagined subgoals. DGRL (`--groups G`) embeds goals, subgoals and states with an MLP encoder trained as an autoencoder,
+discretizes the embeddings with the shared-codebook bottleneck of vq.py, and conditions the actor, the critics and the
+prior on the discrete goal and subgoal embeddings. `--groups 0` is plain RIS from the same file.
+
+    python dgrl_ris.py --env-id AntMaze --groups 16        # paper setting (Pi maze, G=16): 5M steps at batch 2048, a GPU job
+    python dgrl_ris.py --env-id AntU --groups 0             # RIS on the U maze
+    python dgrl_ris.py --env-id PointMaze_UMaze-v3 --total-timesteps 30000 --batch-size 256 --start-timesteps 2000 \
+        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (about 10 min on one core)
+    python dgrl_ris.py --env-id AntU --total-timesteps 3000 --start-timesteps 500 --batch-size 64   # smoke run
+
+Environments: the four Ant mazes of RIS (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built here from the Ant model inside
+gymnasium, and every gymnasium-robotics maze id (`PointMaze_UMaze-v3`, `AntMaze_UMaze-v5`, ...).
+The study: benchmark/ris.sh. Docs: docs/dgrl_ris.md.
+"""
+
+import math
+import os
+import random
+import signal
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from functools import cache
+from typing import ClassVar
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+from torch.utils.tensorboard import SummaryWriter
+
+from vq import VectorQuantizerEMA, active_codes, make_target, perplexity, update_target
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment"""
+    seed: int = 1
+    """seed of the experiment"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """if toggled, cuda will be enabled when available (the paper's batch of 2048 needs a GPU)"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases"""
+    wandb_project_name: str = "dgrl"
+    """the wandb's project name"""
+    wandb_entity: str | None = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to record the first episode of every 10th evaluation (saved in `videos/`; set MUJOCO_GL=egl headless)"""
+    save_model: bool = False
+    """whether to save a checkpoint (actor, critics, high level, encoder with its codebook) at every evaluation"""
+    checkpoint: str | None = None
+    """path of a saved checkpoint: evaluate it over --eval-episodes episodes on the test configuration, then exit"""
+    threads: int = 1
+    """torch CPU threads"""
+
+    # Environment
+    env_id: str = "AntMaze"
+    """AntU, AntFb (S maze), AntMaze (Pi maze), AntFg (omega maze), or a gymnasium-robotics maze id such as
+    PointMaze_UMaze-v3 or AntMaze_UMaze-v5"""
+    max_episode_steps: int = 0
+    """episode step limit (0 = 600 for the four Ant mazes, the registered limit for gymnasium-robotics ids)"""
+    num_envs: int = 1
+    """environments stepped together; each env step is followed by one update, as in RIS"""
+
+    # Algorithm: RIS
+    total_timesteps: int = 5_000_000
+    """total environment steps"""
+    buffer_size: int = 1_000_000
+    """replay capacity in transitions"""
+    batch_size: int = 2048
+    """transitions per update"""
+    start_timesteps: int = 10_000
+    """steps of uniform random actions before the first update"""
+    gamma: float = 0.99
+    """discount"""
+    tau: float = 0.005
+    """Polyak rate of the critic and actor targets"""
+    q_lr: float = 1e-3
+    """Adam learning rate of the twin critics"""
+    actor_lr: float = 1e-3
+    """Adam learning rate of the actor"""
+    h_lr: float = 1e-4
+    """Adam learning rate of the high-level policy"""
+    hidden_dim: int = 256
+    """hidden units of every 2-layer MLP"""
+    alpha: float = 0.1
+    """weight of the KL divergence to the imagined-subgoal prior in the actor loss"""
+    h_lambda: float = 0.1
+    """temperature of the high level's advantage weights"""
+    n_subgoals: int = 10
+    """imagined subgoals per state for the prior policy"""
+    prior_epsilon: float = 1e-16
+    """added to the prior density inside the log"""
+    her_goal_frac: float = 0.2
+    """fraction of each batch keeping the rollout goal"""
+    her_random_frac: float = 0.4
+    """fraction relabelled with a random replay state (the rest: a future state of the same episode)"""
+    goal_threshold: float = 0.0
+    """success radius on the xy distance (0 = 0.5 for the four Ant mazes, 0.45 for gymnasium-robotics ids)"""
+
+    # Evaluation
+    eval_frequency: int = 1000
+    """environment steps between evaluations"""
+    eval_episodes: int = 5
+    """episodes per evaluation, on the test configuration"""
+    eval_deterministic: bool = False
+    """act with the mean action during evaluation (RIS samples actions, as in training)"""
+
+    # DGRL
+    groups: int = 16
+    """G: factors of the goal embedding; 0 runs RIS"""
+    n_embed: int = 64
+    """L: codes in the shared codebook"""
+    vq_beta: float = 0.25
+    """commitment-loss weight"""
+    vq_decay: float = 0.99
+    """EMA decay of the codebook"""
+    vq_dead_code_steps: int = 0
+    """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
+    embed_dim: int = 64
+    """size of the goal embedding (m); must be divisible by groups"""
+    encoder_lr: float = 1e-4
+    """Adam learning rate of the goal encoder and decoder (a parameter group of the critic optimizer)"""
+
+
+# --- Environments -----------------------------------------------------------------------------------------------------
+
+ANT_MAZES = {  # RIS's four mazes (reference ris.md): interior bounds, inner walls as (cx, cy, hx, hy), test boxes
+    "AntU": dict(
+        interior=((-3.75, 3.75), (-9.0, 9.0)),
+        walls=((0.0, 1.5, 0.75, 7.5),),
+        test_start=((-2.5, -2.0), (7.25, 7.75)),
+        test_goal=((2.0, 2.5), (7.25, 7.75)),
+    ),
+    "AntFb": dict(
+        interior=((-6.0, 6.0), (-6.0, 6.0)),
+        walls=((-2.25, 1.5, 0.75, 4.5), (2.25, -1.5, 0.75, 4.5)),
+        test_start=((-4.75, -4.25), (4.25, 4.75)),
+        test_goal=((4.25, 4.75), (-4.75, -4.25)),
+    ),
+    "AntMaze": dict(
+        interior=((-8.0, 8.0), (-8.0, 8.0)),
+        walls=(
+            (-2.375, 3.25, 1.625, 0.75),
+            (2.375, 3.25, 1.625, 0.75),
+            (0.0, 2.0, 0.75, 6.0),
+            (-6.0, -2.25, 2.0, 0.75),
+            (6.0, -2.25, 2.0, 0.75),
+        ),
+        test_start=((-2.5, -2.0), (6.25, 6.75)),
+        test_goal=((2.0, 2.5), (6.25, 6.75)),
+    ),
+    "AntFg": dict(
+        interior=((-8.0, 8.0), (-8.0, 8.0)),
+        walls=((0.0, -3.25, 3.0, 0.75), (-3.75, 0.0, 0.75, 4.0), (3.75, 0.0, 0.75, 4.0), (0.0, -6.0, 0.75, 2.0)),
+        test_start=((-2.5, -2.0), (-6.75, -6.25)),
+        test_goal=((2.0, 2.5), (-6.75, -6.25)),
+    ),
+}
+ANT_JOINT_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))  # hips and ankles at rest (gymnasium's init_qpos)
+ANT_GOAL_Z = 0.565
+YAWS = np.array((0.0, np.pi, np.pi / 2, -np.pi / 2))
+WALL_CLEARANCE = 0.75  # training starts and goals keep at least this far from every wall
+ANT_THRESHOLD, ROBOTICS_THRESHOLD = 0.5, 0.45  # success radii (RIS; gymnasium-robotics' own)
+ROBOTICS_PREFIXES = ("AntMaze_", "PointMaze_")
+
+
+def maze_boxes(name: str) -> np.ndarray:
+    """Every wall of a maze as (cx, cy, hx, hy) rows: the inner walls, then four outer walls of half-thickness 1."""
+    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
+    cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+    outer = ((cx, y1 + 1, hx + 2, 1), (cx, y0 - 1, hx + 2, 1), (x0 - 1, cy, 1, hy), (x1 + 1, cy, 1, hy))
+    return np.array(ANT_MAZES[name]["walls"] + outer, dtype=np.float64)
+
+
+def wall_distance(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Distance from each xy point (N, 2) to the nearest wall box (0 inside a wall)."""
+    gap = np.abs(points[:, None, :] - boxes[None, :, :2]) - boxes[None, :, 2:]
+    return np.linalg.norm(np.maximum(gap, 0.0), axis=-1).min(1)
+
+
+def sample_free_xy(name: str, rng: np.random.Generator, clearance: float = WALL_CLEARANCE) -> np.ndarray:
+    """Uniform over the interior, rejecting points closer than `clearance` to any wall."""
+    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
+    boxes = maze_boxes(name)
+    while True:
+        points = rng.uniform((x0, y0), (x1, y1), size=(64, 2))
+        free = points[wall_distance(points, boxes) >= clearance]
+        if len(free):
+            return free[0]
+
+
+def quat_to_euler(quat: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) unit quaternion to (roll, pitch, yaw)."""
+    w, x, y, z = quat
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.array((roll, pitch, yaw))
+
+
+def ant_state(qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """RIS's 31-d observation: torso xyz, (cos, sin) of roll, pitch and yaw, 8 joint angles, 14 velocities."""
+    euler = quat_to_euler(qpos[3:7])
+    angles = np.stack((np.cos(euler), np.sin(euler)), 1).ravel()
+    return np.concatenate((qpos[:3], angles, qpos[7:15], qvel[:14])).astype(np.float32)
+
+
+def goal_state(xy: np.ndarray, yaw: float) -> np.ndarray:
+    """A full 31-d goal state: the ant at rest at `xy` facing `yaw`, upright, joints at their rest pose."""
+    qpos = np.concatenate((xy, (ANT_GOAL_Z, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
+    return ant_state(qpos, np.zeros(14))
+
+
+@cache
+def ant_maze_xml(name: str) -> str:
+    """Gymnasium's Ant model edited for RIS: gear 10, timestep 0.03 (RK4), the maze's walls, a goal marker, a top camera."""
+    root = ET.parse(os.path.join(os.path.dirname(gym.__file__), "envs/mujoco/assets/ant.xml")).getroot()
+    root.find("option").set("timestep", "0.03")
+    for motor in root.iter("motor"):
+        motor.set("gear", "10")
+    world = root.find("worldbody")
+    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
+    extent = max(x1 - x0, y1 - y0) + 2
+    world.find("geom[@name='floor']").set("size", f"{extent} {extent} 40")
+    for index, (cx, cy, hx, hy) in enumerate(maze_boxes(name)):
+        ET.SubElement(
+            world, "geom", name=f"wall_{index}", type="box", pos=f"{cx} {cy} 0.75", size=f"{hx} {hy} 0.75",
+            conaffinity="1", contype="1", rgba="0.55 0.55 0.6 1",
+        )  # fmt: skip
+    marker = ET.SubElement(world, "body", name="goal", mocap="true", pos="0 0 0.3")
+    ET.SubElement(marker, "geom", type="sphere", size="0.3", contype="0", conaffinity="0", rgba="0.9 0.2 0.2 0.7")
+    height = 1.25 * extent  # the whole maze in a 45-degree field of view
+    ET.SubElement(world, "camera", name="top", pos=f"{(x0 + x1) / 2} {(y0 + y1) / 2} {height}", xyaxes="1 0 0 0 1 0")
+    return ET.tostring(root, encoding="unicode")
+
+
+class AntMazeEnv(gym.Env):
+    """One of RIS's four Ant mazes (reference ris.md) on the modern `mujoco` bindings.
+
+    Observation: Dict(state = the 31-d ant state, goal = a 31-d goal state). Action: 8 motor commands in [-1, 1].
+    Physics: timestep 0.03 with RK4, frame_skip 5 (0.15 s per step), gear 10. The reward is -1 per step (RIS recomputes
+    it after relabelling anyway); the episode terminates when the torso's xy is within `threshold` of the goal's.
+    Training resets (`test=False`) draw the start and the goal uniformly over the free space with 0.75 clearance from
+    every wall; test resets draw them from the maze's fixed start and goal boxes. Yaws come from {0, pi, +-pi/2}.
+    """
+
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 7}
+    frame_skip = 5
+
+    def __init__(self, name: str, test: bool = False, threshold: float = ANT_THRESHOLD, render_mode: str | None = None):
+        self.name, self.test, self.threshold, self.render_mode = name, test, threshold, render_mode
+        self.model = mujoco.MjModel.from_xml_string(ant_maze_xml(name))
+        self.data = mujoco.MjData(self.model)
+        self.boxes = maze_boxes(name)
+        box = gym.spaces.Box(-np.inf, np.inf, (31,), np.float32)
+        self.observation_space = gym.spaces.Dict(state=box, goal=box)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (8,), np.float32)
+        self.goal = np.zeros(31, np.float32)
+        self._renderer = None
+
+    def _draw_xy(self, box_key: str) -> np.ndarray:
+        if self.test:
+            (x0, x1), (y0, y1) = ANT_MAZES[self.name][box_key]
+            return self.np_random.uniform((x0, y0), (x1, y1))
+        return sample_free_xy(self.name, self.np_random)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        mujoco.mj_resetData(self.model, self.data)
+        start = goal_state(self._draw_xy("test_start"), self.np_random.choice(YAWS))
+        yaw = math.atan2(start[8], start[7])
+        self.data.qpos[:] = np.concatenate((start[:3], (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
+        mujoco.mj_forward(self.model, self.data)
+        self.goal = goal_state(self._draw_xy("test_goal"), self.np_random.choice(YAWS))
+        self.data.mocap_pos[0, :2] = self.goal[:2]
+        return {"state": ant_state(self.data.qpos, self.data.qvel), "goal": self.goal.copy()}, {}
+
+    def step(self, action):
+        self.data.ctrl[:] = np.clip(action, -1.0, 1.0)
+        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
+        state = ant_state(self.data.qpos, self.data.qvel)
+        success = bool(np.linalg.norm(state[:2] - self.goal[:2]) < self.threshold)
+        return {"state": state, "goal": self.goal.copy()}, -1.0, success, False, {"success": success}
+
+    def render(self):
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, 240, 240)
+        self._renderer.update_scene(self.data, camera="top")
+        return self._renderer.render()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+class RoboticsMaze(gym.Wrapper):
+    """A gymnasium-robotics maze env seen as Dict(state, goal): state = (achieved xy, observation), goal = desired xy.
+
+    Episodes end on success (`continuing_task=False`). Test resets of the U mazes put the start and the goal at the two
+    ends of the U, the analogue of RIS's test configuration; other maps keep their own reset distribution.
+    """
+
+    def __init__(self, env: gym.Env, test: bool):
+        super().__init__(env)
+        spaces = env.observation_space
+        state_dim = spaces["achieved_goal"].shape[0] + spaces["observation"].shape[0]
+        self.observation_space = gym.spaces.Dict(
+            state=gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32),
+            goal=gym.spaces.Box(-np.inf, np.inf, spaces["desired_goal"].shape, np.float32),
+        )
+        u_maze = test and "UMaze" in str(env.spec.id)
+        self.options = {"reset_cell": np.array((1, 1)), "goal_cell": np.array((3, 1))} if u_maze else None
+
+    @staticmethod
+    def _convert(observation: dict) -> dict:
+        state = np.concatenate((observation["achieved_goal"], observation["observation"])).astype(np.float32)
+        return {"state": state, "goal": observation["desired_goal"].astype(np.float32)}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        observation, info = self.env.reset(seed=seed, options=options or self.options)
+        return self._convert(observation), info
+
+    def step(self, action):
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        return self._convert(observation), reward, terminated, truncated, info
+
+
+def robotics_ids() -> list[str]:
+    import gymnasium_robotics
+
+    gym.register_envs(gymnasium_robotics)
+    return sorted(env_id for env_id in gym.registry if env_id.startswith(ROBOTICS_PREFIXES))
+
+
+def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False):
+    def thunk():
+        render_mode = "rgb_array" if render else None
+        if env_id in ANT_MAZES:
+            env = gym.wrappers.TimeLimit(AntMazeEnv(env_id, test, threshold, render_mode), max_episode_steps or 600)
+        else:
+            robotics_ids()
+            kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
+            env = gym.make(env_id, continuing_task=False, render_mode=render_mode, **kwargs)
+            if max_episode_steps:
+                env = gym.wrappers.TimeLimit(env.unwrapped, max_episode_steps)
+            env = RoboticsMaze(env, test)
+        env = gym.wrappers.RecordEpisodeStatistics(env)
+        env.action_space.seed(seed)
+        return env
+
+    return thunk
+
+
+def make_vector_env(env_id: str, n: int, seed: int, test: bool, args: "Args", render: bool = False):
+    thunks = [
+        make_env(env_id, seed + i, test, args.max_episode_steps, args.goal_threshold, render and i == 0) for i in range(n)
+    ]
+    return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+# --- Networks ---------------------------------------------------------------------------------------------------------
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+
+
+def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, out_dim)
+    )
+
+
+class Actor(nn.Module):
+    """pi(a | s, g): a Gaussian over pre-tanh actions; the action is tanh(u)."""
+
+    def __init__(self, state_dim: int, goal_input_dim: int, action_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = mlp(state_dim + goal_input_dim, hidden_dim, 2 * action_dim)
+
+    def forward(self, states: torch.Tensor, goal_inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = self.net(torch.cat((states, goal_inputs), -1)).chunk(2, -1)
+        return mean, log_std.clamp(LOG_STD_MIN, LOG_STD_MAX).exp()
+
+    def sample(self, states: torch.Tensor, goal_inputs: torch.Tensor) -> torch.Tensor:
+        mean, std = self(states, goal_inputs)
+        return torch.tanh(mean + std * torch.randn_like(mean))
+
+
+class TwinCritic(nn.Module):
+    """Two Q-networks on (s, a, g); returns Q values of shape (2, batch)."""
+
+    def __init__(self, state_dim: int, goal_input_dim: int, action_dim: int, hidden_dim: int):
+        super().__init__()
+        self.q1 = mlp(state_dim + action_dim + goal_input_dim, hidden_dim, 1)
+        self.q2 = mlp(state_dim + action_dim + goal_input_dim, hidden_dim, 1)
+
+    def forward(self, states: torch.Tensor, actions: torch.Tensor, goal_inputs: torch.Tensor) -> torch.Tensor:
+        inputs = torch.cat((states, actions, goal_inputs), -1)
+        return torch.stack((self.q1(inputs).squeeze(-1), self.q2(inputs).squeeze(-1)))
+
+
+class HighLevelPolicy(nn.Module):
+    """pi_H(s_g | s, g): a Laplace distribution over subgoal states, on raw states and goals."""
+
+    def __init__(self, state_dim: int, goal_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = mlp(state_dim + goal_dim, hidden_dim, 2 * state_dim)
+
+    def forward(self, states: torch.Tensor, goals: torch.Tensor) -> torch.distributions.Laplace:
+        loc, log_scale = self.net(torch.cat((states, goals), -1)).chunk(2, -1)
+        return torch.distributions.Laplace(loc, log_scale.clamp(LOG_STD_MIN, LOG_STD_MAX).exp(), validate_args=False)
+
+
+class GoalEncoder(nn.Module):  # DGRL
+    """MLP encoder -> shared-codebook bottleneck -> MLP decoder, on points of the goal space (paper snippet, Ant branch).
+
+    Goals, subgoals and states (through their goal-space projection) share it. The decoder only serves the autoencoder
+    loss that shapes the encoder; the agent consumes the discrete embedding z_q.
+    """
+
+    def __init__(self, goal_dim: int, embed_dim: int, hidden_dim: int, args: "Args"):
+        super().__init__()
+        self.encoder = mlp(goal_dim, hidden_dim, embed_dim)
+        self.decoder = mlp(embed_dim, hidden_dim, goal_dim)
+        self.vq = VectorQuantizerEMA(
+            embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
+        )
+
+    def forward(self, goals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(z_q, commitment loss, code indices); the codebook moves only with update=True."""
+        return self.vq(self.encoder(goals), update=update)
+
+
+def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:
+    """What the actor and critics see of a goal: the raw goal (RIS) or its discrete embedding (DGRL), codebook untouched."""
+    if goal_encoder is None:
+        return goals
+    return goal_encoder(goals, update=False)[0]  # DGRL
+
+
+# --- Replay with hindsight relabelling --------------------------------------------------------------------------------
+
+
+class EpisodeReplay:
+    """A ring of transitions written one whole episode at a time, on the training device.
+
+    Each transition stores the index of its episode's last transition, so a future state of the same episode is one
+    random integer away. Episodes are written contiguously (a write that would cross the end starts again at 0), so
+    whatever survives of an overwritten episode is a suffix of it and its stored end index stays valid.
+    """
+
+    def __init__(self, capacity: int, state_dim: int, action_dim: int, goal_dim: int, device: torch.device):
+        self.capacity, self.device = capacity, device
+        self.states = torch.zeros(capacity, state_dim, device=device)
+        self.actions = torch.zeros(capacity, action_dim, device=device)
+        self.next_states = torch.zeros(capacity, state_dim, device=device)
+        self.goals = torch.zeros(capacity, goal_dim, device=device)
+        self.episode_end = torch.zeros(capacity, dtype=torch.long, device=device)
+        self.position, self.size = 0, 0
+
+    def add_episode(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray, goals: np.ndarray) -> None:
+        length = len(states)
+        if self.position + length > self.capacity:
+            self.position = 0
+        rows = slice(self.position, self.position + length)
+        for storage, values in ((self.states, states), (self.actions, actions), (self.next_states, next_states)):
+            storage[rows] = torch.as_tensor(values, device=self.device)
+        self.goals[rows] = torch.as_tensor(goals, device=self.device)
+        self.episode_end[rows] = self.position + length - 1
+        self.position += length
+        self.size = max(self.size, self.position)
+
+    def sample(self, batch_size: int, goal_dim: int, threshold: float, goal_frac: float, random_frac: float):
+        """A HER batch: (s, a, s', g, r, done, s_g), with g relabelled and r, done recomputed.
+
+        The first `goal_frac` of the batch keeps the rollout goal, the next `random_frac` gets the goal projection of a
+        random replay state, the rest a future state of the same episode, uniform over s'_i..s'_end. Rewards are -1 and
+        done marks s' within `threshold` (xy) of the goal. s_g: random replay states, the high level's subgoal candidates.
+        """
+        index = torch.randint(self.size, (batch_size,), device=self.device)
+        n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
+        future = index[n_keep + n_random :]
+        offset = (torch.rand(len(future), device=self.device) * (self.episode_end[future] - future + 1)).long()
+        random_states = self.states[torch.randint(self.size, (n_random,), device=self.device)]
+        goals = torch.cat(
+            (self.goals[index[:n_keep]], random_states[:, :goal_dim], self.next_states[future + offset, :goal_dim])
+        )
+        next_states = self.next_states[index]
+        done = (torch.linalg.vector_norm(next_states[:, :2] - goals[:, :2], dim=-1) < threshold).float()
+        subgoals = self.states[torch.randint(self.size, (batch_size,), device=self.device)]
+        return self.states[index], self.actions[index], next_states, goals, -torch.ones_like(done), done, subgoals
+
+
+# --- Losses -----------------------------------------------------------------------------------------------------------
+
+
+def advantage_weights(distance_proposed: torch.Tensor, distance_candidates: torch.Tensor, temperature: float) -> torch.Tensor:
+    """softmax over the batch of (D(proposed subgoal) - D(candidate)) / lambda: candidates better than the proposal
+    (a smaller cost to go through them) get the larger weights."""
+    return F.softmax((distance_proposed - distance_candidates) / temperature, dim=0)
+
+
+def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Tensor) -> torch.Tensor:
+    """D(s_g) = max(|clip(V(s, s_g), -100, 0)|, |clip(V(s_g, g), -100, 0)|): the longer of the two halves."""
+    return torch.maximum(values_to_subgoal.clamp(-100.0, 0.0).abs(), values_from_subgoal.clamp(-100.0, 0.0).abs())
+
+
+def prior_kl(
+    actions_pre_tanh: torch.Tensor,
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    prior_mean: torch.Tensor,
+    prior_std: torch.Tensor,
+    epsilon: float,
+) -> torch.Tensor:
+    """Single-sample KL(pi || prior) at u: log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon).
+
+    u: (B, A); mean, std: (B, A); prior_mean, prior_std: (K, B, A) from the target actor at K imagined subgoals. The
+    log of the mixture density plus epsilon is computed with logsumexp, so a density of 1e-40 does not underflow to 0.
+    """
+    log_policy = torch.distributions.Normal(mean, std, validate_args=False).log_prob(actions_pre_tanh).sum(-1)
+    log_prior_k = (
+        torch.distributions.Normal(prior_mean, prior_std, validate_args=False).log_prob(actions_pre_tanh.unsqueeze(0)).sum(-1)
+    )
+    n_subgoals = log_prior_k.shape[0]
+    log_terms = torch.cat((log_prior_k - math.log(n_subgoals), torch.full_like(log_prior_k[:1], math.log(epsilon))))
+    return log_policy - torch.logsumexp(log_terms, dim=0)
+
+
+def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim: int) -> dict[str, torch.Tensor]:
+    """One RIS update (critic, high level, actor, targets) with the DGRL representation loss; returns detached metrics."""
+    actor, critic, high, goal_encoder = nets["actor"], nets["critic"], nets["high"], nets["goal_encoder"]
+    actor_target, critic_target = nets["actor_target"], nets["critic_target"]
+    states, actions, next_states, goals, rewards, done, subgoals = batch
+    batch_size = len(states)
+    metrics = {}
+
+    # Critic (policy evaluation); under DGRL also the representation: autoencoder + commitment losses of s, s', g, s_g.
+    if goal_encoder is not None:
+        points = torch.cat((states[:, :goal_dim], next_states[:, :goal_dim], goals, subgoals[:, :goal_dim]))  # DGRL
+        z_q, vq_loss, codes = goal_encoder(points, update=True)  # DGRL: one pooled EMA step over the four embeddings
+        reconstruction_loss = F.mse_loss(goal_encoder.decoder(z_q[:batch_size]), points[:batch_size])  # DGRL
+        goal_z = z_q[2 * batch_size : 3 * batch_size]  # DGRL: straight-through, so the critic loss shapes the encoder
+        representation_loss = reconstruction_loss + 4 * vq_loss  # DGRL: the sum of the four commitment losses
+        metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)  # DGRL
+    else:
+        goal_z = goals
+    with torch.no_grad():
+        next_actions = actor.sample(next_states, goal_z.detach())
+        next_q = critic_target(next_states, next_actions, goal_z.detach()).min(0).values
+        target_q = rewards + (1.0 - done) * args.gamma * next_q
+    q_values = critic(states, actions, goal_z)
+    critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
+    optimizers["critic"].zero_grad(set_to_none=True)
+    (critic_loss + representation_loss if goal_encoder is not None else critic_loss).backward()
+    optimizers["critic"].step()
+    goal_z = goal_z.detach()
+
+    # High level: advantage-weighted regression onto random replay states.
+    with torch.no_grad():
+        proposed = high(states, goals).loc
+        value_states = torch.cat((states, subgoals, states, proposed))
+        value_goals = torch.cat((subgoals[:, :goal_dim], goals, proposed[:, :goal_dim], goals))
+        value_goal_z = goal_input(goal_encoder, value_goals)
+        value_actions = torch.tanh(actor(value_states, value_goal_z)[0])
+        values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)
+        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
+    high_loss = -(weights * high(states, goals).log_prob(subgoals).sum(-1)).mean()
+    optimizers["high"].zero_grad(set_to_none=True)
+    high_loss.backward()
+    optimizers["high"].step()
+
+    # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
+    with torch.no_grad():
+        imagined = high(states, goals).sample((args.n_subgoals,))  # (K, B, state_dim)
+        imagined_z = goal_input(goal_encoder, imagined[..., :goal_dim])  # DGRL: the prior sees discrete subgoals
+        prior_mean, prior_std = actor_target(states.expand(args.n_subgoals, -1, -1), imagined_z)
+    mean, std = actor(states, goal_z)
+    actions_pre_tanh = mean + std * torch.randn_like(mean)
+    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, args.prior_epsilon)
+    actor_q = critic(states, torch.tanh(actions_pre_tanh), goal_z).min(0).values
+    actor_loss = (args.alpha * kl - actor_q).mean()
+    optimizers["actor"].zero_grad(set_to_none=True)
+    actor_loss.backward()
+    optimizers["actor"].step()
+
+    update_target(critic_target, critic, args.tau)
+    update_target(actor_target, actor, args.tau)
+    metrics.update(
+        critic_loss=critic_loss, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean(), q_values=q_values.mean(),
+        high_weight_max=weights.max(),
+        subgoal_distance=torch.linalg.vector_norm(proposed[:, :2] - states[:, :2], dim=-1).mean(),
+    )  # fmt: skip
+    return {name: value.detach() for name, value in metrics.items()}
+
+
+# --- Evaluation, checkpoints, flags -----------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
+    states = torch.as_tensor(observations["state"], device=device)
+    goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: quantized, no update
+    if deterministic:
+        return torch.tanh(actor(states, goal_z)[0]).cpu().numpy()
+    return actor.sample(states, goal_z).cpu().numpy()
+
+
+def evaluate(envs: gym.vector.SyncVectorEnv, actor, goal_encoder, device, deterministic: bool, frames=None):
+    """One episode per env on the test configuration: (success rate, mean final xy distance to the goal)."""
+    observations, _ = envs.reset()
+    finished = np.zeros(envs.num_envs, dtype=bool)
+    success, distance = np.zeros(envs.num_envs), np.zeros(envs.num_envs)
+    while not finished.all():
+        if frames is not None and not finished[0]:
+            frames.append(envs.envs[0].render())
+        actions = act(actor, goal_encoder, observations, device, deterministic)
+        observations, _, terminations, truncations, infos = envs.step(actions)
+        ended = (terminations | truncations) & ~finished
+        for env in np.flatnonzero(ended):
+            last = infos["final_obs"][env]
+            distance[env] = np.linalg.norm(last["state"][:2] - last["goal"][:2])
+            success[env] = terminations[env]
+        finished |= ended
+    return success.mean(), distance.mean()
+
+
+def save_checkpoint(path: str, modules: dict[str, nn.Module | None], args: Args) -> None:
+    """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
+    payload = {name: None if module is None else module.state_dict() for name, module in modules.items()}
+    payload["args"] = vars(args)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def write_video(path: str, frames: list[np.ndarray], fps: int = 15) -> None:
+    from moviepy import ImageSequenceClip
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+def validate(args: Args) -> None:
+    """Reject bad flags before any work, naming the flag and the valid choices."""
+    errors = []
+    if args.env_id not in ANT_MAZES and not args.env_id.startswith(ROBOTICS_PREFIXES):
+        errors.append(
+            f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ANT_MAZES)} or a gymnasium-robotics maze id "
+            "(AntMaze_* or PointMaze_*, e.g. PointMaze_UMaze-v3, AntMaze_UMaze-v5)"
+        )
+    elif args.env_id not in ANT_MAZES and args.env_id not in (ids := robotics_ids()):
+        errors.append(f"--env-id {args.env_id!r} is not a registered gymnasium-robotics maze id; choices: {', '.join(ids)}")
+    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        errors.append(f"--groups must be 0 (RIS) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}")
+    for flag in (
+        "total_timesteps", "num_envs", "buffer_size", "batch_size", "hidden_dim", "n_subgoals", "eval_frequency",
+        "eval_episodes", "n_embed", "embed_dim", "threads",
+    ):  # fmt: skip
+        if getattr(args, flag) < 1:
+            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
+    for flag in ("max_episode_steps", "start_timesteps", "vq_dead_code_steps", "goal_threshold"):
+        if getattr(args, flag) < 0:
+            errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
+    for flag in ("alpha", "h_lambda", "prior_epsilon", "tau", "q_lr", "actor_lr", "h_lr", "encoder_lr"):
+        if getattr(args, flag) <= 0:
+            errors.append(f"--{flag.replace('_', '-')} must be > 0; got {getattr(args, flag)}")
+    if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
+        errors.append(
+            f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
+            "sum <= 1 (the rest are future goals)"
+        )
+    if args.buffer_size < args.batch_size:
+        errors.append(f"--buffer-size ({args.buffer_size}) must be >= --batch-size ({args.batch_size})")
+    if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
+        errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    if errors:
+        raise SystemExit("dgrl_ris.py: invalid arguments:\n  " + "\n  ".join(errors))
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    dgrl = args.groups > 0
+    args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+
+    random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    torch.set_num_threads(args.threads)
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+
+    envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, args)
+    eval_envs = make_vector_env(args.env_id, args.eval_episodes, args.seed + 10_000, True, args, render=args.capture_video)
+    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    state_dim = envs.single_observation_space["state"].shape[0]
+    goal_dim = envs.single_observation_space["goal"].shape[0]
+    action_dim = envs.single_action_space.shape[0]
+    if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
+        raise SystemExit(f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]")
+    goal_input_dim = args.embed_dim if dgrl else goal_dim
+
+    actor = Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
+    critic = TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
+    high = HighLevelPolicy(state_dim, goal_dim, args.hidden_dim).to(device)
+    goal_encoder = GoalEncoder(goal_dim, args.embed_dim, args.hidden_dim, args).to(device) if dgrl else None  # DGRL
+    modules = {"actor": actor, "critic": critic, "high": high, "goal_encoder": goal_encoder}
+
+    if args.checkpoint is not None:
+        saved = torch.load(args.checkpoint, map_location=device)
+        architecture = ("env_id", "groups", "embed_dim", "n_embed", "hidden_dim")
+        differ = [
+            f"--{key.replace('_', '-')} {saved['args'][key]}" for key in architecture if saved["args"][key] != vars(args)[key]
+        ]
+        if differ:
+            raise SystemExit(f"--checkpoint {args.checkpoint} was saved with other settings: pass {' '.join(differ)}")
+        for name, module in modules.items():
+            if module is not None:
+                module.load_state_dict(saved[name])
+        success, distance = evaluate(eval_envs, actor, goal_encoder, device, args.eval_deterministic)
+        print(f"{args.eval_episodes} test episodes: success {success:.0%}, final distance {distance:.2f}")
+        raise SystemExit(0)
+
+    if args.track:
+        import wandb
+
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            save_code=True,
+        )
+    writer = SummaryWriter(f"runs/{run_name}")
+    table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
+    writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
+
+    nets = dict(modules, actor_target=make_target(actor), critic_target=make_target(critic))
+    fused = device.type in ("cpu", "cuda")
+    critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
+    if dgrl:
+        critic_groups.append({"params": goal_encoder.parameters(), "lr": args.encoder_lr})  # DGRL: the codebook moves by EMA
+    optimizers = {
+        "critic": torch.optim.Adam(critic_groups, fused=fused),
+        "actor": torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused),
+        "high": torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=fused),
+    }
+    replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
+    n_envs = args.num_envs
+    episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
+    stop = []  # Ctrl-C or SIGTERM ends the run after the current step, with the checkpoint saved and the logs flushed
+
+    def request_stop(number, frame):
+        stop.append(number)
+        signal.signal(number, signal.SIG_DFL)  # a second Ctrl-C or SIGTERM stops at once
+
+    for signal_number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signal_number, request_stop)
+
+    observations, _ = envs.reset(seed=args.seed)
+    start_time, step, updates, evaluations, next_eval = time.time(), 0, 0, 0, args.eval_frequency
+    recent_success, metrics = [], {}
+    eval_success = eval_distance = float("nan")
+    while step < args.total_timesteps and not stop:
+        if step < args.start_timesteps:
+            actions = envs.action_space.sample()
+        else:
+            actions = act(actor, goal_encoder, observations, device, deterministic=False)
+        next_observations, _, terminations, truncations, infos = envs.step(actions)
+        step += n_envs
+
+        # Stage each env's transitions; a finished episode goes to the replay whole (the true last state: final_obs).
+        for env in range(n_envs):
+            ended = terminations[env] or truncations[env]
+            last = infos["final_obs"][env] if ended else None
+            episode["states"][env].append(observations["state"][env])
+            episode["actions"][env].append(actions[env])
+            episode["next_states"][env].append(last["state"] if ended else next_observations["state"][env])
+            episode["goals"][env].append(observations["goal"][env])
+            if ended:
+                replay.add_episode(*(np.stack(episode[key][env]) for key in ("states", "actions", "next_states", "goals")))
+                for key in episode:
+                    episode[key][env] = []
+                recent_success.append(float(terminations[env]))
+                writer.add_scalar("charts/episodic_return", infos["final_info"]["episode"]["r"][env], step)
+                writer.add_scalar("charts/episodic_length", infos["final_info"]["episode"]["l"][env], step)
+                writer.add_scalar("charts/success_rate", float(terminations[env]), step)
+        observations = next_observations
+
+        # Train: one update per environment step once the random phase is over.
+        if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
+            for _ in range(n_envs):
+                batch = replay.sample(args.batch_size, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
+                metrics = ris_update(nets, optimizers, batch, args, goal_dim)
+                updates += 1
+            if updates % 1000 < n_envs:
+                for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values", "high_weight_max"):
+                    writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
+                writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), step)
+                if dgrl:
+                    writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), step)  # DGRL
+                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
+                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
+
+        # Evaluate on the test configuration, log, print progress, checkpoint.
+        if step >= next_eval or step >= args.total_timesteps:
+            next_eval += args.eval_frequency
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            eval_success, eval_distance = evaluate(eval_envs, actor, goal_encoder, device, args.eval_deterministic, video)
+            evaluations += 1
+            elapsed = time.time() - start_time
+            sps = int(step / elapsed)
+            writer.add_scalar("eval/success_rate", eval_success, step)
+            writer.add_scalar("eval/final_distance", eval_distance, step)
+            writer.add_scalar("charts/SPS", sps, step)
+            train_success = np.mean(recent_success) if recent_success else float("nan")
+            recent_success = []
+            print(
+                f"step {step:>8}/{args.total_timesteps}  eval success {eval_success:4.0%} distance {eval_distance:5.2f}  "
+                f"train success {train_success:4.0%}  SPS {sps}  {elapsed:.0f}s elapsed, "
+                f"{(args.total_timesteps - step) / max(sps, 1):.0f}s left"
+            )
+            if video:
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video)
+            if args.save_model:
+                save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
+
+    if args.save_model:
+        save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
+        print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
+    print(
+        f"{'stopped' if stop else 'done'}: {step} steps, {updates} updates, last eval success {eval_success:.0%}, "
+        f"{time.time() - start_time:.0f} s"
+    )
+    envs.close()
+    eval_envs.close()
+    writer.close()

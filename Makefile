@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest clean-venv
+.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest study-ris bench-ris clean-venv
 
 $(VENV)/installed: requirements.txt requirements-nodeps.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -37,6 +37,12 @@ study-mnist: $(VENV)/installed
 
 study-hrac-keychest: $(VENV)/installed
 	PYTHON=$(PY) bash benchmark/hrac_keychest.sh
+
+study-ris: $(VENV)/installed
+	PYTHON=$(PY) bash benchmark/ris.sh
+
+bench-ris: $(VENV)/installed
+	$(PY) benchmark/bench_ris.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -220,10 +220,14 @@ def ant_state(qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
     return np.concatenate((qpos[:3], angles, qpos[7:15], qvel[:14])).astype(np.float32)
 
 
+def rest_qpos(xy: np.ndarray, yaw: float) -> np.ndarray:
+    """Positions of the ant at rest at `xy` facing `yaw`: torso at z 0.565, upright, joints at their rest pose."""
+    return np.concatenate((xy, (ANT_GOAL_Z, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
+
+
 def goal_state(xy: np.ndarray, yaw: float) -> np.ndarray:
-    """A full 31-d goal state: the ant at rest at `xy` facing `yaw`, upright, joints at their rest pose."""
-    qpos = np.concatenate((xy, (ANT_GOAL_Z, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
-    return ant_state(qpos, np.zeros(14))
+    """A full 31-d goal state: the ant at rest (zero velocities) at `xy` facing `yaw`."""
+    return ant_state(rest_qpos(xy, yaw), np.zeros(14))
 
 
 @cache
@@ -266,7 +270,6 @@ class AntMazeEnv(gym.Env):
         self.name, self.test, self.threshold, self.render_mode = name, test, threshold, render_mode
         self.model = mujoco.MjModel.from_xml_string(ant_maze_xml(name))
         self.data = mujoco.MjData(self.model)
-        self.boxes = maze_boxes(name)
         box = gym.spaces.Box(-np.inf, np.inf, (31,), np.float32)
         self.observation_space = gym.spaces.Dict(state=box, goal=box)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (8,), np.float32)
@@ -282,9 +285,7 @@ class AntMazeEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         mujoco.mj_resetData(self.model, self.data)
-        start = goal_state(self._draw_xy("test_start"), self.np_random.choice(YAWS))
-        yaw = math.atan2(start[8], start[7])
-        self.data.qpos[:] = np.concatenate((start[:3], (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
+        self.data.qpos[:] = rest_qpos(self._draw_xy("test_start"), self.np_random.choice(YAWS))  # zero velocities
         mujoco.mj_forward(self.model, self.data)
         self.goal = goal_state(self._draw_xy("test_goal"), self.np_random.choice(YAWS))
         self.data.mocap_pos[0, :2] = self.goal[:2]
@@ -687,6 +688,10 @@ def validate(args: Args) -> None:
         )
     if args.buffer_size < args.batch_size:
         errors.append(f"--buffer-size ({args.buffer_size}) must be >= --batch-size ({args.batch_size})")
+    if not errors:  # the replay writes whole episodes, so the longest one must fit
+        limit = args.max_episode_steps or (600 if args.env_id in ANT_MAZES else gym.spec(args.env_id).max_episode_steps)
+        if args.buffer_size < limit:
+            errors.append(f"--buffer-size ({args.buffer_size}) must hold one whole episode: >= {limit} (--max-episode-steps)")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
     if errors:
@@ -752,6 +757,10 @@ if __name__ == "__main__":
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
     print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
+    if device.type == "cpu" and args.batch_size >= 1024:
+        print(
+            f"note: --batch-size {args.batch_size} on a CPU is about 0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
+        )
 
     nets = dict(modules, actor_target=make_target(actor), critic_target=make_target(critic))
     fused = device.type in ("cpu", "cuda")
@@ -777,6 +786,7 @@ if __name__ == "__main__":
 
     observations, _ = envs.reset(seed=args.seed)
     start_time, step, updates, evaluations, next_eval = time.time(), 0, 0, 0, args.eval_frequency
+    last_print = start_time  # a heartbeat line at least every 60 s, so that a slow run never looks hung
     recent_success, metrics = [], {}
     eval_success = eval_distance = float("nan")
     while step < args.total_timesteps and not stop:
@@ -821,8 +831,13 @@ if __name__ == "__main__":
                     writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
                     writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
 
+        if time.time() - last_print > 60:
+            last_print = time.time()
+            print(f"step {step:>8}/{args.total_timesteps}  {updates} updates  SPS {int(step / (last_print - start_time))}")
+
         # Evaluate on the test configuration, log, print progress, checkpoint.
         if step >= next_eval or step >= args.total_timesteps:
+            last_print = time.time()
             next_eval += args.eval_frequency
             video = [] if args.capture_video and evaluations % 10 == 0 else None
             eval_success, eval_distance = evaluate(eval_envs, actor, goal_encoder, device, args.eval_deterministic, video)

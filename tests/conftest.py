@@ -18,16 +18,18 @@ def _seed_everything():
 
 @pytest.fixture
 def run_script(tmp_path):
-    """Run a project script as a user would, in a fresh working directory, on one thread, with a 5-minute cap."""
+    """Run a project script as a user would, in a fresh working directory, on one thread, with a 5-minute cap; `env`
+    adds environment variables (e.g. MUJOCO_GL)."""
 
-    def run(script: str, *flags: str) -> subprocess.CompletedProcess:
+    def run(script: str, *flags: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+        base = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
         return subprocess.run(
             [sys.executable, str(ROOT / script), *flags],
             cwd=tmp_path,
             capture_output=True,
             text=True,
             timeout=300,
-            env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
+            env=base | (env or {}),
         )
 
     return run

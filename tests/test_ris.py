@@ -1,0 +1,708 @@
+"""dgrl_ris.py: the four Ant mazes (walls, collisions, physics, resets), the 31-d state and goals, HER relabelling in the
+episode replay, RIS's losses (advantage weights, subgoal cost, prior KL), one RIS update with and without DGRL, the
+gymnasium-robotics wrapper, smoke runs of every env id, bad flags."""
+
+import math
+import os
+import re
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+import dgrl_ris as ris
+from vq import make_target
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# The reference table (shared/reference/ris.md, "The four Ant mazes"), typed in independently of the script:
+# interior ((x0, x1), (y0, y1)), inner walls (cx, cy, hx, hy), test start box and goal box ((x0, x1), (y0, y1)).
+REFERENCE = {
+    "AntU": (
+        ((-3.75, 3.75), (-9.0, 9.0)),
+        [(0.0, 1.5, 0.75, 7.5)],
+        ((-2.5, -2.0), (7.25, 7.75)),
+        ((2.0, 2.5), (7.25, 7.75)),
+    ),
+    "AntFb": (
+        ((-6.0, 6.0), (-6.0, 6.0)),
+        [(-2.25, 1.5, 0.75, 4.5), (2.25, -1.5, 0.75, 4.5)],
+        ((-4.75, -4.25), (4.25, 4.75)),
+        ((4.25, 4.75), (-4.75, -4.25)),
+    ),
+    "AntMaze": (
+        ((-8.0, 8.0), (-8.0, 8.0)),
+        [
+            (-2.375, 3.25, 1.625, 0.75),
+            (2.375, 3.25, 1.625, 0.75),
+            (0.0, 2.0, 0.75, 6.0),
+            (-6, -2.25, 2, 0.75),
+            (6, -2.25, 2, 0.75),
+        ],
+        ((-2.5, -2.0), (6.25, 6.75)),
+        ((2.0, 2.5), (6.25, 6.75)),
+    ),
+    "AntFg": (
+        ((-8.0, 8.0), (-8.0, 8.0)),
+        [(0.0, -3.25, 3.0, 0.75), (-3.75, 0.0, 0.75, 4.0), (3.75, 0.0, 0.75, 4.0), (0.0, -6.0, 0.75, 2.0)],
+        ((-2.5, -2.0), (-6.75, -6.25)),
+        ((2.0, 2.5), (-6.75, -6.25)),
+    ),
+}
+MAZES = list(REFERENCE)
+REST_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))
+ALLOWED_YAWS = (0.0, math.pi, math.pi / 2, -math.pi / 2)
+
+
+def quaternion(axis: str, angle: float) -> np.ndarray:
+    """(w, x, y, z) of a rotation by `angle` about one coordinate axis."""
+    q = np.zeros(4)
+    q[0], q["xyz".index(axis) + 1] = math.cos(angle / 2), math.sin(angle / 2)
+    return q
+
+
+def multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    (w1, x1, y1, z1), (w2, x2, y2, z2) = a, b
+    return np.array(
+        (
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        )
+    )
+
+
+def yaw_of(state: np.ndarray) -> float:
+    return math.atan2(state[8], state[7])
+
+
+def is_allowed_yaw(yaw: float) -> bool:
+    return any(abs(math.remainder(yaw - allowed, 2 * math.pi)) < 1e-5 for allowed in ALLOWED_YAWS)
+
+
+def inside(xy: np.ndarray, box) -> bool:
+    (x0, x1), (y0, y1) = box
+    return x0 <= xy[0] <= x1 and y0 <= xy[1] <= y1
+
+
+# --- walls, collisions, physics ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", MAZES)
+def test_maze_boxes_match_the_reference_table(name):
+    interior, inner, test_start, test_goal = REFERENCE[name]
+    assert ris.ANT_MAZES[name]["interior"] == interior
+    assert ris.ANT_MAZES[name]["test_start"] == test_start and ris.ANT_MAZES[name]["test_goal"] == test_goal
+    boxes = ris.maze_boxes(name)
+    assert boxes.shape == (len(inner) + 4, 4)
+    np.testing.assert_allclose(sorted(map(tuple, boxes[:-4])), sorted(inner))
+    outer = boxes[-4:]
+    assert (outer[:, 2:].min(1) == 1.0).all()  # half-thickness 1
+    (x0, x1), (y0, y1) = interior
+    # Inside the interior, the distance to the outer walls is exactly the distance to the interior's boundary ...
+    grid = np.stack(np.meshgrid(np.linspace(x0, x1, 41), np.linspace(y0, y1, 41)), -1).reshape(-1, 2)
+    boundary = np.minimum.reduce([grid[:, 0] - x0, x1 - grid[:, 0], grid[:, 1] - y0, y1 - grid[:, 1]])
+    np.testing.assert_allclose(ris.wall_distance(grid, outer), boundary, atol=1e-12)
+    # ... and the band of width 2 around the interior (corners included) is solid wall.
+    band = np.stack(np.meshgrid(np.linspace(x0 - 1.99, x1 + 1.99, 81), np.linspace(y0 - 1.99, y1 + 1.99, 81)), -1)
+    band = band.reshape(-1, 2)
+    band = band[(band[:, 0] < x0) | (band[:, 0] > x1) | (band[:, 1] < y0) | (band[:, 1] > y1)]
+    assert len(band) > 100 and (ris.wall_distance(band, outer) == 0).all()
+
+
+@pytest.mark.parametrize("name", MAZES)
+def test_wall_distance_is_zero_inside_every_wall_and_the_model_has_those_walls(name):
+    boxes = ris.maze_boxes(name)
+    rng = np.random.default_rng(0)
+    for cx, cy, hx, hy in boxes:
+        points = rng.uniform((cx - hx, cy - hy), (cx + hx, cy + hy), size=(50, 2))
+        assert (ris.wall_distance(points, boxes) == 0).all()
+    model = ris.AntMazeEnv(name).model
+    for index, (cx, cy, hx, hy) in enumerate(boxes):
+        geom = model.geom(f"wall_{index}")
+        np.testing.assert_allclose(geom.pos[:2], (cx, cy))
+        np.testing.assert_allclose(geom.size[:2], (hx, hy))
+        assert geom.contype[0] and geom.conaffinity[0]
+
+
+def test_wall_distance_at_hand_computed_points():
+    boxes = ris.maze_boxes("AntU")  # inner wall x in [-0.75, 0.75], y in [-6, 9]; interior x in [-3.75, 3.75], |y| <= 9
+    points = np.array([(0.0, 0.0), (-2.0, 0.0), (0.0, -7.0), (-1.5, -6.5), (-2.0, -7.5), (-5.0, 10.0), (-6.0, 12.0)])
+    expected = [0.0, 1.25, 1.0, math.hypot(0.75, 0.5), 1.5, 0.0, math.hypot(0.25, 1.0)]
+    np.testing.assert_allclose(ris.wall_distance(points, boxes), expected, atol=1e-12)
+
+
+def test_ant_model_gear_timestep_integrator_frame_skip():
+    env = ris.AntMazeEnv("AntMaze")
+    model = env.model
+    assert model.nu == 8 and model.nq == 15 and model.nv == 14
+    np.testing.assert_array_equal(model.actuator_gear[:, 0], np.full(8, 10.0))
+    np.testing.assert_array_equal(model.actuator_ctrlrange, np.tile((-1.0, 1.0), (8, 1)))
+    assert model.opt.timestep == pytest.approx(0.03)
+    assert model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    assert env.frame_skip == 5
+    assert model.geom("torso_geom").size[0] == pytest.approx(0.25)
+    joint_range = model.jnt_range[1:]  # the 8 hinge joints, after the free joint
+    assert ((joint_range[:, 0] <= REST_POSE) & (REST_POSE <= joint_range[:, 1])).all()  # the rest pose is reachable
+    assert env.action_space.shape == (8,) and (env.action_space.low == -1).all() and (env.action_space.high == 1).all()
+    env.reset(seed=0)
+    env.step(np.zeros(8))
+    assert env.data.time == pytest.approx(0.15)  # 5 physics steps of 0.03 per env step
+    env.data.ctrl[:] = 0
+    env.step(np.full(8, 5.0))
+    np.testing.assert_array_equal(env.data.ctrl, np.ones(8))  # actions clipped to [-1, 1]
+
+
+def push(name: str, xy, velocity, steps: int = 20) -> np.ndarray:
+    """Put the ant at rest at `xy`, give its torso a velocity, step with zero action; the torso's xy path."""
+    env = ris.AntMazeEnv(name)
+    env.reset(seed=0)
+    env.data.qpos[:2] = xy
+    env.data.qvel[:] = 0.0
+    env.data.qvel[:2] = velocity
+    mujoco.mj_forward(env.model, env.data)
+    return np.array([env.step(np.zeros(8))[0]["state"][:2] for _ in range(steps)])
+
+
+@pytest.mark.parametrize(
+    ("name", "xy", "velocity"),
+    [
+        ("AntU", (-1.6, 0.0), (6.0, 0.0)),  # into the inner wall (x >= -0.75) from the left
+        ("AntU", (1.6, 0.0), (-6.0, 0.0)),  # into the inner wall from the right
+        ("AntFg", (0.0, 7.1), (0.0, 6.0)),  # into the outer top wall (y >= 8)
+        ("AntMaze", (-6.0, -0.6), (0.0, -6.0)),  # into the wall (-6, -2.25; 2, 0.75): y <= -1.5
+    ],
+)
+def test_walls_stop_the_ant(name, xy, velocity):
+    start_gap = ris.wall_distance(np.array([xy]), ris.maze_boxes(name))[0]
+    assert 0.75 <= start_gap < 1.0
+    path = push(name, xy, velocity)
+    distance = ris.wall_distance(path, ris.maze_boxes(name))
+    assert (distance > 0.2).all(), distance.min()  # the torso (radius 0.25) never enters a wall
+    assert distance.min() < start_gap - 0.1  # it did move towards the wall
+
+
+def test_the_same_push_in_open_space_goes_much_further():
+    """The control for test_walls_stop_the_ant: without a wall in the way the push carries the ant over 2 m."""
+    free = push("AntFb", (-5.0, -5.0), (6.0, 0.0))  # along the S maze's free bottom corridor
+    assert free[-1, 0] + 5.0 > 2.0 and abs(free[-1, 1] + 5.0) < 1.0
+    assert (ris.wall_distance(free, ris.maze_boxes("AntFb")) > 0.2).all()
+
+
+# --- observation, goals, resets, termination --------------------------------------------------------------------------
+
+
+def test_ant_state_layout():
+    joints = np.arange(8) / 10 + 0.05
+    velocities = np.arange(14) + 100.0
+    qpos = np.concatenate(((1.0, 2.0, 3.0), quaternion("z", math.pi / 2), joints))
+    state = ris.ant_state(qpos, velocities)
+    assert state.shape == (31,) and state.dtype == np.float32
+    np.testing.assert_allclose(state[:3], (1, 2, 3))
+    np.testing.assert_allclose(state[3:9], (1, 0, 1, 0, 0, 1), atol=1e-6)  # cos, sin of roll, pitch, yaw
+    np.testing.assert_allclose(state[9:17], joints, rtol=1e-6)
+    np.testing.assert_array_equal(state[17:31], velocities)
+    roll = ris.ant_state(np.concatenate(((0, 0, 0), quaternion("x", 0.3), joints)), velocities)
+    np.testing.assert_allclose(roll[3:9], (math.cos(0.3), math.sin(0.3), 1, 0, 1, 0), atol=1e-6)
+    pitch = ris.ant_state(np.concatenate(((0, 0, 0), quaternion("y", -0.4), joints)), velocities)
+    np.testing.assert_allclose(pitch[3:9], (1, 0, math.cos(0.4), -math.sin(0.4), 1, 0), atol=1e-6)
+
+
+def test_quat_to_euler_known_rotations():
+    np.testing.assert_allclose(ris.quat_to_euler(np.array((1.0, 0, 0, 0))), (0, 0, 0), atol=1e-12)
+    for axis, index in (("x", 0), ("y", 1), ("z", 2)):
+        for angle in (0.3, -1.2):
+            expected = np.zeros(3)
+            expected[index] = angle
+            np.testing.assert_allclose(ris.quat_to_euler(quaternion(axis, angle)), expected, atol=1e-9)
+    np.testing.assert_allclose(ris.quat_to_euler(quaternion("z", math.pi)), (0, 0, math.pi), atol=1e-9)
+    # Intrinsic z-y-x (yaw, then pitch, then roll): q = qz(yaw) qy(pitch) qx(roll).
+    roll, pitch, yaw = 0.2, -0.5, 2.5
+    q = multiply(multiply(quaternion("z", yaw), quaternion("y", pitch)), quaternion("x", roll))
+    np.testing.assert_allclose(ris.quat_to_euler(q), (roll, pitch, yaw), atol=1e-9)
+    # and against MuJoCo's own conversion of the same rotation to a matrix: the yaw is the heading of the body's x axis
+    matrix = np.zeros(9)
+    mujoco.mju_quat2Mat(matrix, q)
+    assert math.atan2(matrix[3], matrix[0]) == pytest.approx(yaw)
+
+
+@pytest.mark.parametrize("yaw", ALLOWED_YAWS)
+def test_goal_state(yaw):
+    goal = ris.goal_state(np.array((1.5, -2.0)), yaw)
+    assert goal.shape == (31,)
+    np.testing.assert_allclose(goal[:3], (1.5, -2.0, 0.565), rtol=1e-6)
+    np.testing.assert_allclose(goal[3:7], (1, 0, 1, 0), atol=1e-6)  # roll = pitch = 0
+    np.testing.assert_allclose(goal[7:9], (math.cos(yaw), math.sin(yaw)), atol=1e-6)
+    np.testing.assert_array_equal(goal[9:17], REST_POSE)
+    np.testing.assert_array_equal(goal[17:31], np.zeros(14))
+
+
+@pytest.mark.parametrize("name", MAZES)
+def test_training_resets_are_free_space_with_clearance(name):
+    env = ris.AntMazeEnv(name)
+    boxes = ris.maze_boxes(name)
+    (x0, x1), (y0, y1) = REFERENCE[name][0]
+    starts, goals, yaws = [], [], set()
+    for seed in range(150):
+        observation, _ = env.reset(seed=seed)
+        state, goal = observation["state"], observation["goal"]
+        for point in (state, goal):
+            assert is_allowed_yaw(yaw_of(point)), yaw_of(point)
+            assert point[2] == pytest.approx(0.565)
+            np.testing.assert_allclose(point[3:7], (1, 0, 1, 0), atol=1e-6)
+            np.testing.assert_allclose(point[9:17], REST_POSE, atol=1e-6)
+            np.testing.assert_array_equal(point[17:31], np.zeros(14))
+        yaws.update(
+            min(range(4), key=lambda i: abs(math.remainder(yaw_of(p) - ALLOWED_YAWS[i], 2 * math.pi))) for p in (state, goal)
+        )
+        np.testing.assert_array_equal(env.data.mocap_pos[0, :2], goal[:2])  # the marker shows the goal
+        starts.append(state[:2])
+        goals.append(goal[:2])
+    points = np.array(starts + goals, dtype=np.float64)
+    assert (ris.wall_distance(points, boxes) >= 0.75 - 1e-6).all()
+    assert (points[:, 0] > x0).all() and (points[:, 0] < x1).all() and (points[:, 1] > y0).all() and (points[:, 1] < y1).all()
+    assert len(yaws) == 4  # all four headings occur
+    # Spread over the whole maze, not the test boxes: both halves of each axis are visited by starts and by goals.
+    for half in (np.array(starts), np.array(goals)):
+        assert half[:, 0].min() < (x0 + x1) / 2 - 1 < (x0 + x1) / 2 + 1 < half[:, 0].max()
+        assert half[:, 1].min() < (y0 + y1) / 2 - 1 < (y0 + y1) / 2 + 1 < half[:, 1].max()
+
+
+@pytest.mark.parametrize("name", MAZES)
+def test_test_resets_use_the_reference_boxes(name):
+    _, _, start_box, goal_box = REFERENCE[name]
+    env = ris.AntMazeEnv(name, test=True)
+    starts = []
+    for seed in range(60):
+        observation, _ = env.reset(seed=seed)
+        assert inside(observation["state"][:2], start_box), observation["state"][:2]
+        assert inside(observation["goal"][:2], goal_box), observation["goal"][:2]
+        assert is_allowed_yaw(yaw_of(observation["state"])) and is_allowed_yaw(yaw_of(observation["goal"]))
+        starts.append(observation["state"][:2])
+    assert np.ptp(np.array(starts), axis=0).min() > 0.3  # drawn over the box, not a fixed point
+
+
+def test_step_reward_and_termination_at_half_a_metre():
+    env = ris.AntMazeEnv("AntU")
+    observation, _ = env.reset(seed=3)
+    xy = observation["state"][:2].copy()
+    for offset, expected in ((0.45, True), (0.55, False), (0.3, True), (0.7, False)):
+        env.goal[:2] = xy + np.array((0.0, offset))
+        observation, reward, terminated, truncated, info = env.step(np.zeros(8))
+        distance = np.linalg.norm(observation["state"][:2] - env.goal[:2])
+        assert abs(distance - offset) < 0.04  # the ant at rest barely moves in one step
+        assert reward == -1.0 and not truncated
+        assert terminated is expected and info["success"] is expected
+        np.testing.assert_array_equal(observation["goal"], env.goal)
+        xy = observation["state"][:2].copy()
+
+
+# --- HER relabelling in the episode replay ----------------------------------------------------------------------------
+
+STATE_DIM, GOAL_DIM = 6, 5
+KIND_STATE, KIND_NEXT, KIND_GOAL = 0.0, 1.0, 2.0
+
+
+def labelled_episode(episode: int, length: int, far_goals: bool = True):
+    """States [t, 100 * ep, ep, t, kind, 99]; s'_t has the xy (t + 1, 100 * ep) and kind 1; the rollout goal of step t
+    (kind 2) is 1000 m away, or when far_goals is False 0.45 m from s'_t for odd t and 0.55 m for even t."""
+    t = np.arange(length, dtype=np.float32)
+    ep = np.full(length, float(episode), dtype=np.float32)
+    states = np.stack((t, 100 * ep, ep, t, np.full(length, KIND_STATE), np.full(length, 99.0)), 1)
+    next_states = np.stack((t + 1, 100 * ep, ep, t, np.full(length, KIND_NEXT), np.full(length, 99.0)), 1)
+    goal_x = 1000.0 if far_goals else t + 1 + np.where(t % 2 == 1, 0.45, 0.55)
+    goals = np.stack((np.broadcast_to(goal_x, (length,)), 100 * ep, ep, t, np.full(length, KIND_GOAL)), 1)
+    actions = np.stack((ep, t), 1)
+    return states.astype(np.float32), actions, next_states.astype(np.float32), goals.astype(np.float32)
+
+
+def test_her_batch_proportions_rewards_and_done():
+    replay = ris.EpisodeReplay(1000, STATE_DIM, 2, GOAL_DIM, torch.device("cpu"))
+    lengths = [12, 7, 20, 1, 15]
+    for episode, length in enumerate(lengths):
+        replay.add_episode(*labelled_episode(episode, length, far_goals=False))
+    assert replay.size == sum(lengths)
+    states, actions, next_states, goals, rewards, done, subgoals = replay.sample(1000, GOAL_DIM, 0.5, 0.2, 0.4)
+    assert goals.shape == (1000, GOAL_DIM) and states.shape == (1000, STATE_DIM) and subgoals.shape == (1000, STATE_DIM)
+    ep, t = states[:, 2], states[:, 3]
+    # The batch is made of stored transitions: a, s' belong to the same (episode, t) as s.
+    assert (states[:, 4] == KIND_STATE).all() and (next_states[:, 4] == KIND_NEXT).all()
+    assert torch.equal(next_states[:, 2], ep) and torch.equal(next_states[:, 3], t)
+    assert torch.equal(actions, torch.stack((ep, t), 1))
+    assert torch.equal(states[:, 0], t) and torch.equal(next_states[:, 0], t + 1)
+    # First 200: the rollout goal of that very transition.
+    keep = goals[:200]
+    assert (keep[:, 4] == KIND_GOAL).all() and torch.equal(keep[:, 2], ep[:200]) and torch.equal(keep[:, 3], t[:200])
+    # Next 400: the first GOAL_DIM entries of random stored states (s, not s'), from across the buffer.
+    stored = replay.states[: replay.size, :GOAL_DIM]
+    random_goals = goals[200:600]
+    assert (random_goals[:, 4] == KIND_STATE).all()
+    assert ((random_goals[:, None, :] == stored[None]).all(-1)).any(1).all()
+    assert len(set(random_goals[:, 2].tolist())) == len(lengths)
+    assert (random_goals[:, 2] != ep[200:600]).float().mean() > 0.3  # independent of the transition's episode
+    # Last 400: s' of the same episode at a time >= the transition's, uniform over s'_t..s'_end.
+    future = goals[600:]
+    assert (future[:, 4] == KIND_NEXT).all() and torch.equal(future[:, 2], ep[600:])
+    offsets = future[:, 3] - t[600:]
+    assert (offsets >= 0).all() and (offsets == 0).any() and (offsets > 3).any()
+    last_t = torch.as_tensor(lengths, dtype=torch.float32)[ep[600:].long()] - 1
+    assert (future[:, 3] <= last_t).all()
+    assert ((future[:, 3] == last_t) & (t[600:] < last_t)).any()  # the episode's last s' is a possible future goal
+    # Rewards and done, recomputed.
+    assert (rewards == -1).all()
+    distance = torch.linalg.vector_norm(next_states[:, :2] - goals[:, :2], dim=-1)
+    assert torch.equal(done, (distance < 0.5).float())
+    assert torch.equal(done[600:], (offsets == 0).float())  # a future goal equal to s' itself is reached
+    assert done[:200].sum() > 0 and torch.equal(done[:200], (t[:200] % 2 == 1).float())  # 0.45 m: done, 0.55 m: not
+    assert done[600:].sum() > 0 and (done[600:] == 0).any()
+    # High-level candidates: stored states.
+    assert (subgoals[:, 4] == KIND_STATE).all()
+    assert ((subgoals[:, None, :] == replay.states[None, : replay.size]).all(-1)).any(1).all()
+
+
+def test_future_goals_are_uniform_over_the_rest_of_the_episode():
+    replay = ris.EpisodeReplay(100, STATE_DIM, 2, GOAL_DIM, torch.device("cpu"))
+    replay.add_episode(*labelled_episode(0, 4))
+    states, _, _, goals, _, done, _ = replay.sample(8000, GOAL_DIM, 0.5, 0.0, 0.0)
+    for t in range(4):
+        rows = states[:, 3] == t
+        offsets = goals[rows, 3] - t
+        counts = torch.bincount(offsets.long(), minlength=4 - t)
+        assert len(counts) == 4 - t  # s'_t .. s'_3, nothing else
+        assert (counts / rows.sum() - 1 / (4 - t)).abs().max() < 0.06, counts
+        assert torch.equal(done[rows], (offsets == 0).float())
+
+
+@pytest.mark.parametrize(("goal_frac", "random_frac"), [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.25, 0.5)])
+def test_her_fractions_are_respected(goal_frac, random_frac):
+    replay = ris.EpisodeReplay(200, STATE_DIM, 2, GOAL_DIM, torch.device("cpu"))
+    for episode in range(6):
+        replay.add_episode(*labelled_episode(episode, 10))
+    goals = replay.sample(64, GOAL_DIM, 0.5, goal_frac, random_frac)[3]
+    n_keep, n_random = round(64 * goal_frac), round(64 * random_frac)
+    kinds = [KIND_GOAL] * n_keep + [KIND_STATE] * n_random + [KIND_NEXT] * (64 - n_keep - n_random)
+    assert goals[:, 4].tolist() == kinds
+
+
+def test_replay_ring_keeps_episode_suffixes():
+    capacity = 60
+    replay = ris.EpisodeReplay(capacity, STATE_DIM, 2, GOAL_DIM, torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    lengths = rng.integers(1, 16, size=40)
+    for episode, length in enumerate(lengths):
+        replay.add_episode(*labelled_episode(episode, int(length)))
+        size = replay.size
+        assert size <= capacity
+        ends = replay.episode_end[:size]
+        rows = torch.arange(size)
+        assert (ends >= rows).all() and (ends < size).all()
+        ep, t = replay.states[:size, 2], replay.states[:size, 3]
+        assert torch.equal(ep[ends], ep)  # the stored end belongs to the same episode ...
+        assert torch.equal(t[ends], torch.as_tensor(lengths, dtype=torch.float32)[ep.long()] - 1)  # ... and is its last step
+        assert torch.equal(t[ends] - t, (ends - rows).float())  # and every step in between survives, in order
+    assert sum(lengths) > 5 * capacity  # the ring wrapped several times
+    assert replay.states[: replay.size, 2].max() == len(lengths) - 1  # the latest episode is stored
+    states, _, _, goals, _, _, _ = replay.sample(2000, GOAL_DIM, 0.5, 0.0, 0.0)  # all future goals
+    assert torch.equal(goals[:, 2], states[:, 2]) and (goals[:, 3] >= states[:, 3]).all()
+    assert (goals[:, 4] == KIND_NEXT).all()
+
+
+# --- RIS losses on toy tensors ----------------------------------------------------------------------------------------
+
+
+def test_advantage_weights():
+    proposed = torch.tensor([5.0, 5.0, 5.0, 5.0])
+    candidates = torch.tensor([3.0, 7.0, 5.0, 4.9])
+    weights = ris.advantage_weights(proposed, candidates, 0.1)
+    assert weights.sum() == pytest.approx(1.0)
+    assert weights.argmax() == 0 and weights.argmin() == 1  # the cheaper candidate weighs more
+    expected = torch.softmax(torch.tensor([20.0, -20.0, 0.0, 1.0]), 0)
+    assert torch.allclose(weights, expected)
+    batch = ris.advantage_weights(torch.randn(64), torch.randn(64), 1.0)
+    assert batch.sum() == pytest.approx(1.0) and (batch > 0).all()
+
+
+def test_subgoal_cost_clips_and_takes_the_longer_half():
+    to_subgoal = torch.tensor([-3.0, -150.0, 4.0, -10.0, -20.0])
+    from_subgoal = torch.tensor([-5.0, -1.0, -2.0, 7.0, -300.0])
+    assert torch.equal(ris.subgoal_cost(to_subgoal, from_subgoal), torch.tensor([5.0, 100.0, 2.0, 10.0, 100.0]))
+
+
+def naive_prior_kl(u, mean, std, prior_mean, prior_std, epsilon):
+    """log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + eps), as products of densities in float64."""
+    u, mean, std, prior_mean, prior_std = (x.double() for x in (u, mean, std, prior_mean, prior_std))
+
+    def density(x, mu, sigma):
+        return (torch.exp(-0.5 * ((x - mu) / sigma) ** 2) / (sigma * math.sqrt(2 * math.pi))).prod(-1)
+
+    return torch.log(density(u, mean, std)) - torch.log(density(u.unsqueeze(0), prior_mean, prior_std).mean(0) + epsilon)
+
+
+@pytest.mark.parametrize("epsilon", [1e-16, 1e-4, 0.3])
+def test_prior_kl_matches_the_direct_formula(epsilon):
+    generator = torch.Generator().manual_seed(1)
+    batch, actions, k = 6, 3, 5
+    mean, std = torch.randn(batch, actions, generator=generator), 0.5 + torch.rand(batch, actions, generator=generator)
+    u = mean + std * torch.randn(batch, actions, generator=generator)
+    prior_mean = mean + 0.7 * torch.randn(k, batch, actions, generator=generator)
+    prior_std = 0.3 + torch.rand(k, batch, actions, generator=generator)
+    kl = ris.prior_kl(u, mean, std, prior_mean, prior_std, epsilon)
+    assert kl.shape == (batch,)
+    torch.testing.assert_close(kl.double(), naive_prior_kl(u, mean, std, prior_mean, prior_std, epsilon), rtol=1e-4, atol=1e-4)
+    # Prior = policy at every subgoal: KL = -log(1 + eps / N(u; mu, sigma)).
+    same = ris.prior_kl(u, mean, std, mean.expand(k, -1, -1), std.expand(k, -1, -1), epsilon)
+    torch.testing.assert_close(
+        same.double(),
+        naive_prior_kl(u, mean, std, mean.expand(k, -1, -1), std.expand(k, -1, -1), epsilon),
+        rtol=1e-4,
+        atol=1e-5,
+    )
+    if epsilon == 1e-16:
+        assert same.abs().max() < 1e-5
+
+
+def test_prior_kl_is_finite_where_the_density_underflows():
+    mean, std, u = torch.zeros(4, 8), torch.ones(4, 8), torch.full((4, 8), 0.1)
+    log_policy = torch.distributions.Normal(mean, std).log_prob(u).sum(-1)
+    # Prior means 100 sigmas away in 8 dimensions: the mixture density is exactly 0 even in float64; the KL is the
+    # policy's log density minus log(eps).
+    prior_mean, prior_std = torch.full((3, 4, 8), 50.0), torch.full((3, 4, 8), 0.5)
+    for epsilon in (1e-16, 1e-300):
+        kl = ris.prior_kl(u, mean, std, prior_mean, prior_std, epsilon)
+        assert torch.isfinite(kl).all()
+        torch.testing.assert_close(kl, log_policy - math.log(epsilon))
+        torch.testing.assert_close(kl.double(), naive_prior_kl(u, mean, std, prior_mean, prior_std, epsilon))
+    # A mixture density of about 1e-60 (8 sigmas away in 4 dimensions), far above eps = 1e-300: the naive float32 formula
+    # underflows to log(0), prior_kl on the same float32 inputs matches the float64 formula, gradients included.
+    mean, std = torch.zeros(2, 4), torch.ones(2, 4)
+    u = torch.zeros(2, 4, requires_grad=True)
+    prior_mean, prior_std = torch.full((5, 2, 4), 8.2), torch.ones(5, 2, 4)
+    naive32 = torch.log(torch.distributions.Normal(prior_mean, prior_std).log_prob(u.detach()).sum(-1).exp().mean(0) + 1e-300)
+    assert torch.isinf(naive32).all()
+    kl = ris.prior_kl(u, mean, std, prior_mean, prior_std, 1e-300)
+    expected = naive_prior_kl(u.detach(), mean, std, prior_mean, prior_std, 1e-300)
+    assert 100 < expected.min() < 200
+    torch.testing.assert_close(kl.double(), expected, rtol=1e-5, atol=1e-3)
+    kl.sum().backward()
+    assert torch.isfinite(u.grad).all() and u.grad.abs().sum() > 0
+
+
+# --- one RIS update ---------------------------------------------------------------------------------------------------
+
+
+def tiny_agent(groups: int, state_dim: int = 6, goal_dim: int = 2, action_dim: int = 2, **kwargs):
+    args = ris.Args(
+        groups=groups, embed_dim=8, n_embed=8, hidden_dim=16, n_subgoals=3, batch_size=32, tau=0.25, threads=1, **kwargs
+    )
+    goal_input_dim = args.embed_dim if groups else goal_dim
+    actor = ris.Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim)
+    critic = ris.TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim)
+    high = ris.HighLevelPolicy(state_dim, goal_dim, args.hidden_dim)
+    encoder = ris.GoalEncoder(goal_dim, args.embed_dim, args.hidden_dim, args) if groups else None
+    nets = dict(actor=actor, critic=critic, high=high, goal_encoder=encoder)
+    nets.update(actor_target=make_target(actor), critic_target=make_target(critic))
+    critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
+    if groups:
+        critic_groups.append({"params": encoder.parameters(), "lr": args.encoder_lr})
+    optimizers = {
+        "critic": torch.optim.Adam(critic_groups),
+        "actor": torch.optim.Adam(actor.parameters(), lr=args.actor_lr),
+        "high": torch.optim.Adam(high.parameters(), lr=args.h_lr),
+    }
+    replay = ris.EpisodeReplay(500, state_dim, action_dim, goal_dim, torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    for _ in range(8):  # random walks, each with its last point as the goal
+        states = np.cumsum(rng.normal(size=(21, state_dim)), 0).astype(np.float32)
+        actions = rng.uniform(-1, 1, (20, action_dim)).astype(np.float32)
+        replay.add_episode(states[:-1], actions, states[1:], np.tile(states[-1, :goal_dim], (20, 1)))
+    return args, nets, optimizers, replay
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_ris_update_runs_and_moves_targets_by_polyak(groups):
+    args, nets, optimizers, replay = tiny_agent(groups)
+    goal_dim = 2
+    # Targets that differ from the online nets, so that the Polyak step is visible.
+    for target in (nets["actor_target"], nets["critic_target"]):
+        with torch.no_grad():
+            for parameter in target.parameters():
+                parameter.add_(torch.randn_like(parameter))
+    before = {name: [p.clone() for p in nets[name].parameters()] for name in ("actor_target", "critic_target")}
+    online_before = {name: [p.clone() for p in nets[name].parameters()] for name in ("actor", "critic", "high")}
+    batch = replay.sample(args.batch_size, goal_dim, 0.45, 0.2, 0.4)
+    metrics = ris.ris_update(nets, optimizers, batch, args, goal_dim)
+    for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values", "high_weight_max", "subgoal_distance"):
+        assert metrics[name].shape == () and torch.isfinite(metrics[name]), name
+        assert not metrics[name].requires_grad
+    assert 0 < metrics["high_weight_max"] <= 1
+    assert ("codes" in metrics) == (groups > 0) and ("reconstruction_loss" in metrics) == (groups > 0)
+    if groups:
+        assert metrics["codes"].shape == (4 * args.batch_size, groups)
+        assert torch.isfinite(metrics["vq_loss"]) and torch.isfinite(metrics["reconstruction_loss"])
+    for name in ("actor", "critic", "high"):  # every online net took a step
+        assert any(not torch.equal(p, q) for p, q in zip(nets[name].parameters(), online_before[name], strict=True)), name
+    for target, online in (("actor_target", "actor"), ("critic_target", "critic")):
+        for old, new, source in zip(before[target], nets[target].parameters(), nets[online].parameters(), strict=True):
+            torch.testing.assert_close(new, old + args.tau * (source - old))
+            assert not torch.equal(new, source)
+
+
+def test_dgrl_update_moves_the_codebook_and_acting_does_not():
+    args, nets, optimizers, replay = tiny_agent(4)
+    encoder = nets["goal_encoder"]
+    encoder_weights = [p.clone() for p in encoder.encoder.parameters()]
+    goals = torch.randn(16, 2)
+    buffers = {name: b.clone() for name, b in encoder.vq.named_buffers()}
+    z_q = ris.goal_input(encoder, goals)
+    assert z_q.shape == (16, 8)
+    with torch.no_grad():
+        assert torch.equal(z_q, ris.goal_input(encoder, goals))
+    actions = ris.act(nets["actor"], encoder, {"state": torch.randn(16, 6).numpy(), "goal": goals.numpy()}, "cpu", True)
+    assert actions.shape == (16, 2) and np.abs(actions).max() <= 1
+    for name, buffer in encoder.vq.named_buffers():
+        assert torch.equal(buffer, buffers[name]), name  # acting never moves the codebook
+    # The quantized goal is made of codebook rows.
+    codes = encoder.vq.codebook
+    segments = z_q.detach().reshape(-1, codes.shape[1])
+    assert ((segments[:, None, :] == codes[None]).all(-1)).any(1).all()
+    batch = replay.sample(args.batch_size, 2, 0.45, 0.2, 0.4)
+    ris.ris_update(nets, optimizers, batch, args, 2)
+    assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
+    assert not torch.equal(encoder.vq.ema_count, buffers["ema_count"])
+    assert any(not torch.equal(p, q) for p, q in zip(encoder.encoder.parameters(), encoder_weights, strict=True))
+
+
+def test_act_mean_action_is_tanh_of_the_mean():
+    _, nets, _, _ = tiny_agent(0)
+    observations = {
+        "state": np.random.default_rng(0).normal(size=(5, 6)).astype(np.float32),
+        "goal": np.zeros((5, 2), np.float32),
+    }
+    actions = ris.act(nets["actor"], None, observations, "cpu", deterministic=True)
+    with torch.no_grad():
+        mean = nets["actor"](torch.as_tensor(observations["state"]), torch.as_tensor(observations["goal"]))[0]
+    np.testing.assert_allclose(actions, torch.tanh(mean).numpy(), rtol=1e-6)
+    sampled = ris.act(nets["actor"], None, observations, "cpu", deterministic=False)
+    assert sampled.shape == (5, 2) and np.abs(sampled).max() <= 1 and not np.allclose(sampled, actions)
+
+
+# --- gymnasium-robotics wrapper ---------------------------------------------------------------------------------------
+
+
+def test_robotics_maze_state_is_achieved_goal_then_observation():
+    observation = {
+        "achieved_goal": np.array([1.0, 2.0]),
+        "observation": np.array([3.0, 4.0, 5.0, 6.0]),
+        "desired_goal": np.array([7.0, 8.0]),
+    }
+    converted = ris.RoboticsMaze._convert(observation)
+    np.testing.assert_array_equal(converted["state"], [1, 2, 3, 4, 5, 6])
+    np.testing.assert_array_equal(converted["goal"], [7, 8])
+    assert converted["state"].dtype == np.float32 and converted["goal"].dtype == np.float32
+
+
+def test_point_umaze_test_resets_use_the_two_ends_of_the_u():
+    env = ris.make_env("PointMaze_UMaze-v3", 0, True, 0, ris.ROBOTICS_THRESHOLD)()
+    assert env.observation_space["state"].shape == (6,) and env.observation_space["goal"].shape == (2,)
+    maze = env.unwrapped.maze
+    assert maze.maze_map[1][1] == 0 and maze.maze_map[3][1] == 0 and maze.maze_map[2][1] == 1  # two ends of the U
+    start_cell, goal_cell = maze.cell_rowcol_to_xy(np.array((1, 1))), maze.cell_rowcol_to_xy(np.array((3, 1)))
+    np.testing.assert_allclose(start_cell, (-1.0, 1.0))
+    np.testing.assert_allclose(goal_cell, (-1.0, -1.0))
+    for seed in range(10):
+        observation, _ = env.reset(seed=seed)
+        state, goal = observation["state"], observation["goal"]
+        assert state.shape == (6,) and goal.shape == (2,)
+        np.testing.assert_allclose(state[:2], state[2:4])  # achieved goal = the point's xy, the head of the observation
+        assert np.abs(state[:2] - start_cell).max() <= 0.25 + 1e-6, state
+        assert np.abs(goal - goal_cell).max() <= 0.25 + 1e-6, goal
+    observation, *_ = env.step(np.zeros(2))
+    assert observation["state"].shape == (6,)
+    training = ris.make_env("PointMaze_UMaze-v3", 0, False, 0, ris.ROBOTICS_THRESHOLD)()
+    far = [np.abs(training.reset(seed=seed)[0]["state"][:2] - start_cell).max() > 0.5 for seed in range(20)]
+    assert any(far)  # training resets are not confined to the test cells
+
+
+# --- smoke runs and flags ---------------------------------------------------------------------------------------------
+
+TINY = [
+    "--total-timesteps", "150", "--start-timesteps", "100", "--batch-size", "32", "--eval-frequency", "150",
+    "--eval-episodes", "2", "--max-episode-steps", "50", "--buffer-size", "10000", "--hidden-dim", "32",
+]  # fmt: skip
+ENV_IDS = ["AntU", "AntFb", "AntMaze", "AntFg", "PointMaze_UMaze-v3", "AntMaze_UMaze-v5"]
+
+
+@pytest.mark.parametrize("groups", ["0", "16"])
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_smoke_run(run_script, tmp_path, env_id, groups):
+    save = env_id == "AntU"
+    flags = ["--env-id", env_id, "--groups", groups]
+    result = run_script("dgrl_ris.py", *TINY, *flags, *(["--save-model"] if save else []))
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert re.search(r"eval success +\d+% distance +[\d.]+", result.stdout), result.stdout
+    assert re.search(r"done: 150 steps, 51 updates, last eval success \d+%", result.stdout), result.stdout
+    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
+    assert b"eval/success_rate" in events and b"charts/episodic_length" in events
+    if save:
+        checkpoint = next(tmp_path.glob("runs/*/dgrl_ris.cleanrl_model"))
+        saved = torch.load(checkpoint)
+        assert (saved["goal_encoder"] is None) == (groups == "0")
+        if groups != "0":
+            assert "vq.codebook" in saved["goal_encoder"] and "vq.ema_count" in saved["goal_encoder"]
+        reloaded = run_script(
+            "dgrl_ris.py", *flags, "--hidden-dim", "32", "--eval-episodes", "2", "--max-episode-steps", "50",
+            "--checkpoint", str(checkpoint),
+        )  # fmt: skip
+        assert reloaded.returncode == 0, reloaded.stderr[-3000:]
+        assert re.search(r"2 test episodes: success \d+%, final distance [\d.]+", reloaded.stdout), reloaded.stdout
+
+
+def test_capture_video_writes_an_mp4(run_script, tmp_path):
+    flags = ["--env-id", "AntFb", "--groups", "0", "--total-timesteps", "40", "--start-timesteps", "40"]
+    flags += ["--batch-size", "8", "--buffer-size", "1000", "--eval-frequency", "40", "--eval-episodes", "1"]
+    flags += ["--max-episode-steps", "8", "--hidden-dim", "32", "--capture-video"]
+    result = run_script("dgrl_ris.py", *flags, env={"MUJOCO_GL": "egl"})
+    assert result.returncode == 0, result.stderr[-3000:]
+    videos = list(tmp_path.glob("videos/*/eval_*.mp4"))
+    assert len(videos) == 1 and os.path.getsize(videos[0]) > 1000
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"env_id": "AntX"}, r"--env-id 'AntX' is unknown: use one of AntU, AntFb, AntMaze, AntFg"),
+        ({"env_id": "PointMaze_Nope-v3"}, r"--env-id 'PointMaze_Nope-v3' is not a registered .*PointMaze_UMaze-v3"),
+        ({"groups": 5}, r"--groups must be 0 \(RIS\) or divide --embed-dim 64: one of \[1, 2, 4, 8, 16, 32, 64\]; got 5"),
+        ({"her_goal_frac": 0.8, "her_random_frac": 0.4}, r"--her-goal-frac \(0.8\) and --her-random-frac \(0.4\)"),
+        ({"batch_size": 64, "buffer_size": 32}, r"--buffer-size \(32\) must be >= --batch-size \(64\)"),
+    ],
+)
+def test_validate_names_the_bad_flag(overrides, message):
+    with pytest.raises(SystemExit) as error:
+        ris.validate(ris.Args(**overrides))
+    assert re.search(message, str(error.value.code)), error.value.code
+    ris.validate(ris.Args(env_id="AntU", groups=16))  # the defaults pass
+
+
+def test_bad_flags_fail_before_any_work(run_script, tmp_path):
+    """Every bad flag is reported at once, by name, before any env, network or log directory is made."""
+    flags = ["--env-id", "AntX", "--groups", "5", "--her-goal-frac", "0.8", "--her-random-frac", "0.4"]
+    result = run_script("dgrl_ris.py", *flags)
+    assert result.returncode != 0
+    for message in ("--env-id 'AntX' is unknown: use one of AntU, AntFb, AntMaze, AntFg", "--groups must be 0 (RIS)"):
+        assert message in result.stderr, result.stderr[-2000:]
+    assert "--her-goal-frac (0.8) and --her-random-frac (0.4)" in result.stderr
+    assert "state 31-d" not in result.stdout and not (tmp_path / "runs").exists()
+
+
+def test_a_buffer_smaller_than_an_episode_is_rejected_before_any_work():
+    """EpisodeReplay writes whole episodes into one contiguous slice, so an episode longer than --buffer-size cannot be
+    stored: such a run crashes with a torch shape error in add_episode at the end of its first episode, after the envs
+    and networks are built. validate() must reject the flags first, naming --buffer-size."""
+    args = ris.Args(env_id="AntU", buffer_size=64, batch_size=32, max_episode_steps=100)
+    with pytest.raises(SystemExit, match="--buffer-size"):
+        ris.validate(args)
+    ris.validate(ris.Args(env_id="AntU", buffer_size=100, batch_size=32, max_episode_steps=100))  # one episode fits

@@ -286,9 +286,9 @@ class AntMazeEnv(gym.Env):
         super().reset(seed=seed)
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = rest_qpos(self._draw_xy("test_start"), self.np_random.choice(YAWS))  # zero velocities
-        mujoco.mj_forward(self.model, self.data)
         self.goal = goal_state(self._draw_xy("test_goal"), self.np_random.choice(YAWS))
         self.data.mocap_pos[0, :2] = self.goal[:2]
+        mujoco.mj_forward(self.model, self.data)
         return {"state": ant_state(self.data.qpos, self.data.qvel), "goal": self.goal.copy()}, {}
 
     def step(self, action):

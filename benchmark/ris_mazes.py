@@ -1,0 +1,33 @@
+"""Top-down renders of the four Ant mazes of dgrl_ris.py on their test configuration (docs/img/ris_mazes.png).
+
+    MUJOCO_GL=egl python benchmark/ris_mazes.py
+
+Each panel is the script's own MuJoCo scene (walls, ant at a test start, red goal marker at a test goal), rendered by
+the env's `render()`; it lets a reader check the geometry against the reference table at a glance.
+"""
+
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import dgrl_ris as ris
+
+if __name__ == "__main__":
+    out = Path(__file__).resolve().parents[1] / "docs/img/ris_mazes.png"
+    figure, axes = plt.subplots(1, 4, figsize=(16, 4.4))
+    for axis, (name, shape) in zip(axes, (("AntU", "U"), ("AntFb", "S"), ("AntMaze", "Pi"), ("AntFg", "omega")), strict=True):
+        env = ris.AntMazeEnv(name, test=True, render_mode="rgb_array")
+        observation, _ = env.reset(seed=0)
+        axis.imshow(env.render())
+        axis.set_title(f"{name} ({shape}): start {observation['state'][:2].round(1)}, goal {observation['goal'][:2].round(1)}")
+        axis.axis("off")
+        env.close()
+    figure.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, dpi=80)
+    print(f"wrote {out}")

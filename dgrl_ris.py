@@ -479,9 +479,9 @@ class EpisodeReplay:
         if self.position + length > self.capacity:
             self.position = 0
         rows = slice(self.position, self.position + length)
-        for storage, values in ((self.states, states), (self.actions, actions), (self.next_states, next_states)):
+        stored = (self.states, self.actions, self.next_states, self.goals)
+        for storage, values in zip(stored, (states, actions, next_states, goals), strict=True):
             storage[rows] = torch.as_tensor(values, device=self.device)
-        self.goals[rows] = torch.as_tensor(goals, device=self.device)
         self.episode_end[rows] = self.position + length - 1
         self.position += length
         self.size = max(self.size, self.position)

@@ -32,5 +32,5 @@ done | xargs -P "$JOBS" -L 1 bash -c 'log="logs/ris_$2_$3_G$9_s${10}.log"
     --start-timesteps "$6" --eval-frequency "$7" --eval-episodes "$8" --exp-name "$3" --save-model $EXTRA > "$log" 2>&1
   tail -n 1 "$log"' _ "$PYTHON" "$ENV" "$TAG" "$STEPS" "$BATCH" "$START" "$EVAL_EVERY" "$EVAL_EPISODES"
 "$PYTHON" benchmark/plot.py --runs-dir runs --match "${ENV}__G.*__${TAG}__" --out "results/ris_${ENV}_${TAG}" \
-  --bins 15 --tags eval/success_rate eval/final_distance charts/success_rate charts/SPS \
+  --bins 15 --tags eval/success_rate eval/final_distance charts/success_rate charts/subgoal_distance \
   --title "${ENV}: RIS (G0) vs RIS+DGRL (G16), ${STEPS} steps, batch ${BATCH}"

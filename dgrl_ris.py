@@ -11,9 +11,9 @@ prior on the discrete goal and subgoal embeddings. `--groups 0` is plain RIS fro
 
     python dgrl_ris.py --env-id AntMaze --groups 16        # paper setting (Pi maze, G=16): 5M steps at batch 2048, a GPU job
     python dgrl_ris.py --env-id AntU --groups 0             # RIS on the U maze
-    python dgrl_ris.py --env-id PointMaze_UMaze-v3 --total-timesteps 30000 --batch-size 256 --start-timesteps 2000 \
-        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (about 10 min on one core)
-    python dgrl_ris.py --env-id AntU --total-timesteps 3000 --start-timesteps 500 --batch-size 64   # smoke run
+    python dgrl_ris.py --env-id PointMaze_UMaze-v3 --total-timesteps 30000 --batch-size 128 --start-timesteps 2000 \
+        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (20 min on a CPU core; --groups 0: 10 min)
+    python dgrl_ris.py --env-id AntU --total-timesteps 3000 --start-timesteps 500 --batch-size 64   # 1-minute smoke run
 
 Environments: the four Ant mazes of RIS (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built here from the Ant model inside
 gymnasium, and every gymnasium-robotics maze id (`PointMaze_UMaze-v3`, `AntMaze_UMaze-v5`, ...).
@@ -759,7 +759,7 @@ if __name__ == "__main__":
     print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
     if device.type == "cpu" and args.batch_size >= 1024:
         print(
-            f"note: --batch-size {args.batch_size} on a CPU is about 0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
+            f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
         )
 
     nets = dict(modules, actor_target=make_target(actor), critic_target=make_target(critic))

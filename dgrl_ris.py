@@ -847,11 +847,11 @@ if __name__ == "__main__":
             writer.add_scalar("eval/success_rate", eval_success, step)
             writer.add_scalar("eval/final_distance", eval_distance, step)
             writer.add_scalar("charts/SPS", sps, step)
-            train_success = np.mean(recent_success) if recent_success else float("nan")
+            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
             recent_success = []
             print(
                 f"step {step:>8}/{args.total_timesteps}  eval success {eval_success:4.0%} distance {eval_distance:5.2f}  "
-                f"train success {train_success:4.0%}  SPS {sps}  {elapsed:.0f}s elapsed, "
+                f"train success {train_success}  SPS {sps}  {elapsed:.0f}s elapsed, "
                 f"{(args.total_timesteps - step) / max(sps, 1):.0f}s left"
             )
             if video:

@@ -552,7 +552,7 @@ def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim:
     metrics = {}
 
     # Critic (policy evaluation); under DGRL also the representation: autoencoder + commitment losses of s, s', g, s_g.
-    if goal_encoder is not None:
+    if goal_encoder is not None:  # DGRL
         points = torch.cat((states[:, :goal_dim], next_states[:, :goal_dim], goals, subgoals[:, :goal_dim]))  # DGRL
         z_q, vq_loss, codes = goal_encoder(points, update=True)  # DGRL: one pooled EMA step over the four embeddings
         reconstruction_loss = F.mse_loss(goal_encoder.decoder(z_q[:batch_size]), points[:batch_size])  # DGRL
@@ -568,7 +568,7 @@ def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim:
     q_values = critic(states, actions, goal_z)
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
     optimizers["critic"].zero_grad(set_to_none=True)
-    (critic_loss + representation_loss if goal_encoder is not None else critic_loss).backward()
+    (critic_loss + representation_loss if goal_encoder is not None else critic_loss).backward()  # DGRL: + representation
     optimizers["critic"].step()
     goal_z = goal_z.detach()
 
@@ -577,7 +577,7 @@ def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim:
         proposed = high(states, goals).loc
         value_states = torch.cat((states, subgoals, states, proposed))
         value_goals = torch.cat((subgoals[:, :goal_dim], goals, proposed[:, :goal_dim], goals))
-        value_goal_z = goal_input(goal_encoder, value_goals)
+        value_goal_z = goal_input(goal_encoder, value_goals)  # DGRL: V(x, y) sees y's discrete embedding
         value_actions = torch.tanh(actor(value_states, value_goal_z)[0])
         values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)
         weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
@@ -719,7 +719,7 @@ if __name__ == "__main__":
     action_dim = envs.single_action_space.shape[0]
     if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
         raise SystemExit(f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]")
-    goal_input_dim = args.embed_dim if dgrl else goal_dim
+    goal_input_dim = args.embed_dim if dgrl else goal_dim  # DGRL: the networks take z_q(g) instead of g
 
     actor = Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
     critic = TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
@@ -765,7 +765,7 @@ if __name__ == "__main__":
     nets = dict(modules, actor_target=make_target(actor), critic_target=make_target(critic))
     fused = device.type in ("cpu", "cuda")
     critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
-    if dgrl:
+    if dgrl:  # DGRL
         critic_groups.append({"params": goal_encoder.parameters(), "lr": args.encoder_lr})  # DGRL: the codebook moves by EMA
     optimizers = {
         "critic": torch.optim.Adam(critic_groups, fused=fused),
@@ -825,7 +825,7 @@ if __name__ == "__main__":
                 for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values", "high_weight_max"):
                     writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
                 writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), step)
-                if dgrl:
+                if dgrl:  # DGRL
                     writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), step)  # DGRL
                     writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
                     writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL

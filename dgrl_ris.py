@@ -173,6 +173,7 @@ ANT_MAZES = {  # RIS's four mazes (reference ris.md): interior bounds, inner wal
 }
 ANT_JOINT_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))  # hips and ankles at rest (gymnasium's init_qpos)
 ANT_GOAL_Z = 0.565
+ANT_EPISODE_STEPS = 600
 YAWS = np.array((0.0, np.pi, np.pi / 2, -np.pi / 2))
 WALL_CLEARANCE = 0.75  # training starts and goals keep at least this far from every wall
 ANT_THRESHOLD, ROBOTICS_THRESHOLD = 0.5, 0.45  # success radii (RIS; gymnasium-robotics' own)
@@ -353,14 +354,15 @@ def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, thresho
     def thunk():
         render_mode = "rgb_array" if render else None
         if env_id in ANT_MAZES:
-            env = gym.wrappers.TimeLimit(AntMazeEnv(env_id, test, threshold, render_mode), max_episode_steps or 600)
+            env = gym.wrappers.TimeLimit(
+                AntMazeEnv(env_id, test, threshold, render_mode), max_episode_steps or ANT_EPISODE_STEPS
+            )
         else:
             robotics_ids()
             kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
-            env = gym.make(env_id, continuing_task=False, render_mode=render_mode, **kwargs)
             if max_episode_steps:
-                env = gym.wrappers.TimeLimit(env.unwrapped, max_episode_steps)
-            env = RoboticsMaze(env, test)
+                kwargs["max_episode_steps"] = max_episode_steps
+            env = RoboticsMaze(gym.make(env_id, continuing_task=False, render_mode=render_mode, **kwargs), test)
         env = gym.wrappers.RecordEpisodeStatistics(env)
         env.action_space.seed(seed)
         return env
@@ -560,7 +562,7 @@ def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim:
         representation_loss = reconstruction_loss + 4 * vq_loss  # DGRL: the sum of the four commitment losses
         metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)  # DGRL
     else:
-        goal_z = goals
+        goal_z, representation_loss = goals, 0.0
     with torch.no_grad():
         next_actions = actor.sample(next_states, goal_z.detach())
         next_q = critic_target(next_states, next_actions, goal_z.detach()).min(0).values
@@ -568,20 +570,21 @@ def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim:
     q_values = critic(states, actions, goal_z)
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
     optimizers["critic"].zero_grad(set_to_none=True)
-    (critic_loss + representation_loss if goal_encoder is not None else critic_loss).backward()  # DGRL: + representation
+    (critic_loss + representation_loss).backward()  # DGRL: + the representation loss
     optimizers["critic"].step()
     goal_z = goal_z.detach()
 
     # High level: advantage-weighted regression onto random replay states.
+    subgoal_distribution = high(states, goals)
+    proposed = subgoal_distribution.loc.detach()
     with torch.no_grad():
-        proposed = high(states, goals).loc
         value_states = torch.cat((states, subgoals, states, proposed))
         value_goals = torch.cat((subgoals[:, :goal_dim], goals, proposed[:, :goal_dim], goals))
         value_goal_z = goal_input(goal_encoder, value_goals)  # DGRL: V(x, y) sees y's discrete embedding
         value_actions = torch.tanh(actor(value_states, value_goal_z)[0])
         values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)
         weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
-    high_loss = -(weights * high(states, goals).log_prob(subgoals).sum(-1)).mean()
+    high_loss = -(weights * subgoal_distribution.log_prob(subgoals).sum(-1)).mean()
     optimizers["high"].zero_grad(set_to_none=True)
     high_loss.backward()
     optimizers["high"].step()
@@ -689,7 +692,8 @@ def validate(args: Args) -> None:
     if args.buffer_size < args.batch_size:
         errors.append(f"--buffer-size ({args.buffer_size}) must be >= --batch-size ({args.batch_size})")
     if not errors:  # the replay writes whole episodes, so the longest one must fit
-        limit = args.max_episode_steps or (600 if args.env_id in ANT_MAZES else gym.spec(args.env_id).max_episode_steps)
+        default = ANT_EPISODE_STEPS if args.env_id in ANT_MAZES else gym.spec(args.env_id).max_episode_steps
+        limit = args.max_episode_steps or default
         if args.buffer_size < limit:
             errors.append(f"--buffer-size ({args.buffer_size}) must hold one whole episode: >= {limit} (--max-episode-steps)")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):

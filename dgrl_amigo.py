@@ -356,7 +356,7 @@ class Student(nn.Module):
 
     def __init__(self, width: int, height: int, n_actions: int, goal_channel: bool, embed_dim: int):
         super().__init__()
-        self.goal_channel = goal_channel
+        self.goal_channel, self.embed_dim = goal_channel, embed_dim
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(10 + goal_channel, width, height)
         self.carried_object, self.carried_color = nn.Embedding(N_OBJECTS, 5), nn.Embedding(N_COLORS, 3)
@@ -519,13 +519,24 @@ def propose_goals(teacher: Teacher, frames: np.ndarray, device) -> tuple[np.ndar
 
 
 @torch.no_grad()
-def act(student: Student, goal_encoder: GoalEncoder, grids, carry, book: GoalBook, device, deterministic: bool = False):
-    """The student's actions and their log-probabilities; the codebook does not move (update=False)."""
-    grids_t, carry_t, goals_t, frames_t = tensors(device, grids, carry, book.goal, book.frame)
-    embedding, _, _ = goal_encoder(frames_t, goals_t, update=False)
-    logits, _ = student(grids_t, carry_t, goals_t, embedding)
-    actions = logits.argmax(-1) if deterministic else torch.distributions.Categorical(logits=logits).sample()
+def embed_goals(goal_encoder: GoalEncoder, frames: np.ndarray, goals: np.ndarray, device) -> torch.Tensor:
+    """Goal embeddings for acting: the codebook does not move (update=False). Acting computes them once per goal."""
+    return goal_encoder(*tensors(device, frames, goals), update=False)[0]
+
+
+@torch.no_grad()
+def act(student: Student, grids, carry, book: GoalBook, goal_embedding: torch.Tensor, device):
+    """The student's sampled actions and their log-probabilities."""
+    grids_t, carry_t, goals_t = tensors(device, grids, carry, book.goal)
+    logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)
+    actions = torch.distributions.Categorical(logits=logits).sample()
     return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
+
+
+def renew_goals(mask: np.ndarray, book: GoalBook, goal_embedding: torch.Tensor, grids, teacher, goal_encoder, device):
+    """New teacher goals for the envs in `mask`, issued on their current frames, and their embeddings."""
+    book.issue(mask, grids[mask], *propose_goals(teacher, grids[mask], device))
+    goal_embedding[torch.as_tensor(mask, device=device)] = embed_goals(goal_encoder, book.frame[mask], book.goal[mask], device)
 
 
 def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.ndarray:
@@ -544,17 +555,18 @@ def evaluate(envs: MiniGridVecEnv, student, goal_encoder, teacher, device, episo
     mean extrinsic return, success rate, goals reached per episode."""
     grids, carry = envs.reset(seed=seed)
     book = GoalBook(envs.num_envs, envs.width, envs.height)
-    book.issue(np.ones(envs.num_envs, dtype=bool), grids, *propose_goals(teacher, grids, device))
+    goal_embedding = torch.zeros(envs.num_envs, student.embed_dim, device=device)
+    renew_goals(np.ones(envs.num_envs, dtype=bool), book, goal_embedding, grids, teacher, goal_encoder, device)
     returns, reached_total = [], 0
     while len(returns) < episodes:
-        actions, _ = act(student, goal_encoder, grids, carry, book, device)
+        actions, _ = act(student, grids, carry, book, goal_embedding, device)
         (grids, carry), after, _, terminated, truncated, (finished, _) = envs.step(actions)
         book.steps += 1
         reached = book.reached(after)
         reached_total += int(reached.sum())
         renew = reached | terminated | truncated
         if renew.any():
-            book.issue(renew, grids[renew], *propose_goals(teacher, grids[renew], device))
+            renew_goals(renew, book, goal_embedding, grids, teacher, goal_encoder, device)
         returns.extend(finished.tolist())
     returns = np.array(returns[:episodes])
     return {"return": returns.mean(), "success": (returns > 0).mean(), "goals_per_episode": reached_total / len(returns)}
@@ -700,7 +712,8 @@ if __name__ == "__main__":
 
     grids, carry = envs.reset(seed=args.seed)
     book = GoalBook(n_envs, width, height)
-    book.issue(np.ones(n_envs, dtype=bool), grids, *propose_goals(teacher, grids, device))
+    goal_embedding = torch.zeros(n_envs, args.embed_dim, device=device)
+    renew_goals(np.ones(n_envs, dtype=bool), book, goal_embedding, grids, teacher, goal_encoder, device)
     start_time = last_print = time.time()
     step, student_updates, teacher_updates, next_progress = 0, 0, 0, args.progress_frequency
     window = {"return": [], "success": [], "reached": 0, "outcomes": 0, "goal_steps": [], "teacher_reward": []}
@@ -710,9 +723,10 @@ if __name__ == "__main__":
     metrics = {}
     while step < args.total_timesteps and not stop:
         # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
+        goal_embedding = embed_goals(goal_encoder, book.frame, book.goal, device)  # once per goal (and per collection)
         for t in range(T):
             goal0 = book.goal[0]
-            actions, logps = act(student, goal_encoder, grids, carry, book, device)
+            actions, logps = act(student, grids, carry, book, goal_embedding, device)
             for key, value in zip(rollout, (grids, carry, book.frame, book.goal, actions, logps), strict=False):
                 rollout[key][t] = value
             (grids, carry), after, extrinsic, terminated, truncated, (returns, lengths) = envs.step(actions)
@@ -731,7 +745,7 @@ if __name__ == "__main__":
             window["outcomes"] += int(renew.sum())
             window["goal_steps"] += book.steps[reached].tolist()
             if renew.any():  # a new goal on the frame the student is in now (the reset frame after an episode end)
-                book.issue(renew, grids[renew], *propose_goals(teacher, grids[renew], device))
+                renew_goals(renew, book, goal_embedding, grids, teacher, goal_encoder, device)
             for ret, length in zip(returns, lengths, strict=True):
                 window["return"].append(ret)
                 window["success"].append(float(ret > 0))

@@ -1,0 +1,100 @@
+"""Where the time of dgrl_amigo.py goes: environment steps/s, acting, one learner update, and whole training runs.
+
+    python benchmark/bench_amigo.py              # about 3 min on 2 CPU cores; run nothing else meanwhile
+
+Prints one line per measurement:
+- env: 16 fully observed envs stepped with random actions, as gymnasium's SyncVectorEnv of
+  ImgObsWrapper(FullyObsWrapper(env)) and as the script's MiniGridVecEnv (no egocentric view);
+- update: one student learner step (8 rollouts of 100 steps, V-trace, RMSProp) with --groups 0 and 16;
+- training: the script itself for 160,000 frames, one process on one thread, its final SPS (frames per second with
+  acting, goal bookkeeping and all updates; the first collection's start-up included).
+"""
+
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+from minigrid.wrappers import FullyObsWrapper, ImgObsWrapper
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import dgrl_amigo as amigo
+
+ROOT = Path(__file__).resolve().parents[1]
+
+ENVS = ("MiniGrid-DoorKey-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-KeyCorridorS3R3-v0")
+
+
+def sync_vector_speed(env_id: str, n: int = 16, steps: int = 500) -> float:
+    envs = gym.vector.SyncVectorEnv(
+        [lambda: ImgObsWrapper(FullyObsWrapper(gym.make(env_id))) for _ in range(n)],
+        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+    )
+    envs.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(steps):
+        envs.step(envs.action_space.sample())
+    return n * steps / (time.perf_counter() - start)
+
+
+def script_env_speed(env_id: str, n: int = 16, steps: int = 2000) -> float:
+    envs = amigo.MiniGridVecEnv(env_id, n)
+    envs.reset(seed=0)
+    rng = np.random.default_rng(0)
+    start = time.perf_counter()
+    for _ in range(steps):
+        envs.step(rng.integers(envs.n_actions, size=n))
+    return n * steps / (time.perf_counter() - start)
+
+
+def update_time(env_id: str, groups: int, repeats: int = 10) -> float:
+    args = amigo.Args(env_id=env_id, groups=groups)
+    envs = amigo.MiniGridVecEnv(env_id, args.batch_envs)
+    w, h, t, b = envs.width, envs.height, args.num_steps, args.batch_envs
+    student = amigo.Student(w, h, envs.n_actions, args.goal_channel, args.embed_dim)
+    encoder = amigo.GoalEncoder(w, h, args.embed_dim, args)
+    optimizer = torch.optim.RMSprop([*student.parameters(), *encoder.parameters()], lr=1e-3, alpha=0.99, eps=0.01)
+    grids, carry = envs.reset(seed=0)
+    rng = np.random.default_rng(0)
+    rollout = {
+        "grids": np.repeat(grids[None], t, 0),
+        "carried": np.repeat(carry[None], t, 0),
+        "goal_frames": np.repeat(grids[None], t, 0),
+        "goals": rng.integers(w * h, size=(t, b)),
+        "actions": rng.integers(envs.n_actions, size=(t, b)),
+        "logps": np.full((t, b), -np.log(envs.n_actions), dtype=np.float32),
+        "rewards": rng.random((t, b), dtype=np.float32),
+        "dones": (rng.random((t, b)) < 0.01).astype(np.float32),
+    }
+    last = {"grids": grids, "carried": carry, "goal_frames": grids, "goals": rng.integers(w * h, size=b)}
+    amigo.student_update(student, encoder, optimizer, rollout, last, args, torch.device("cpu"))
+    start = time.perf_counter()
+    for _ in range(repeats):
+        amigo.student_update(student, encoder, optimizer, rollout, last, args, torch.device("cpu"))
+    return (time.perf_counter() - start) / repeats
+
+
+def training_sps(env_id: str, groups: int, frames: int = 160_000) -> int:
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "dgrl_amigo.py"), "--env-id", env_id, "--groups", str(groups), "--total-timesteps",
+         str(frames), "--progress-frequency", str(frames), "--exp-name", "bench_amigo"],
+        capture_output=True, text=True, check=True, cwd="/tmp", env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"},
+    )  # fmt: skip
+    return int(re.findall(r"SPS (\d+)", out.stdout)[-1])
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    for env_id in ENVS:
+        print(f"env {env_id}: SyncVectorEnv(FullyObs) {sync_vector_speed(env_id):,.0f} steps/s, "
+              f"MiniGridVecEnv {script_env_speed(env_id):,.0f} steps/s (16 envs, random actions)")  # fmt: skip
+    for env_id in ENVS:
+        for groups in (0, 16):
+            print(f"update {env_id} G{groups}: {update_time(env_id, groups) * 1e3:.1f} ms per 800-frame learner batch")
+    for env_id in ENVS:
+        for groups in (0, 8, 16):
+            print(f"training {env_id} G{groups}: {training_sps(env_id, groups):,} frames/s")

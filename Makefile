@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest study-ris bench-ris clean-venv
+.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest study-ris bench-ris study-amigo bench-amigo clean-venv
 
 $(VENV)/installed: requirements.txt requirements-nodeps.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -43,6 +43,13 @@ study-ris: $(VENV)/installed
 
 bench-ris: $(VENV)/installed
 	$(PY) benchmark/bench_ris.py
+
+study-amigo: $(VENV)/installed
+	PYTHON=$(PY) bash benchmark/amigo.sh
+	PYTHON=$(PY) ENV=MiniGrid-KeyCorridorS3R1-v0 bash benchmark/amigo.sh
+
+bench-amigo: $(VENV)/installed
+	$(PY) benchmark/bench_amigo.py
 
 clean-venv:
 	rm -rf $(VENV)

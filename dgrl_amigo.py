@@ -188,7 +188,7 @@ class MiniGridVecEnv:
         ]
         for env in self.envs:
             env.gen_obs = _no_partial_view
-        self.num_envs = num_envs
+        self.env_id, self.num_envs = env_id, num_envs
         self.width, self.height, self.max_steps = self.envs[0].width, self.envs[0].height, self.envs[0].max_steps
         self.n_actions = self.envs[0].action_space.n
         self.grids = np.zeros((num_envs, self.width, self.height, 3), dtype=np.uint8)  # observation to act on
@@ -202,7 +202,7 @@ class MiniGridVecEnv:
         env = self.envs[i]
         grid = full_grid(env)
         if grid.shape != target.shape[1:]:
-            raise RuntimeError(f"{env.spec.id}: the grid changed size from {target.shape[1:3]} to {grid.shape[:2]}")
+            raise RuntimeError(f"{self.env_id}: the grid changed size from {target.shape[1:3]} to {grid.shape[:2]}")
         target[i] = grid
         self.carried[i] = carried(env)
 

@@ -1,0 +1,702 @@
+"""dgrl_amigo.py: the fully observed MiniGrid encoding, the vectorized env (same-step autoreset, seeding, truncation, the
+partial-view bypass), AMIGo's goal-reach test on real envs, the student and teacher rewards, the t* schedule, the
+outcome buffer, V-trace and the actor-critic losses, one teacher and one student update with and without DGRL,
+evaluation with scripted networks, flag validation, smoke runs (train, checkpoint, evaluate, video)."""
+
+import math
+import re
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
+from minigrid.core.world_object import Door
+from minigrid.wrappers import FullyObsWrapper
+
+import dgrl_amigo as amigo
+
+LEFT, RIGHT, FORWARD, PICKUP, DROP, TOGGLE, DONE = range(7)
+DOORKEY, EMPTY, CORRIDOR = "MiniGrid-DoorKey-5x5-v0", "MiniGrid-Empty-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0"
+
+
+def cell(x: int, y: int, height: int) -> int:
+    """The script's flat goal index, typed in independently: x * H + y."""
+    return x * height + y
+
+
+# --- the fully observed grid ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("env_id", [DOORKEY, CORRIDOR, EMPTY, "MiniGrid-MultiRoom-N2-S4-v0"])
+def test_full_grid_is_the_fully_observed_wrapper_image(env_id):
+    wrapped = FullyObsWrapper(gym.make(env_id))
+    rng = np.random.default_rng(0)
+    for seed in (0, 1):
+        obs, _ = wrapped.reset(seed=seed)
+        np.testing.assert_array_equal(amigo.full_grid(wrapped.unwrapped), obs["image"])
+        for _ in range(40):
+            obs, _, terminated, truncated, _ = wrapped.step(int(rng.integers(7)))
+            grid = amigo.full_grid(wrapped.unwrapped)
+            assert grid.dtype == np.uint8 and grid.shape == (wrapped.unwrapped.width, wrapped.unwrapped.height, 3)
+            np.testing.assert_array_equal(grid, obs["image"])
+            if terminated or truncated:
+                obs, _ = wrapped.reset()
+    wrapped.close()
+
+
+def test_carried_is_empty_then_the_picked_up_key():
+    env = gym.make(DOORKEY).unwrapped
+    env.reset(seed=0)  # agent at (1, 3) facing left; the yellow key at (1, 2), above it
+    assert amigo.carried(env) == (OBJECT_TO_IDX["empty"], 0) == (1, 0)
+    env.step(RIGHT)
+    env.step(PICKUP)
+    assert env.carrying is not None and env.carrying.type == "key"
+    assert amigo.carried(env) == (OBJECT_TO_IDX["key"], COLOR_TO_IDX["yellow"])
+
+
+# --- the vectorized env -----------------------------------------------------------------------------------------------
+
+
+def test_vec_env_shapes_and_reset_frames():
+    envs = amigo.MiniGridVecEnv(CORRIDOR, 3)
+    assert (envs.width, envs.height, envs.max_steps, envs.n_actions) == (7, 3, 270, 7)
+    grids, carry = envs.reset(seed=4)
+    assert grids.shape == (3, 7, 3, 3) and grids.dtype == np.uint8 and carry.shape == (3, 2)
+    (grids2, carry2), after, rewards, terminated, truncated, (returns, lengths) = envs.step(np.array([LEFT, RIGHT, DONE]))
+    assert grids2.shape == after.shape == (3, 7, 3, 3) and carry2.shape == (3, 2)
+    assert rewards.shape == terminated.shape == truncated.shape == (3,)
+    assert len(returns) == len(lengths) == 0
+    for i, env in enumerate(envs.envs):
+        np.testing.assert_array_equal(after[i], amigo.full_grid(env))
+    assert (grids2[:, 3, 1, 2] == (grids[:, 3, 1, 2] + np.array([-1, 1, 0])) % 4).all()  # the agent turned in place
+
+
+def test_vec_env_autoreset_returns_the_reset_frame_and_the_final_frame():
+    envs = amigo.MiniGridVecEnv(EMPTY, 2)
+    envs.reset(seed=0)
+    env = envs.envs[0]
+    env.agent_pos, env.agent_dir = (3, 2), 1  # right above the green goal at (3, 3), facing down
+    envs.step(np.array([DONE, DONE]))  # one step spent before reaching the goal
+    other_before = amigo.full_grid(envs.envs[1])
+    (grids, carry), after, rewards, terminated, truncated, (returns, lengths) = envs.step(np.array([FORWARD, DONE]))
+    assert terminated.tolist() == [True, False] and not truncated.any()
+    assert rewards[0] == pytest.approx(1 - 0.9 * 2 / 100) and rewards[1] == 0
+    np.testing.assert_allclose(returns, [1 - 0.9 * 2 / 100])
+    assert lengths.tolist() == [2]
+    assert tuple(after[0, 3, 3]) == (OBJECT_TO_IDX["agent"], COLOR_TO_IDX["red"], 1)  # the pre-reset frame
+    np.testing.assert_array_equal(grids[0], amigo.full_grid(env))  # the reset frame
+    assert tuple(grids[0, 1, 1]) == (OBJECT_TO_IDX["agent"], COLOR_TO_IDX["red"], 0)
+    assert tuple(grids[0, 3, 3]) == (OBJECT_TO_IDX["goal"], COLOR_TO_IDX["green"], 0)
+    np.testing.assert_array_equal(grids[1], after[1])
+    np.testing.assert_array_equal(after[1], other_before)
+    assert envs.episode_return.tolist() == [0, 0] and envs.episode_length.tolist() == [0, 2]
+    assert env.step_count == 0 and carry.tolist() == [[1, 0], [1, 0]]
+
+
+def test_vec_env_truncates_at_max_steps():
+    envs = amigo.MiniGridVecEnv(EMPTY, 1)
+    envs.reset(seed=0)
+    for t in range(1, envs.max_steps + 1):
+        _, _, rewards, terminated, truncated, (returns, lengths) = envs.step(np.array([DONE]))
+        assert not terminated[0] and rewards[0] == 0
+        assert truncated[0] == (t == envs.max_steps) and len(lengths) == (t == envs.max_steps)
+    assert envs.max_steps == 100 and lengths.tolist() == [100] and returns.tolist() == [0.0]
+    assert envs.episode_length.tolist() == [0]
+
+
+def test_vec_env_seeding_reproduces_and_seeds_env_i_with_seed_plus_i():
+    a, b = amigo.MiniGridVecEnv(DOORKEY, 4), amigo.MiniGridVecEnv(DOORKEY, 4)
+    grids_a, _ = a.reset(seed=7)
+    grids_b, _ = b.reset(seed=7)
+    np.testing.assert_array_equal(grids_a, grids_b)
+    for i in range(4):
+        single = gym.make(DOORKEY).unwrapped
+        single.reset(seed=7 + i)
+        np.testing.assert_array_equal(grids_a[i], amigo.full_grid(single))
+    assert len({grid.tobytes() for grid in grids_a}) > 1  # a new layout per seed
+    rng = np.random.default_rng(0)
+    for _ in range(260):  # past one episode's 250 steps: the unseeded autoresets reproduce too
+        actions = rng.integers(7, size=4)
+        (grids_a, _), after_a, *_ = a.step(actions)
+        (grids_b, _), after_b, *_ = b.step(actions)
+        np.testing.assert_array_equal(grids_a, grids_b)
+        np.testing.assert_array_equal(after_a, after_b)
+    other, _ = amigo.MiniGridVecEnv(DOORKEY, 4).reset(seed=8)
+    np.testing.assert_array_equal(other[:3], a.reset(seed=7)[0][1:])
+
+
+def test_partial_view_bypass_does_not_change_the_dynamics():
+    wrapped = FullyObsWrapper(gym.make(DOORKEY))
+    envs = amigo.MiniGridVecEnv(DOORKEY, 1)
+    obs, _ = wrapped.reset(seed=3)
+    grids, _ = envs.reset(seed=3)
+    np.testing.assert_array_equal(grids[0], obs["image"])
+    rng, episodes, total_reward = np.random.default_rng(1), 0, 0.0
+    for _ in range(300):
+        action = int(rng.integers(7))
+        obs, reward, terminated, truncated, _ = wrapped.step(action)
+        (grids, carry), after, rewards, terms, truncs, _ = envs.step(np.array([action]))
+        np.testing.assert_array_equal(after[0], obs["image"])
+        assert (rewards[0], terms[0], truncs[0]) == (reward, terminated, truncated)
+        assert tuple(carry[0]) == amigo.carried(wrapped.unwrapped)
+        total_reward += reward
+        if terminated or truncated:
+            obs, _ = wrapped.reset()
+            episodes += 1
+        assert tuple(envs.envs[0].agent_pos) == tuple(wrapped.unwrapped.agent_pos)
+        assert envs.envs[0].agent_dir == wrapped.unwrapped.agent_dir
+        np.testing.assert_array_equal(grids[0], obs["image"])
+    assert episodes >= 1  # the comparison went through an autoreset
+
+
+# --- the goal-reach test ----------------------------------------------------------------------------------------------
+
+
+def reach(env_id: str, seed: int, setup, action: int, goals: list[tuple[int, int]]) -> list[bool]:
+    """Arrange a real env with `setup(env)`, issue every goal on the frame right after it, take `action` and run the
+    script's reach test on the frame after the step, one GoalBook row per goal."""
+    envs = amigo.MiniGridVecEnv(env_id, 1)
+    envs.reset(seed=seed)
+    env = envs.envs[0]
+    setup(env)
+    frame = amigo.full_grid(env)
+    book = amigo.GoalBook(len(goals), envs.width, envs.height)
+    flat = np.array([cell(x, y, envs.height) for x, y in goals])
+    book.issue(np.ones(len(goals), dtype=bool), np.repeat(frame[None], len(goals), 0), flat, np.zeros(len(goals)))
+    _, after, _, terminated, truncated, _ = envs.step(np.array([action]))
+    assert not terminated[0] and not truncated[0]
+    return book.reached(np.repeat(after, len(goals), 0)).tolist()
+
+
+def place(pos, direction):
+    def setup(env):
+        env.agent_pos, env.agent_dir = pos, direction
+
+    return setup
+
+
+def test_stepping_onto_a_goal_reaches_it_and_leaves_unrelated_goals_pending():
+    # Empty-5x5: the agent at (1, 1) facing right steps to (2, 1); its old cell changes too.
+    reached = reach(EMPTY, 0, place((1, 1), 0), FORWARD, [(2, 1), (1, 1), (3, 1), (1, 2), (3, 3)])
+    assert reached == [True, True, False, False, False]
+
+
+def test_turning_in_place_on_the_goal_cell_reaches_it():
+    assert reach(EMPTY, 0, place((2, 2), 0), LEFT, [(2, 2), (3, 2), (2, 1)]) == [True, False, False]
+
+
+def test_nothing_changes_when_walking_into_a_wall():
+    assert reach(EMPTY, 0, place((3, 1), 0), FORWARD, [(3, 1), (4, 1), (2, 1)]) == [False, False, False]
+
+
+def test_reach_on_a_non_square_grid_uses_x_times_height_plus_y():
+    # KeyCorridorS3R1 is 7 x 3: the corridor is row y = 1, the agent starts at (3, 1).
+    reached = reach(CORRIDOR, 0, place((3, 1), 1), RIGHT, [(3, 1), (2, 1), (4, 1), (1, 1), (5, 1)])
+    assert reached == [True, False, False, False, False]
+    # Seed 0: an unlocked blue door at (2, 1), a locked yellow one at (4, 1); facing left, the agent opens the first.
+    reached = reach(CORRIDOR, 0, place((3, 1), 2), TOGGLE, [(2, 1), (3, 1), (4, 1), (1, 1)])
+    assert reached == [True, False, False, False]
+
+
+def test_picking_up_an_object_at_the_goal_cell_reaches_it():
+    def facing_the_key(env):  # DoorKey-5x5 seed 0: the key at (1, 2), the agent below it at (1, 3)
+        assert env.grid.get(1, 2).type == "key"
+        env.agent_pos, env.agent_dir = (1, 3), 3
+
+    assert reach(DOORKEY, 0, facing_the_key, PICKUP, [(1, 2), (1, 3), (2, 1)]) == [True, False, False]
+
+
+def test_dropping_an_object_on_the_goal_cell_reaches_it():
+    def carrying_the_key(env):
+        env.carrying = env.grid.get(1, 2)
+        env.grid.set(1, 2, None)
+        env.agent_pos, env.agent_dir = (1, 3), 3
+
+    assert reach(DOORKEY, 0, carrying_the_key, DROP, [(1, 2), (1, 3), (1, 1)]) == [True, False, False]
+
+
+def test_opening_the_locked_door_at_the_goal_cell_with_the_key_reaches_it():
+    def at_the_door(with_key):
+        def setup(env):  # DoorKey-5x5 seed 0: the locked yellow door at (2, 1)
+            assert env.grid.get(2, 1).type == "door" and env.grid.get(2, 1).is_locked
+            if with_key:
+                env.carrying = env.grid.get(1, 2)
+                env.grid.set(1, 2, None)
+            env.agent_pos, env.agent_dir = (1, 1), 0
+
+        return setup
+
+    assert reach(DOORKEY, 0, at_the_door(True), TOGGLE, [(2, 1), (1, 1), (3, 1)]) == [True, False, False]
+    assert reach(DOORKEY, 0, at_the_door(False), TOGGLE, [(2, 1), (1, 1)]) == [False, False]  # still locked
+
+
+def test_opening_an_unlocked_door_at_the_goal_cell_reaches_it():
+    def at_a_closed_door(env):
+        env.grid.set(2, 1, Door("blue", is_open=False, is_locked=False))
+        env.agent_pos, env.agent_dir = (1, 1), 0
+
+    assert reach(EMPTY, 0, at_a_closed_door, TOGGLE, [(2, 1), (1, 1), (2, 2)]) == [True, False, False]
+
+
+def test_goal_book_issue_resets_steps_and_stores_goal_frame_and_logp_for_the_masked_envs_only():
+    book = amigo.GoalBook(3, 5, 5)
+    book.goal[:], book.steps[:], book.logp[:] = [1, 2, 3], [10, 20, 30], [-1, -2, -3]
+    frames = np.arange(2 * 75, dtype=np.uint8).reshape(2, 5, 5, 3)
+    book.issue(np.array([True, False, True]), frames, np.array([7, 8]), np.array([-0.5, -0.25]))
+    assert book.goal.tolist() == [7, 2, 8] and book.steps.tolist() == [0, 20, 0]
+    assert book.logp.tolist() == [-0.5, -2, -0.25]
+    np.testing.assert_array_equal(book.frame[[0, 2]], frames)
+    assert not book.frame[1].any()
+
+
+def test_renew_goals_issues_teacher_goals_on_the_current_frames():
+    envs = amigo.MiniGridVecEnv(DOORKEY, 3)
+    grids, _ = envs.reset(seed=0)
+    args = amigo.Args(env_id=DOORKEY, groups=4, embed_dim=16, n_embed=8)
+    teacher, encoder = amigo.Teacher(5, 5), amigo.GoalEncoder(5, 5, 16, args)
+    book = amigo.GoalBook(3, 5, 5)
+    book.steps[:] = 9
+    embedding = torch.zeros(3, 16)
+    mask = np.array([True, False, True])
+    codebook = encoder.vq.codebook.clone()
+    amigo.renew_goals(mask, book, embedding, grids, teacher, encoder, "cpu")
+    assert book.steps.tolist() == [0, 9, 0]
+    np.testing.assert_array_equal(book.frame[mask], grids[mask])
+    assert not book.frame[1].any() and ((book.goal >= 0) & (book.goal < 25)).all()
+    with torch.no_grad():
+        log_probs = F.log_softmax(teacher(torch.as_tensor(grids[mask]))[0], -1)
+    np.testing.assert_allclose(book.logp[mask], log_probs[[0, 1], book.goal[mask]].numpy(), rtol=1e-5)
+    expected = amigo.embed_goals(encoder, book.frame[mask], book.goal[mask], "cpu")
+    torch.testing.assert_close(embedding[torch.as_tensor(mask)], expected)
+    assert not embedding[1].any() and embedding[0].abs().sum() > 0
+    torch.testing.assert_close(encoder.vq.codebook, codebook)  # acting never moves the codebook
+
+
+# --- rewards, t*, outcomes --------------------------------------------------------------------------------------------
+
+
+def test_intrinsic_reward_formula():
+    reward = amigo.intrinsic_reward(np.array([True, False, True, True]), np.array([10, 5, 250, 1]), 250, 0.5)
+    np.testing.assert_allclose(reward, [0.5 * (1 - 0.9 * 10 / 250), 0.0, 0.5 * 0.1, 0.5 * (1 - 0.9 / 250)])
+    np.testing.assert_allclose(amigo.intrinsic_reward(np.array([True]), np.array([50]), 100, 1.0), [0.55])
+
+
+def test_student_reward_clips_and_adds_one_on_success():
+    extrinsic = np.array([0.0, 0.8, 0.955, 0.0, -0.5])
+    intrinsic = np.array([0.482, 0.5, 0.0, 0.0, -0.7])
+    np.testing.assert_allclose(amigo.student_reward(extrinsic, intrinsic), [0.482, 2.0, 1.955, 0.0, -1.0])
+
+
+def test_teacher_reward_against_t_star():
+    reached = np.array([True, True, True, False, False, True])
+    steps = np.array([7, 6, 20, 50, 3, 2])
+    success = np.array([False, False, False, False, True, True])
+    np.testing.assert_allclose(amigo.teacher_reward(reached, steps, success, 7), [0.7, -0.3, 0.7, -0.3, 1.0, 1.0])
+    np.testing.assert_allclose(amigo.teacher_reward(reached, steps, success, 21), [-0.3, -0.3, -0.3, -0.3, 1.0, 1.0])
+    np.testing.assert_allclose(amigo.teacher_reward(reached, steps, success, 0, -0.5, 2.0), [1.0, 1, 1, -0.5, 1, 1])
+
+
+def test_t_star_rises_on_a_fixed_schedule_with_the_published_threshold():
+    t_star = amigo.TStar(start=7, threshold=-0.5, patience=10, maximum=11)
+    rewards = np.random.default_rng(0).uniform(-0.3, 1.0, 60)  # teacher rewards are never below -0.3
+    values = [t_star.update(float(r)) for r in rewards]
+    assert values == [min(7 + k // 10, 11) for k in range(1, 61)]
+    assert t_star.value == 11
+
+
+def test_t_star_adaptive_threshold_restarts_the_streak_on_a_low_reward():
+    t_star = amigo.TStar(start=7, threshold=-0.1, patience=10, maximum=100)
+    rewards = [0.2] * 9 + [-0.3] + [-0.1] * 10 + [0.5] * 9 + [-0.2] + [0.5] * 10
+    values = [t_star.update(r) for r in rewards]
+    assert values == [7] * 19 + [8] * 20 + [9]
+
+
+def test_outcome_buffer_is_fifo_with_leftovers():
+    buffer = amigo.OutcomeBuffer()
+    start = 0
+    for n in (100, 80, 0, 120):
+        ids = np.arange(start, start + n)
+        buffer.add(goal=ids, steps=ids * 2, reached=ids % 3 == 0)
+        start += n
+    assert buffer.size == 300 and len(buffer.parts) == 3  # the empty batch is not stored
+    first = buffer.pop(150)
+    assert first["goal"].tolist() == list(range(150)) and buffer.size == 150
+    np.testing.assert_array_equal(first["steps"], first["goal"] * 2)
+    buffer.add(goal=np.arange(300, 340), steps=np.arange(300, 340) * 2, reached=np.zeros(40, dtype=bool))
+    assert buffer.size == 190
+    second = buffer.pop(150)
+    assert second["goal"].tolist() == list(range(150, 300)) and buffer.size == 40
+    np.testing.assert_array_equal(second["reached"], second["goal"] % 3 == 0)
+    assert buffer.pop(40)["goal"].tolist() == list(range(300, 340)) and buffer.size == 0 and not buffer.parts
+
+
+# --- V-trace and the losses -------------------------------------------------------------------------------------------
+
+
+def naive_vtrace(behaviour, target, rewards, values, bootstrap, discounts):
+    """Espeholt et al.'s definition term by term, in float64 Python loops, rho_bar = c_bar = 1."""
+    behaviour, target, rewards, values, discounts = (
+        np.asarray(a, dtype=np.float64) for a in (behaviour, target, rewards, values, discounts)
+    )
+    bootstrap = np.asarray(bootstrap, dtype=np.float64)
+    T, B = rewards.shape
+    ratio = np.exp(target - behaviour)
+    rho, c = np.minimum(1.0, ratio), np.minimum(1.0, ratio)
+    vs, advantages = np.zeros((T, B)), np.zeros((T, B))
+    for b in range(B):
+        next_value = [*values[1:, b], bootstrap[b]]
+        for s in range(T):
+            total, trace = 0.0, 1.0
+            for t in range(s, T):
+                total += trace * rho[t, b] * (rewards[t, b] + discounts[t, b] * next_value[t] - values[t, b])
+                trace *= discounts[t, b] * c[t, b]
+            vs[s, b] = values[s, b] + total
+        for s in range(T):
+            next_vs = vs[s + 1, b] if s + 1 < T else bootstrap[b]
+            advantages[s, b] = rho[s, b] * (rewards[s, b] + discounts[s, b] * next_vs - values[s, b])
+    return vs, advantages
+
+
+def vtrace_inputs(seed: int, off_policy: bool):
+    rng = np.random.default_rng(seed)
+    T, B = 6, 3
+    behaviour = np.log(rng.uniform(0.05, 1.0, (T, B)))
+    target = behaviour + (rng.normal(0.0, 0.8, (T, B)) if off_policy else 0.0)
+    rewards, values, bootstrap = rng.normal(size=(T, B)), rng.normal(size=(T, B)), rng.normal(size=B)
+    dones = np.zeros((T, B))
+    dones[2, 0] = dones[4, 2] = 1.0
+    discounts = 0.9 * (1.0 - dones)
+    return behaviour, target, rewards, values, bootstrap, discounts
+
+
+def run_vtrace(*arrays):
+    return [out.double().numpy() for out in amigo.vtrace(*(torch.tensor(a, dtype=torch.float32) for a in arrays))]
+
+
+def test_vtrace_on_policy_is_the_n_step_return_cut_at_dones():
+    behaviour, target, rewards, values, bootstrap, discounts = vtrace_inputs(0, off_policy=False)
+    vs, advantages = run_vtrace(behaviour, target, rewards, values, bootstrap, discounts)
+    T, B = rewards.shape
+    returns = np.zeros((T, B))
+    for b in range(B):
+        for s in range(T):
+            total, scale = 0.0, 1.0
+            for t in range(s, T):
+                total += scale * rewards[t, b]
+                scale *= discounts[t, b]
+            returns[s, b] = total + scale * bootstrap[b]
+    np.testing.assert_allclose(vs, returns, rtol=1e-5, atol=1e-5)
+    assert returns[2, 0] == pytest.approx(rewards[2, 0])  # the done at t = 2 cuts the bootstrap of env 0
+    next_returns = np.concatenate([returns[1:], bootstrap[None]])
+    np.testing.assert_allclose(advantages, rewards + discounts * next_returns - values, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_vtrace_off_policy_matches_the_truncated_recursion(seed):
+    inputs = vtrace_inputs(seed, off_policy=True)
+    ratio = np.exp(inputs[1] - inputs[0])
+    assert (ratio > 1.2).any() and (ratio < 0.8).any()  # both truncation and down-weighting happen
+    vs, advantages = run_vtrace(*inputs)
+    expected_vs, expected_advantages = naive_vtrace(*inputs)
+    np.testing.assert_allclose(vs, expected_vs, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(advantages, expected_advantages, rtol=1e-5, atol=1e-5)
+
+
+def test_actor_critic_loss_by_hand():
+    logits = torch.zeros(1, 2, 2, requires_grad=True)  # T = 1, B = 2, two actions: log-probabilities -ln 2
+    values = torch.tensor([[0.5, 1.0]], requires_grad=True)
+    actions, vs, advantages = torch.tensor([[0, 1]]), torch.tensor([[1.0, 0.0]]), torch.tensor([[1.0, -2.0]])
+    total, policy, baseline, entropy = amigo.actor_critic_loss(logits, values, actions, vs, advantages, 0.5, 0.01)
+    ln2 = math.log(2)
+    assert policy.item() == pytest.approx(-(-ln2 * 1.0 + -ln2 * -2.0))
+    assert baseline.item() == pytest.approx(0.5 * (0.5**2 + 1.0**2))
+    assert entropy.item() == pytest.approx(2 * ln2)
+    assert total.item() == pytest.approx(-ln2 + 0.5 * 0.625 - 0.01 * 2 * ln2)
+    total.backward()
+    torch.testing.assert_close(values.grad, 0.5 * (values - vs).detach())  # d/dV of 0.5 * 0.5 * (vs - V)^2
+
+
+def test_actor_critic_loss_on_random_numbers():
+    rng = np.random.default_rng(3)
+    logits, values = rng.normal(size=(3, 2, 5)), rng.normal(size=(3, 2))
+    actions, vs, advantages = rng.integers(5, size=(3, 2)), rng.normal(size=(3, 2)), rng.normal(size=(3, 2))
+    log_probs = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+    chosen = np.take_along_axis(log_probs, actions[..., None], -1)[..., 0]
+    policy = -(chosen * advantages).sum()
+    baseline = 0.5 * ((vs - values) ** 2).sum()
+    entropy = -(np.exp(log_probs) * log_probs).sum()
+    out = amigo.actor_critic_loss(*(torch.tensor(a) for a in (logits, values, actions, vs, advantages)), 0.3, 0.2)
+    np.testing.assert_allclose([o.item() for o in out], [policy + 0.3 * baseline - 0.2 * entropy, policy, baseline, entropy])
+
+
+# --- the teacher ------------------------------------------------------------------------------------------------------
+
+
+def teacher_batch(teacher, goal: int, n: int, behaviour_shift: float = 0.0):
+    envs = amigo.MiniGridVecEnv(DOORKEY, n)
+    frames, _ = envs.reset(seed=0)
+    with torch.no_grad():
+        logp = F.log_softmax(teacher(torch.as_tensor(frames))[0], -1)[:, goal].numpy()
+    goals = np.full(n, goal)
+    return {"frame": frames, "goal": goals, "logp": (logp + behaviour_shift).astype(np.float32)}
+
+
+def test_teacher_loss_on_policy_values():
+    teacher = amigo.Teacher(5, 5)
+    args = amigo.Args(teacher_baseline_coef=0.5, teacher_entropy_coef=0.05)
+    batch = teacher_batch(teacher, cell(3, 2, 5), 3)
+    rewards = np.array([0.7, -0.3, 1.0])
+    losses = amigo.teacher_loss(teacher, batch, rewards, args, "cpu")
+    with torch.no_grad():
+        logits, baseline = teacher(torch.as_tensor(batch["frame"]))
+        log_probs = F.log_softmax(logits, -1)
+    logp, r = log_probs[:, cell(3, 2, 5)].double(), torch.tensor(rewards)
+    assert losses["policy_loss"].item() == pytest.approx(-(logp * (r - baseline.double())).sum().item(), rel=1e-5)
+    assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((r - baseline.double()) ** 2).sum().item(), rel=1e-5)
+    entropy = -(log_probs.exp() * log_probs).sum(-1).mean().item()
+    assert losses["entropy"].item() == pytest.approx(entropy, rel=1e-5)
+    total = losses["policy_loss"] + 0.5 * losses["baseline_loss"] - 0.05 * 3 * losses["entropy"]
+    assert losses["loss"].item() == pytest.approx(total.item(), rel=1e-5)
+
+
+def test_teacher_loss_off_policy_truncates_the_importance_weight():
+    teacher = amigo.Teacher(5, 5)
+    rewards = np.array([1.0, 1.0])
+    args = amigo.Args(teacher_baseline_coef=0.5, teacher_entropy_coef=0.0)
+    with torch.no_grad():
+        frames = teacher_batch(teacher, 12, 2)["frame"]
+        logits, baseline = teacher(torch.as_tensor(frames))
+        logp = F.log_softmax(logits, -1)[:, 12].double()
+    advantage = torch.tensor(rewards) - baseline.double()
+    for shift, rho in ((-1.0, 1.0), (1.0, math.exp(-1.0))):  # pi/mu = e (truncated to 1) or 1/e
+        batch = teacher_batch(teacher, 12, 2, behaviour_shift=shift)
+        losses = amigo.teacher_loss(teacher, batch, rewards, args, "cpu")
+        assert losses["policy_loss"].item() == pytest.approx(-(logp * rho * advantage).sum().item(), rel=1e-4)
+        vs = baseline.double() + rho * advantage
+        assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((vs - baseline) ** 2).sum().item(), rel=1e-4)
+
+
+@pytest.mark.parametrize("direction", [1.0, -1.0])
+def test_teacher_update_pushes_a_goal_up_or_down_with_its_reward(direction):
+    teacher = amigo.Teacher(5, 5)
+    args = amigo.Args(teacher_baseline_coef=0.0, teacher_entropy_coef=0.0)
+    goal = cell(3, 3, 5)
+    batch = teacher_batch(teacher, goal, 4)
+    with torch.no_grad():
+        _, baseline = teacher(torch.as_tensor(batch["frame"]))
+    rewards = baseline.numpy() + direction  # above or below the baseline by 1
+    optimizer = torch.optim.SGD(teacher.parameters(), lr=1e-2)
+    losses = amigo.teacher_loss(teacher, batch, rewards, args, "cpu")
+    optimizer.zero_grad()
+    losses["loss"].backward()
+    optimizer.step()
+    after = teacher_batch(teacher, goal, 4)["logp"]
+    assert (np.sign(after - batch["logp"]) == direction).all()
+
+
+# --- the student update -----------------------------------------------------------------------------------------------
+
+
+def tiny_setup(groups: int):
+    args = amigo.Args(env_id=DOORKEY, groups=groups, embed_dim=16, n_embed=8, num_envs=2, batch_envs=2, num_steps=4)
+    envs = amigo.MiniGridVecEnv(DOORKEY, args.num_envs)
+    student = amigo.Student(5, 5, envs.n_actions, args.goal_channel, args.embed_dim)
+    encoder = amigo.GoalEncoder(5, 5, args.embed_dim, args)
+    teacher = amigo.Teacher(5, 5)
+    return args, envs, student, encoder, teacher
+
+
+def collect(args, envs, student, encoder, teacher):
+    """A rollout of the tiny setup, collected with the script's acting functions."""
+    T, n = args.num_steps, args.num_envs
+    grids, carry = envs.reset(seed=0)
+    book = amigo.GoalBook(n, envs.width, envs.height)
+    embedding = torch.zeros(n, args.embed_dim)
+    amigo.renew_goals(np.ones(n, dtype=bool), book, embedding, grids, teacher, encoder, "cpu")
+    keys = ("grids", "carried", "goal_frames", "goals", "actions", "logps")
+    rollout = {key: [] for key in keys}
+    for _ in range(T):
+        actions, logps = amigo.act(student, grids, carry, book, embedding, "cpu")
+        for key, value in zip(keys, (grids, carry, book.frame, book.goal, actions, logps), strict=True):
+            rollout[key].append(np.copy(value))
+        (grids, carry), *_ = envs.step(actions)
+    rollout = {key: np.stack(value) for key, value in rollout.items()}
+    rng = np.random.default_rng(0)
+    rollout["rewards"] = rng.uniform(0, 1, (T, n)).astype(np.float32)
+    rollout["dones"] = np.zeros((T, n), dtype=np.float32)
+    rollout["dones"][1, 0] = 1.0
+    last = {"grids": grids, "carried": carry, "goal_frames": book.frame.copy(), "goals": book.goal.copy()}
+    return rollout, last
+
+
+def optimizer_for(student, encoder, args):
+    return torch.optim.RMSprop([*student.parameters(), *encoder.parameters()], lr=args.learning_rate, alpha=0.99, eps=0.01)
+
+
+def test_student_update_under_dgrl_moves_the_codebook_and_every_parameter():
+    args, envs, student, encoder, teacher = tiny_setup(groups=4)
+    rollout, last = collect(args, envs, student, encoder, teacher)
+    buffers = {name: value.clone() for name, value in encoder.vq.named_buffers()}
+    amigo.embed_goals(encoder, rollout["goal_frames"][0], rollout["goals"][0], "cpu")  # acting: no codebook update
+    for name, value in encoder.vq.named_buffers():
+        torch.testing.assert_close(value, buffers[name])
+    params = {name: p.detach().clone() for name, p in [*student.named_parameters(), *encoder.named_parameters()]}
+    metrics = amigo.student_update(student, encoder, optimizer_for(student, encoder, args), rollout, last, args, "cpu")
+    assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
+    assert not torch.equal(encoder.vq.ema_count, buffers["ema_count"])
+    for name, p in [*student.named_parameters(), *encoder.named_parameters()]:
+        assert not torch.equal(p, params[name]), name
+    assert metrics["codes"].shape == ((args.num_steps + 1) * args.num_envs, 4)
+    assert ((metrics["codes"] >= 0) & (metrics["codes"] < 8)).all()
+    assert metrics["vq_loss"].item() > 0
+    for name in ("policy_loss", "baseline_loss", "entropy"):
+        assert torch.isfinite(metrics[name])
+    assert 0 < metrics["entropy"].item() <= math.log(7)
+
+
+def test_student_update_without_dgrl_matches_the_n_step_targets():
+    args, envs, student, encoder, teacher = tiny_setup(groups=0)
+    assert encoder.vq is None
+    rollout, last = collect(args, envs, student, encoder, teacher)
+    T, B = rollout["actions"].shape
+    with torch.no_grad():  # the values before the update: on-policy V-trace targets are n-step returns
+        stacked = [np.concatenate([rollout[key].reshape(T * B, *rollout[key].shape[2:]), last[key]]) for key in last]
+        grids, carry, frames, goals = (torch.as_tensor(a) for a in stacked)
+        embedding, _, codes = encoder(frames, goals)
+        assert codes is None
+        values = student(grids, carry, goals, embedding)[1].double().numpy().reshape(T + 1, B)
+    discounts = args.gamma * (1.0 - rollout["dones"])
+    vs, _ = naive_vtrace(rollout["logps"], rollout["logps"], rollout["rewards"], values[:T], values[T], discounts)
+    params = {name: p.detach().clone() for name, p in [*student.named_parameters(), *encoder.named_parameters()]}
+    metrics = amigo.student_update(student, encoder, optimizer_for(student, encoder, args), rollout, last, args, "cpu")
+    assert metrics["baseline_loss"].item() == pytest.approx(0.5 * ((vs - values[:T]) ** 2).sum(), rel=1e-4)
+    assert metrics["codes"] is None and metrics["vq_loss"].item() == 0
+    for name, p in [*student.named_parameters(), *encoder.named_parameters()]:
+        assert not torch.equal(p, params[name]), name  # the continuous goal encoder learns from the student's loss
+
+
+# --- evaluation with scripted networks --------------------------------------------------------------------------------
+
+
+class ForwardStudent(nn.Module):
+    """Always moves forward."""
+
+    embed_dim = 16
+
+    def forward(self, grids, carried, goals, goal_embedding):
+        logits = torch.full((len(grids), 7), -50.0)
+        logits[:, FORWARD] = 50.0
+        return logits, torch.zeros(len(grids))
+
+
+class FixedTeacher(nn.Module):
+    """Always proposes the same cell."""
+
+    def __init__(self, goal: int, cells: int):
+        super().__init__()
+        self.goal, self.cells = goal, cells
+
+    def forward(self, grids):
+        logits = torch.full((len(grids), self.cells), -50.0)
+        logits[:, self.goal] = 50.0
+        return logits, torch.zeros(len(grids))
+
+
+def test_evaluate_counts_goals_on_the_frame_before_the_reset():
+    # Empty-5x5: the agent starts at (1, 1) facing right and walks to (3, 1), the goal cell, in two steps, then stays
+    # against the wall until the 100-step limit. The goal re-issued there never changes again, and the reset frame
+    # (where (3, 1) is empty) must not count as reaching it.
+    envs = amigo.MiniGridVecEnv(EMPTY, 1)
+    encoder = amigo.GoalEncoder(5, 5, 16, amigo.Args(groups=0, embed_dim=16))
+    result = amigo.evaluate(envs, ForwardStudent(), encoder, FixedTeacher(cell(3, 1, 5), 25), "cpu", 2, seed=0)
+    assert result == {"return": 0.0, "success": 0.0, "goals_per_episode": 1.0}
+
+
+# --- flags ------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("overrides", "messages"),
+    [
+        ({"env_id": "DoorKey-5x5"}, ["--env-id 'DoorKey-5x5' is not a MiniGrid id", "did you mean MiniGrid-DoorKey-5x5-v0"]),
+        ({"env_id": "CartPole-v1"}, ["--env-id 'CartPole-v1'", "choices: ", "MiniGrid-KeyCorridorS3R3-v0"]),
+        ({"groups": 5}, ["--groups must be 0 (AMIGo) or divide --embed-dim 128", "got 5"]),
+        ({"groups": 3, "embed_dim": 32}, ["divide --embed-dim 32: one of [1, 2, 4, 8, 16, 32]"]),
+        ({"num_envs": 16, "batch_envs": 3}, ["--batch-envs (3) must divide --num-envs (16)"]),
+        ({"total_timesteps": 1599}, ["--total-timesteps (1599) must cover one collection", "(1600)"]),
+        ({"t_star_start": 20, "t_star_max": 10}, ["--t-star-start (20) must be in [0, --t-star-max (10)]"]),
+        ({"teacher_batch_size": 0}, ["--teacher-batch-size must be >= 1"]),
+        ({"checkpoint": "missing.pt"}, ["--checkpoint missing.pt: no such file"]),
+    ],
+)
+def test_validate_names_the_flag(overrides, messages):
+    with pytest.raises(SystemExit) as error:
+        amigo.validate(amigo.Args(**overrides))
+    for message in messages:
+        assert message in str(error.value)
+
+
+def test_validate_accepts_the_defaults_and_a_tiny_run():
+    amigo.validate(amigo.Args())
+    amigo.validate(amigo.Args(env_id=DOORKEY, num_envs=4, batch_envs=2, num_steps=8, total_timesteps=32, groups=0))
+    assert DOORKEY in amigo.minigrid_ids() and all(name.startswith("MiniGrid-") for name in amigo.minigrid_ids())
+
+
+# --- smoke runs -------------------------------------------------------------------------------------------------------
+
+TINY = [
+    "--env-id", DOORKEY, "--num-envs", "10", "--batch-envs", "1", "--num-steps", "8", "--total-timesteps", "160",
+    "--progress-frequency", "80", "--teacher-batch-size", "1", "--seed", "4",
+]  # fmt: skip
+
+
+def test_smoke_run_amigo_saves_evaluates_and_refuses_other_settings(run_script, tmp_path):
+    result = run_script("dgrl_amigo.py", *TINY, "--groups", "0", "--save-model")
+    assert result.returncode == 0, result.stderr
+    assert re.search(r"step +80/160 .* t\* 7 ", result.stdout)
+    done = re.search(r"done: 160 frames, 20 student and (\d+) teacher updates, t\* 7", result.stdout)
+    assert done and int(done.group(1)) >= 1, result.stdout
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_amigo.cleanrl_model"))
+    saved = torch.load(checkpoint, weights_only=False)
+    assert saved["t_star"] == 7 and saved["step"] == 160 and saved["args"]["groups"] == 0
+    assert not any(key.startswith("vq.") for key in saved["goal_encoder"])
+    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
+    for tag in (b"teacher/t_star", b"teacher/reward", b"losses/baseline_loss", b"charts/SPS"):
+        assert tag in events
+    assert b"vq/perplexity" not in events
+    evaluation = run_script(
+        "dgrl_amigo.py", "--env-id", DOORKEY, "--groups", "0", "--num-envs", "2", "--batch-envs", "2", "--eval-episodes", "2",
+        "--checkpoint", str(checkpoint),
+    )  # fmt: skip
+    assert evaluation.returncode == 0, evaluation.stderr
+    assert re.search(
+        r"2 episodes \(t\* 7 at save\): return [\d.]+, success \d+%, goals reached per episode [\d.]+", evaluation.stdout
+    )
+    mismatched = run_script("dgrl_amigo.py", "--env-id", DOORKEY, "--groups", "16", "--checkpoint", str(checkpoint))
+    assert mismatched.returncode != 0 and "was saved with other settings: pass --groups 0" in mismatched.stderr
+
+
+def test_smoke_run_dgrl_with_video(run_script, tmp_path):
+    flags = [
+        "--env-id", EMPTY, "--groups", "16", "--num-envs", "10", "--batch-envs", "1", "--num-steps", "10",
+        "--total-timesteps", "1000", "--progress-frequency", "500", "--teacher-batch-size", "4",
+        "--capture-video", "--video-frequency", "1",
+    ]  # fmt: skip
+    result = run_script("dgrl_amigo.py", *flags)
+    assert result.returncode == 0, result.stderr
+    assert re.search(r"done: 1000 frames, 100 student and \d+ teacher updates", result.stdout)
+    assert list(tmp_path.glob("videos/*/episode_0.mp4"))  # env 0's first episode ends within 100 steps
+    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
+    for tag in (b"vq/perplexity", b"vq/active_codes", b"vq/commit_loss", b"teacher/t_star"):
+        assert tag in events
+
+
+def test_bad_flag_fails_before_any_work(run_script, tmp_path):
+    result = run_script("dgrl_amigo.py", "--groups", "5", "--batch-envs", "3")
+    assert result.returncode != 0
+    assert "--groups must be 0 (AMIGo) or divide --embed-dim 128" in result.stderr
+    assert "--batch-envs (3) must divide --num-envs (16)" in result.stderr
+    assert not (tmp_path / "runs").exists()

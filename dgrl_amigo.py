@@ -259,6 +259,11 @@ class GoalBook:
         x, y = np.divmod(self.goal, self.height)
         return (frames[rows, x, y] != self.frame[rows, x, y]).any(-1)
 
+    def advance(self, after: np.ndarray) -> np.ndarray:
+        """Count the step just taken and test every env's goal on the frame right after it (before any autoreset)."""
+        self.steps += 1
+        return self.reached(after)
+
     def issue(self, mask: np.ndarray, frames: np.ndarray, goals: np.ndarray, logps: np.ndarray) -> None:
         self.goal[mask], self.frame[mask], self.logp[mask], self.steps[mask] = goals, frames, logps, 0
 
@@ -561,8 +566,7 @@ def evaluate(envs: MiniGridVecEnv, student, goal_encoder, teacher, device, episo
     while len(returns) < episodes:
         actions, _ = act(student, grids, carry, book, goal_embedding, device)
         (grids, carry), after, _, terminated, truncated, (finished, _) = envs.step(actions)
-        book.steps += 1
-        reached = book.reached(after)
+        reached = book.advance(after)
         reached_total += int(reached.sum())
         renew = reached | terminated | truncated
         if renew.any():
@@ -613,7 +617,7 @@ def validate(args: Args) -> None:
             errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
     if not 0 <= args.gamma <= 1:
         errors.append(f"--gamma must be in [0, 1]; got {args.gamma}")
-    if args.batch_envs >= 1 and args.num_envs % args.batch_envs:
+    if args.checkpoint is None and args.batch_envs >= 1 and args.num_envs % args.batch_envs:
         errors.append(f"--batch-envs ({args.batch_envs}) must divide --num-envs ({args.num_envs})")
     if not 0 <= args.t_star_start <= args.t_star_max:
         errors.append(f"--t-star-start ({args.t_star_start}) must be in [0, --t-star-max ({args.t_star_max})]")
@@ -727,11 +731,10 @@ if __name__ == "__main__":
         for t in range(T):
             goal0 = book.goal[0]
             actions, logps = act(student, grids, carry, book, goal_embedding, device)
-            for key, value in zip(rollout, (grids, carry, book.frame, book.goal, actions, logps), strict=False):
-                rollout[key][t] = value
+            rollout["grids"][t], rollout["carried"][t], rollout["goal_frames"][t] = grids, carry, book.frame
+            rollout["goals"][t], rollout["actions"][t], rollout["logps"][t] = book.goal, actions, logps
             (grids, carry), after, extrinsic, terminated, truncated, (returns, lengths) = envs.step(actions)
-            book.steps += 1
-            reached = book.reached(after)
+            reached = book.advance(after)
             done = terminated | truncated
             intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
             rollout["rewards"][t], rollout["dones"][t] = student_reward(extrinsic, intrinsic), done

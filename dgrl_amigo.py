@@ -138,8 +138,9 @@ class Args:
     """commitment-loss weight"""
     vq_decay: float = 0.99
     """EMA decay of the codebook"""
-    vq_dead_code_steps: int = 0
-    """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
+    vq_dead_code_steps: int = 50
+    """restart a code unused for this many student updates at a random current segment (0 = off, as in the paper;
+    without it the codebook collapses to one code here: see the docs)"""
     embed_dim: int = 128
     """size of the goal embedding (m) in both modes; must be divisible by groups"""
 
@@ -495,7 +496,7 @@ def student_update(student, goal_encoder, optimizer, rollout: dict, last: dict, 
         logits, values[:T], actions, vs, advantages, args.baseline_coef, args.entropy_coef
     )
     optimizer.zero_grad(set_to_none=True)
-    (loss + vq_loss).backward()  # DGRL: vq_loss is zero for AMIGo
+    (loss + vq_loss * len(goals)).backward()  # DGRL: summed over the batch like the RL losses (zero for AMIGo)
     nn.utils.clip_grad_norm_([*student.parameters(), *goal_encoder.parameters()], args.max_grad_norm)
     optimizer.step()
     return {
@@ -612,7 +613,14 @@ def validate(args: Args) -> None:
     for flag in ("learning_rate", "teacher_learning_rate", "rmsprop_eps", "max_grad_norm"):
         if getattr(args, flag) <= 0:
             errors.append(f"--{flag.replace('_', '-')} must be > 0; got {getattr(args, flag)}")
-    for flag in ("entropy_coef", "baseline_coef", "teacher_entropy_coef", "teacher_baseline_coef", "intrinsic_coef"):
+    for flag in (
+        "entropy_coef",
+        "baseline_coef",
+        "teacher_entropy_coef",
+        "teacher_baseline_coef",
+        "intrinsic_coef",
+        "vq_dead_code_steps",
+    ):
         if getattr(args, flag) < 0:
             errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
     if not 0 <= args.gamma <= 1:

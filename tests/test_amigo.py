@@ -557,6 +557,26 @@ def test_student_update_under_dgrl_moves_the_codebook_and_every_parameter():
     assert 0 < metrics["entropy"].item() <= math.log(7)
 
 
+@pytest.mark.parametrize("dead_code_steps", [0, 50])
+def test_default_encoder_uses_many_codes_only_with_dead_code_restarts(dead_code_steps):
+    """The failure the default guards against: at initialisation the goal encoder's segments are short and nearly equal
+    across goals, far inside the codebook's scale, so every segment picks one of the few codes nearest the origin and the
+    EMA keeps it so (the study's runs used 1 code of 64 throughout before the default changed). Restarting
+    codes unused for 50 updates (the script's default) spreads the codebook over the segments."""
+    args = amigo.Args(env_id=DOORKEY, vq_dead_code_steps=dead_code_steps)
+    encoder = amigo.GoalEncoder(5, 5, args.embed_dim, args)
+    envs = amigo.MiniGridVecEnv(DOORKEY, 64)
+    frames, _ = envs.reset(seed=0)
+    goals = torch.as_tensor(np.random.default_rng(0).integers(25, size=64))
+    for _ in range(60):
+        _, _, codes = encoder(torch.as_tensor(frames), goals, update=True)
+    active = int(amigo.active_codes(codes, args.n_embed))
+    if dead_code_steps == 0:
+        assert active <= 2
+    else:
+        assert active >= 16
+
+
 def test_student_update_without_dgrl_matches_the_n_step_targets():
     args, envs, student, encoder, teacher = tiny_setup(groups=0)
     assert encoder.vq is None

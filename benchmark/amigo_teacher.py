@@ -1,0 +1,73 @@
+"""What the teacher proposes: its goal distribution over the cells of a few fresh layouts, from saved checkpoints.
+
+    python benchmark/amigo_teacher.py --checkpoints runs/<run A>/dgrl_amigo.cleanrl_model runs/<run B>/... \
+        --out docs/img/amigo_teacher.png
+
+One row per checkpoint, one column per layout (env seeds 0, 1, 2, ...): the rendered grid with each cell tinted by the
+teacher's probability of proposing it (white = none, red = the most likely cell of that layout) and the probability of
+the most likely cell written in the title. The env id comes from the checkpoint.
+"""
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+import tyro
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import dgrl_amigo as amigo
+
+
+@dataclass
+class Args:
+    checkpoints: list[str] = field(default_factory=list)
+    """checkpoints saved by dgrl_amigo.py --save-model"""
+    layouts: int = 3
+    """fresh layouts (env seeds 0 .. layouts - 1) per checkpoint"""
+    out: str = "results/amigo_teacher.png"
+    """output image"""
+
+
+def teacher_map(checkpoint: str, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """(rendered frame, goal probabilities as (W, H), label) of one checkpoint's teacher on the layout of `seed`."""
+    saved = torch.load(checkpoint, map_location="cpu")
+    envs = amigo.MiniGridVecEnv(saved["args"]["env_id"], 1, render_env0=True)
+    grids, _ = envs.reset(seed=seed)
+    teacher = amigo.Teacher(envs.width, envs.height)
+    teacher.load_state_dict(saved["teacher"])
+    with torch.no_grad():
+        logits, _ = teacher(torch.as_tensor(grids))
+    probs = torch.softmax(logits, -1).view(envs.width, envs.height).numpy()
+    label = f"G{saved['args']['groups']} seed {saved['args']['seed']}, t* {saved['t_star']}"
+    return envs.render(), probs, label
+
+
+def tint(frame: np.ndarray, probs: np.ndarray, tile: int = 32) -> np.ndarray:
+    """Blend each cell's pixels towards red in proportion to its probability (relative to the layout's largest)."""
+    weight = (probs / probs.max()).T.repeat(tile, 0).repeat(tile, 1)[..., None]  # (H * tile, W * tile, 1)
+    red = np.array([255, 0, 0], dtype=np.float32)
+    return (frame * (1 - 0.7 * weight) + red * 0.7 * weight).astype(np.uint8)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    if not args.checkpoints:
+        raise SystemExit("--checkpoints: give at least one checkpoint saved by dgrl_amigo.py --save-model")
+    fig, axes = plt.subplots(len(args.checkpoints), args.layouts, figsize=(2.6 * args.layouts, 2.9 * len(args.checkpoints)))
+    axes = np.atleast_2d(axes)
+    for row, checkpoint in enumerate(args.checkpoints):
+        for col in range(args.layouts):
+            frame, probs, label = teacher_map(checkpoint, col)
+            axes[row, col].imshow(tint(frame, probs))
+            axes[row, col].set_title(f"{label}\nmax p {probs.max():.2f}", fontsize=8)
+            axes[row, col].axis("off")
+    fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")

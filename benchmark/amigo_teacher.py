@@ -4,8 +4,10 @@
         --out docs/img/amigo_teacher.png
 
 One row per checkpoint, one column per layout (env seeds 0, 1, 2, ...): the rendered grid with each cell tinted by the
-teacher's probability of proposing it (white = none, red = the most likely cell of that layout) and the probability of
-the most likely cell written in the title. The env id comes from the checkpoint.
+teacher's probability of proposing it (red = the most likely cell of that layout) and the probability of the most
+likely cell written in the title. The env id comes from the checkpoint. Prints, per checkpoint over
+--summary-layouts layouts, the teacher's mean probability mass on wall cells (against the walls' share of the cells),
+its mean largest cell probability and how often that cell is a wall.
 """
 
 import sys
@@ -32,10 +34,13 @@ class Args:
     """fresh layouts (env seeds 0 .. layouts - 1) per checkpoint"""
     out: str = "results/amigo_teacher.png"
     """output image"""
+    summary_layouts: int = 20
+    """layouts (env seeds 0 .. summary_layouts - 1) of the printed summary"""
 
 
-def teacher_map(checkpoint: str, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
-    """(rendered frame, goal probabilities as (W, H), label) of one checkpoint's teacher on the layout of `seed`."""
+def teacher_map(checkpoint: str, seed: int) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
+    """(rendered frame, goal probabilities as (W, H), label, wall mask as (W, H)) of one checkpoint's teacher on the
+    layout of `seed`."""
     saved = torch.load(checkpoint, map_location="cpu")
     envs = amigo.MiniGridVecEnv(saved["args"]["env_id"], 1, render_env0=True)
     grids, _ = envs.reset(seed=seed)
@@ -45,7 +50,7 @@ def teacher_map(checkpoint: str, seed: int) -> tuple[np.ndarray, np.ndarray, str
         logits, _ = teacher(torch.as_tensor(grids))
     probs = torch.softmax(logits, -1).view(envs.width, envs.height).numpy()
     label = f"G{saved['args']['groups']} seed {saved['args']['seed']}, t* {saved['t_star']}"
-    return envs.render(), probs, label
+    return envs.render(), probs, label, grids[0, ..., 0] == amigo.OBJECT_TO_IDX["wall"]
 
 
 def tint(frame: np.ndarray, probs: np.ndarray, tile: int = 32) -> np.ndarray:
@@ -63,10 +68,19 @@ if __name__ == "__main__":
     axes = np.atleast_2d(axes)
     for row, checkpoint in enumerate(args.checkpoints):
         for col in range(args.layouts):
-            frame, probs, label = teacher_map(checkpoint, col)
+            frame, probs, label, _ = teacher_map(checkpoint, col)
             axes[row, col].imshow(tint(frame, probs))
             axes[row, col].set_title(f"{label}\nmax p {probs.max():.2f}", fontsize=8)
             axes[row, col].axis("off")
+        maps = [teacher_map(checkpoint, seed) for seed in range(args.summary_layouts)]
+        on_walls = np.mean([probs[walls].sum() for _, probs, _, walls in maps])
+        wall_share = np.mean([walls.mean() for *_, walls in maps])
+        top = np.mean([probs.max() for _, probs, _, _ in maps])
+        top_wall = np.mean([walls.flat[probs.argmax()] for _, probs, _, walls in maps])
+        print(
+            f"{checkpoint}: mass on walls {on_walls:.2f} (walls are {wall_share:.2f} of the cells), largest cell "
+            f"probability {top:.2f}, largest cell is a wall in {top_wall:.0%} of {args.summary_layouts} layouts"
+        )
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)

@@ -12,7 +12,7 @@ The student is trained like the original's IMPALA learner: one pass of V-trace a
 
     python dgrl_amigo.py --groups 16                           # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
     python dgrl_amigo.py --groups 0                            # AMIGo
-    python dgrl_amigo.py --env-id MiniGrid-DoorKey-5x5-v0 --total-timesteps 1000000 --groups 16   # learns on a CPU core in ~3 min
+    python dgrl_amigo.py --env-id MiniGrid-DoorKey-5x5-v0 --total-timesteps 1000000 --groups 16   # learns in ~3 min on a CPU
 
 The study: benchmark/amigo.sh. Docs: docs/dgrl_amigo.md.
 """

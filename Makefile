@@ -44,9 +44,12 @@ study-ris: $(VENV)/installed
 bench-ris: $(VENV)/installed
 	$(PY) benchmark/bench_ris.py
 
+# The scaled-down AMIGo study of docs/dgrl_amigo.md (about 70 min on 2 cores).
 study-amigo: $(VENV)/installed
 	PYTHON=$(PY) bash benchmark/amigo.sh
 	PYTHON=$(PY) ENV=MiniGrid-KeyCorridorS3R1-v0 bash benchmark/amigo.sh
+	PYTHON=$(PY) ENV=MiniGrid-KeyCorridorS3R1-v0 FRAMES=3000000 GROUPS_LIST="0 16" TAG=cpu3m bash benchmark/amigo.sh
+	PYTHON=$(PY) TAG=nochannel EXTRA=--no-goal-channel GROUPS_LIST="0 16" bash benchmark/amigo.sh
 
 bench-amigo: $(VENV)/installed
 	$(PY) benchmark/bench_amigo.py

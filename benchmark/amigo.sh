@@ -4,6 +4,8 @@
 # CPU study's DoorKey-5x5 arm; ENV and FRAMES select the others.
 #   bash benchmark/amigo.sh                                                       # DoorKey-5x5, 1M frames, 3 seeds
 #   ENV=MiniGrid-KeyCorridorS3R1-v0 bash benchmark/amigo.sh                      # KeyCorridorS3R1, 1M frames, 3 seeds
+#   ENV=MiniGrid-KeyCorridorS3R1-v0 FRAMES=3000000 GROUPS_LIST="0 16" TAG=cpu3m bash benchmark/amigo.sh   # 3M frames
+#   TAG=nochannel EXTRA=--no-goal-channel GROUPS_LIST="0 16" bash benchmark/amigo.sh   # the goal only through the encoder
 #   ENV=MiniGrid-KeyCorridorS3R3-v0 FRAMES=30000000 JOBS=6 TAG=paper bash benchmark/amigo.sh   # KCmedium, the paper's budget
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -1,0 +1,197 @@
+"""dgrl_hrac.py's environments (the HIRO Ant suite; the agent is not written yet, issue 8): structure-to-MJCF geometry
+against the reference tables, movable joints and their ranges, the elevated platform of AntFall, the ant's edits,
+observations, resets, goals, rewards, success tests and AntGather's sensors."""
+
+import mujoco
+import numpy as np
+import pytest
+
+import dgrl_hrac as hrac
+
+ENV_IDS = ("AntMaze", "AntMazeSparse", "AntPush", "AntFall", "AntGather")
+
+
+def geom(model, name):
+    return model.geom(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name))
+
+
+def test_maze_blocks_match_the_reference_layout():
+    """AntMaze (scaling 8, robot at row 1 col 1): every 1 cell is a box of half-size 4 x 4 x 2 centred at z = 2."""
+    blocks = {b["name"]: b for b in hrac.structure_blocks("AntMaze")}
+    expected = [(i, j) for i, row in enumerate(hrac.STRUCTURES["AntMaze"][1]) for j, c in enumerate(row) if c == 1]
+    assert sorted(blocks) == sorted(f"block_{i}_{j}" for i, j in expected)
+    assert blocks["block_0_0"]["pos"] == (-8.0, -8.0, 2.0)
+    assert blocks["block_2_2"]["pos"] == (8.0, 8.0, 2.0)  # the U's inner wall, between start and evaluation goal
+    for block in blocks.values():
+        assert block["size"] == (4.0, 4.0, 2.0) and block["axes"] == ""
+
+
+def test_goals_lie_in_free_cells_and_starts_at_the_origin():
+    for env_id, goal in hrac.EVAL_GOALS.items():
+        scaling, structure = hrac.STRUCTURES[env_id]
+        origin = hrac.structure_origin(structure)
+        i, j = round(goal[1] / scaling) + origin[0], round(goal[0] / scaling) + origin[1]
+        assert structure[i][j] in (0, "r"), env_id
+
+
+def test_push_block_slides_freely_in_x_and_y():
+    model = mujoco.MjModel.from_xml_string(hrac.hiro_ant_xml("AntPush"))
+    body = model.body("movable_2_2")
+    np.testing.assert_allclose(body.pos, (0.0, 8.0, 2.0))
+    joints = [model.joint(j) for j in range(model.njnt) if model.joint(j).name.startswith("movable_2_2")]
+    assert sorted(j.name for j in joints) == ["movable_2_2_x", "movable_2_2_y"]
+    assert all(j.type[0] == mujoco.mjtJoint.mjJNT_SLIDE and not j.limited[0] for j in joints)
+    np.testing.assert_allclose(geom(model, "movable_2_2_geom").size, (4.0, 4.0, 2.0))
+    assert geom(model, "movable_2_2_geom").solimp[:3].tolist() == pytest.approx([0.995, 0.995, 0.01])
+    assert model.nq == 17 and model.nv == 16  # the ant's 15 / 14 first, then the block's two slides
+
+
+def test_fall_has_a_platform_with_a_chasm_and_a_falling_block():
+    blocks = {b["name"]: b for b in hrac.structure_blocks("AntFall")}
+    structure = hrac.STRUCTURES["AntFall"][1]
+    for i, row in enumerate(structure):
+        for j, cell in enumerate(row):
+            assert (f"platform_{i}_{j}" in blocks) == (cell != -1)
+    assert blocks["platform_1_1"]["pos"][2] == 2.0 and blocks["platform_1_1"]["size"][2] == 2.0  # height 4
+    assert blocks["block_0_0"]["pos"][2] == 6.0  # walls stand on the platform
+    falling = blocks["movable_2_2"]
+    assert falling["axes"] == "yz" and falling["size"] == (3.96, 3.96, 2.0) and falling["mass"] == 0.001
+    model = mujoco.MjModel.from_xml_string(hrac.hiro_ant_xml("AntFall"))
+    z = model.joint("movable_2_2_z")
+    assert z.limited[0] and z.range.tolist() == [-4.0, 0.0]
+    assert model.joint("movable_2_2_y").range.tolist() == [-8.0, 8.0]
+    assert model.body("torso").pos[2] == pytest.approx(4.75)
+
+
+def test_ant_is_edited_as_hiro():
+    model = mujoco.MjModel.from_xml_string(hrac.hiro_ant_xml("AntMaze"))
+    assert model.opt.timestep == pytest.approx(0.02) and model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    assert np.all(model.actuator_gear[:, 0] == 1) and np.all(model.actuator_ctrlrange == [-30, 30])
+    assert model.nu == 8
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_every_env_resets_and_steps(env_id):
+    env = hrac.HiroAntEnv(env_id)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape == ((50,) if env_id == "AntGather" else (30,))
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        obs, reward, terminated, truncated, _ = env.step(rng.uniform(-30, 30, 8))
+        assert np.isfinite(obs).all() and np.isfinite(reward) and not terminated and not truncated
+    assert obs[29 if env_id != "AntGather" else 49] == pytest.approx(5 * (0.01 if env_id == "AntGather" else 0.001))
+
+
+def test_reset_noise_and_truncation():
+    env = hrac.HiroAntEnv("AntMaze")
+    obs, _ = env.reset(seed=3)
+    assert np.all(np.abs(obs[:2]) <= 0.1) and abs(obs[2] - 0.75) <= 0.1
+    for _ in range(hrac.EPISODE_STEPS - 1):
+        *_, truncated, _ = env.step(np.zeros(8))
+        assert not truncated
+    *_, truncated, _ = env.step(np.zeros(8))
+    assert truncated
+
+
+def test_maze_goals_rewards_and_success():
+    train, test = hrac.HiroAntEnv("AntMaze"), hrac.HiroAntEnv("AntMaze", evaluate=True)
+    goals = []
+    for seed in range(200):
+        train.reset(seed=seed)
+        goals.append(train.goal)
+    goals = np.array(goals)
+    assert goals.min() >= -4 and goals.max() <= 20 and goals.min() < -3 and goals.max() > 19
+    test.reset(seed=0)
+    assert test.goal.tolist() == [0.0, 16.0]
+    test.data.qpos[:2] = (0.0, 12.0)
+    _, reward, _, _, info = test.step(np.zeros(8))
+    xy = test.data.qpos[:2]
+    assert reward == pytest.approx(-np.linalg.norm(xy - (0, 16)))
+    assert info["success"] == (np.linalg.norm(xy - (0, 16)) < 5)
+
+
+def test_sparse_starts_on_robot_cells_and_rewards_one_within_one():
+    env = hrac.HiroAntEnv("AntMazeSparse")
+    scaling, structure = hrac.STRUCTURES["AntMazeSparse"]
+    starts = set()
+    for seed in range(300):
+        env.reset(seed=seed)
+        i, j = round(env.data.qpos[1] / scaling) + 1, round(env.data.qpos[0] / scaling) + 1
+        assert structure[i][j] == "r"
+        starts.add((i, j))
+    assert len(starts) > 40  # 56 robot cells
+    env.reset(seed=0)
+    env.data.qpos[:2] = (2.0, 9.0)
+    _, reward, _, _, info = env.step(np.zeros(8))
+    assert reward == 1.0 and info["success"]
+    env.data.qpos[:2] = (6.0, 9.0)
+    _, reward, _, _, info = env.step(np.zeros(8))
+    assert reward == 0.0 and not info["success"]
+
+
+def test_fall_reward_uses_height():
+    env = hrac.HiroAntEnv("AntFall")
+    env.reset(seed=0)
+    _, reward, *_ = env.step(np.zeros(8))
+    np.testing.assert_allclose(-reward, np.linalg.norm(env.data.qpos[:3] - (0, 27, 4.5)))
+
+
+def test_ant_stands_on_the_fall_platform():
+    env = hrac.HiroAntEnv("AntFall")
+    env.reset(seed=0)
+    for _ in range(30):
+        env.step(np.zeros(8))
+    assert 4.2 < env.data.qpos[2] < 5.0  # on the 4 m platform, not through it
+
+
+def test_gather_sensors_and_catching():
+    readings = hrac.gather_readings(np.zeros(2), 0.0, np.array([[3.0, 0.0], [0.0, 7.0]]))
+    # straight ahead falls in the middle bin (span 2*pi centred on the heading); the second object is out of range
+    assert readings[hrac.GATHER["bins"] // 2] == pytest.approx(0.5) and readings.sum() == pytest.approx(0.5)
+    behind = hrac.gather_readings(np.zeros(2), 0.0, np.array([[-3.0, 0.1]]))
+    assert behind[-1] == pytest.approx(0.5, abs=1e-2) or behind[0] == pytest.approx(0.5, abs=1e-2)
+    env = hrac.HiroAntEnv("AntGather")
+    env.reset(seed=1)
+    assert len(env.objects) == 16 and np.all(np.linalg.norm(env.objects, axis=1) >= 2)
+    env.objects[0] = env.data.qpos[:2]  # an apple under the ant
+    env.objects[8] = env.data.qpos[:2] + np.array([0.3, 0.0])  # a bomb next to it
+    _, reward, *_ = env.step(np.zeros(8))
+    assert reward == 0.0 and len(env.objects) == 14
+
+
+def test_push_block_slides_when_pushed_and_fixed_blocks_are_world_geoms():
+    """A push of 0.5 N in +x on the block, centred in its cell, slides it in x only. (Whether the ant itself can push
+    it far enough, given the block's contacts with the floor and the walls it touches edge to edge, is for the agent's
+    runs to show; with the reset noise on its joints the block can start pressed into a neighbouring wall.)"""
+    env = hrac.HiroAntEnv("AntPush")
+    env.reset(seed=0)
+    env.data.qpos[15:17], env.data.qvel[14:16] = 0.0, 0.0
+    mujoco.mj_forward(env.model, env.data)
+    body = mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_BODY, "movable_2_2")
+    env.data.xfrc_applied[body, :3] = (0.5, 0.0, 0.0)
+    for _ in range(20):
+        env.step(np.zeros(8))
+    assert env.data.qpos[15] > 0.3 and abs(env.data.qpos[16]) < 0.05
+    assert mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_BODY, "block_0_0") == -1
+
+
+def test_fall_block_drops_into_the_chasm_but_not_on_the_platform():
+    env = hrac.HiroAntEnv("AntFall")
+    env.reset(seed=0)
+    y, z = env.model.joint("movable_2_2_y").qposadr[0], env.model.joint("movable_2_2_z").qposadr[0]
+    for _ in range(20):
+        env.step(np.zeros(8))
+    assert env.data.qpos[z] > -0.2  # resting on the platform
+    env.data.qpos[y] = 8.0  # slid one cell on: over the chasm row
+    for _ in range(40):
+        env.step(np.zeros(8))
+    assert env.data.qpos[z] < -3.5  # fell to the bottom of its range (-4)
+
+
+def test_script_steps_an_env_and_rejects_an_unknown_id(run_script):
+    out = run_script("dgrl_hrac.py", "--env-id", "AntFall", "--steps", "50")
+    assert out.returncode == 0, out.stderr
+    assert "AntFall: 17 qpos, observation 30-d, 50 random steps" in out.stdout
+    bad = run_script("dgrl_hrac.py", "--env-id", "AntMaze2")
+    assert bad.returncode != 0
+    assert "--env-id" in bad.stderr and "AntMazeSparse" in bad.stderr

@@ -141,6 +141,14 @@ def hiro_ant_xml(env_id: str) -> str:
             else:
                 joint.update(limited="false")
             ET.SubElement(body, "joint", **joint)
+    if blocks:  # a camera over the middle of the structure that sees all of it (45-degree field of view)
+        xs = [b["pos"][0] for b in blocks]
+        ys = [b["pos"][1] for b in blocks]
+        centre_x, centre_y = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
+        extent = max(max(xs) - min(xs), max(ys) - min(ys)) + STRUCTURES[env_id][0]
+    else:
+        centre_x, centre_y, extent = 0.0, 0.0, 2 * GATHER["wall"] + 1
+    ET.SubElement(world, "camera", name="top", pos=f"{centre_x} {centre_y} {1.25 * extent}", xyaxes="1 0 0 0 1 0")
     if env_id == "AntGather":
         w = GATHER["wall"]
         walls = {"north": (0, w, w, 0.5), "south": (0, -w, w, 0.5), "east": (w, 0, 0.5, w), "west": (-w, 0, 0.5, w)}
@@ -258,7 +266,7 @@ class HiroAntEnv(gym.Env):
     def render(self):
         if self._renderer is None:
             self._renderer = mujoco.Renderer(self.model, 240, 240)
-        self._renderer.update_scene(self.data)
+        self._renderer.update_scene(self.data, camera="top")
         return self._renderer.render()
 
     def close(self):

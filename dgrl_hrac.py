@@ -1,8 +1,9 @@
 """DGRL on HRAC in the HIRO Ant suite (AntMaze, AntMazeSparse, AntPush, AntFall, AntGather).
 
-STATUS (issue 8, in progress): the environments below are built and tested; the HRAC agent (TD3 manager and
-controller, off-policy correction, adjacency network) and the DGRL integration are not written yet, so running this
-file only checks its flags and builds, resets and steps the chosen environment.
+STATUS (issue 8, in progress): the environments and HRAC's building blocks (networks, subgoal transition, controller
+reward, HIRO's off-policy correction, adjacency labels and losses) are written and tested; the training loop, the
+replay buffers, evaluation and the DGRL integration are not, so running this file only checks its flags and builds,
+resets and steps the chosen environment.
 
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Ant
 Manipulation Control Domains" and appendix "Ant Manipulation tasks". The environments are the HIRO Ant suite as HRAC
@@ -22,6 +23,8 @@ from typing import ClassVar, Literal
 import gymnasium as gym
 import mujoco
 import numpy as np
+import torch
+import torch.nn as nn
 import tyro
 
 
@@ -273,6 +276,150 @@ class HiroAntEnv(gym.Env):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+# --- Networks ---------------------------------------------------------------------------------------------------------
+
+
+def mlp(in_dim: int, hidden_dim: int, out_dim: int, n_hidden: int = 2) -> nn.Sequential:
+    layers, width = [], in_dim
+    for _ in range(n_hidden):
+        layers += [nn.Linear(width, hidden_dim), nn.ReLU()]
+        width = hidden_dim
+    return nn.Sequential(*layers, nn.Linear(width, out_dim))
+
+
+class Actor(nn.Module):
+    """HRAC's TD3 actor at either level: (state, goal) -> 300 -> 300 -> tanh x max_action."""
+
+    def __init__(self, state_dim: int, goal_dim: int, action_dim: int, max_action: float, hidden_dim: int = 300):
+        super().__init__()
+        self.net, self.max_action = mlp(state_dim + goal_dim, hidden_dim, action_dim), max_action
+
+    def forward(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        return self.max_action * torch.tanh(self.net(torch.cat([states, goals], -1)))
+
+
+class TwinCritic(nn.Module):
+    """Two Q networks (state, goal, action) -> 300 -> 300 -> 1."""
+
+    def __init__(self, state_dim: int, goal_dim: int, action_dim: int, hidden_dim: int = 300):
+        super().__init__()
+        self.q1 = mlp(state_dim + goal_dim + action_dim, hidden_dim, 1)
+        self.q2 = mlp(state_dim + goal_dim + action_dim, hidden_dim, 1)
+
+    def forward(self, states, goals, actions) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([states, goals, actions], -1)
+        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
+
+
+class AdjacencyNet(nn.Module):
+    """HRAC's adjacency network: goal-space point -> 128 -> 128 -> 128 -> 32 (ReLU)."""
+
+    def __init__(self, goal_dim: int, hidden_dim: int = 128, embed_dim: int = 32):
+        super().__init__()
+        self.net = mlp(goal_dim, hidden_dim, embed_dim, n_hidden=3)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.net(points)
+
+
+# --- HRAC's computations ----------------------------------------------------------------------------------------------
+
+
+def controller_input(states: np.ndarray | torch.Tensor):
+    """The controller's view of a state: xy zeroed (HRAC's controller is blind to where it is, only to where its
+    relative subgoal points)."""
+    masked = states.clone() if isinstance(states, torch.Tensor) else states.copy()
+    masked[..., :2] = 0
+    return masked
+
+
+def subgoal_transition(states, subgoals, next_states):
+    """The relative subgoal re-targeted after a step, so that it keeps pointing at the same place:
+    g' = s[:d] + g - s'[:d] (d = the goal space's size)."""
+    d = subgoals.shape[-1]
+    return states[..., :d] + subgoals - next_states[..., :d]
+
+
+def controller_reward(states, subgoals, next_states):
+    """HRAC's low-level reward: -||s[:d] + g - s'[:d]||, the distance of the step's end from the subgoal's target."""
+    d = subgoals.shape[-1]
+    offset = states[..., :d] + subgoals - next_states[..., :d]
+    return -np.linalg.norm(offset, axis=-1) if isinstance(offset, np.ndarray) else -offset.norm(dim=-1)
+
+
+@torch.no_grad()
+def off_policy_correction(controller: Actor, states: np.ndarray, actions: np.ndarray, subgoals: np.ndarray,
+                          scale: np.ndarray, rng: np.random.Generator, n_samples: int = 10) -> np.ndarray:  # fmt: skip
+    """HIRO's relabelling of stored manager transitions. `states` (B, k + 1, S), `actions` (B, k, A), `subgoals` (B, d):
+    the candidates are the stored subgoal, the achieved offset s_k - s_0 and `n_samples` draws from
+    N(s_k - s_0, (0.5 scale)^2) clipped to +-scale; each is rolled through the k stored states with the subgoal
+    transition, and the one under which the current controller is most likely to have taken the stored actions,
+    argmax of -0.5 sum_t ||pi(s_t, g_t) - a_t||^2, replaces the stored subgoal. Returns (B, d)."""
+    batch, k = actions.shape[:2]
+    d = subgoals.shape[-1]
+    achieved = states[:, -1, :d] - states[:, 0, :d]
+    noise = rng.normal(0.0, 0.5 * scale, (batch, n_samples, d))
+    candidates = np.concatenate(
+        [subgoals[:, None], achieved[:, None], np.clip(achieved[:, None] + noise, -scale, scale)], 1
+    )  # (B, 2 + n_samples, d)
+    n = candidates.shape[1]
+    goals = np.empty((batch, n, k, d))
+    goals[:, :, 0] = candidates
+    for t in range(1, k):
+        goals[:, :, t] = subgoal_transition(states[:, None, t - 1], goals[:, :, t - 1], states[:, None, t])
+    observed = np.broadcast_to(states[:, None, :k], (batch, n, k, states.shape[-1]))
+    device = next(controller.parameters()).device
+    predicted = controller(
+        torch.as_tensor(controller_input(observed), dtype=torch.float32, device=device),
+        torch.as_tensor(goals, dtype=torch.float32, device=device),
+    ).cpu().numpy()  # fmt: skip
+    log_likelihood = -0.5 * ((predicted - actions[:, None]) ** 2).sum(-1).sum(-1)  # (B, n)
+    return candidates[np.arange(batch), log_likelihood.argmax(1)]
+
+
+def contrastive_loss(emb_a: torch.Tensor, emb_b: torch.Tensor, labels: torch.Tensor, margin_pos: float = 1.0,
+                     margin_neg: float = 1.2) -> torch.Tensor:  # fmt: skip
+    """HRAC's adjacency loss: mean(l * max(0, d - m+)) + mean((1 - l) * max(0, m- - d)), d = ||phi_a - phi_b||."""
+    distances = torch.sqrt((emb_a - emb_b).pow(2).sum(-1) + 1e-12)
+    positive = (labels * (distances - margin_pos).clamp(min=0)).mean()
+    return positive + ((1 - labels) * (margin_neg - distances).clamp(min=0)).mean()
+
+
+def adjacency_loss(anet: AdjacencyNet, positions: torch.Tensor, subgoals: torch.Tensor, threshold: float = 1.1):
+    """The manager actor's adjacency term (before its weight 20): mean(max(0, ||phi(s_xy) - phi(s_xy + g)|| - 1.1))."""
+    d = subgoals.shape[-1]
+    distance = (anet(positions[..., :d]) - anet(positions[..., :d] + subgoals)).norm(dim=-1)
+    return (distance - threshold).clamp(min=0).mean()
+
+
+class AdjacencyMemory:
+    """HRAC's adjacency labels over 1 m grid cells (round(s[:2])): cells t and t + j of one trajectory are adjacent for
+    1 <= j <= k - 1. The matrix persists over the run and grows as new cells are visited."""
+
+    def __init__(self, k: int = 10):
+        self.k, self.index, self.edges = k, {}, set()
+
+    def cell_ids(self, positions: np.ndarray) -> np.ndarray:
+        ids = []
+        for cell in map(tuple, np.round(positions[:, :2]).astype(np.int64)):
+            ids.append(self.index.setdefault(cell, len(self.index)))
+        return np.array(ids, dtype=np.int64)
+
+    def add_trajectory(self, positions: np.ndarray) -> None:
+        ids = self.cell_ids(positions)
+        for offset in range(1, min(self.k, len(ids))):
+            for a, b in zip(ids[:-offset], ids[offset:], strict=True):
+                if a != b:
+                    self.edges.add((min(a, b), max(a, b)))
+
+    def labelled_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cells_a (P, 2), cells_b (P, 2), labels (P,)) over every pair of distinct visited cells."""
+        cells = np.array(sorted(self.index, key=self.index.get), dtype=np.float32).reshape(-1, 2)
+        first, second = np.triu_indices(len(cells), 1)
+        labels = np.array([(a, b) in self.edges for a, b in zip(first, second, strict=True)], dtype=np.float32)
+        return cells[first], cells[second], labels
 
 
 if __name__ == "__main__":

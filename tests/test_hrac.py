@@ -5,6 +5,7 @@ observations, resets, goals, rewards, success tests and AntGather's sensors."""
 import mujoco
 import numpy as np
 import pytest
+import torch
 
 import dgrl_hrac as hrac
 
@@ -195,3 +196,113 @@ def test_script_steps_an_env_and_rejects_an_unknown_id(run_script):
     bad = run_script("dgrl_hrac.py", "--env-id", "AntMaze2")
     assert bad.returncode != 0
     assert "--env-id" in bad.stderr and "AntMazeSparse" in bad.stderr
+
+
+# --- HRAC's building blocks -------------------------------------------------------------------------------------------
+
+
+def test_subgoal_transition_keeps_the_absolute_target_and_the_reward_measures_it():
+    rng = np.random.default_rng(0)
+    s, s_next, g = rng.normal(size=(5, 30)), rng.normal(size=(5, 30)), rng.normal(size=(5, 2))
+    g_next = hrac.subgoal_transition(s, g, s_next)
+    np.testing.assert_allclose(s[:, :2] + g, s_next[:, :2] + g_next)
+    np.testing.assert_allclose(hrac.controller_reward(s, g, s_next), -np.linalg.norm(s[:, :2] + g - s_next[:, :2], axis=1))
+    s_next[:, :2] = s[:, :2] + g
+    np.testing.assert_allclose(hrac.controller_reward(s, g, s_next), 0.0, atol=1e-12)
+    g3 = rng.normal(size=(5, 3))  # AntFall's 3-d goals use xyz
+    np.testing.assert_allclose(s[:, :3] + g3, s_next[:, :3] + hrac.subgoal_transition(s, g3, s_next))
+    torch_reward = hrac.controller_reward(torch.as_tensor(s), torch.as_tensor(g), torch.as_tensor(s_next))
+    np.testing.assert_allclose(torch_reward.numpy(), 0.0, atol=1e-12)
+
+
+def test_controller_input_hides_only_xy():
+    s = np.arange(1.0, 31.0)
+    masked = hrac.controller_input(s)
+    assert masked[:2].tolist() == [0, 0] and masked[2:].tolist() == s[2:].tolist() and s[0] == 1.0
+
+
+class LinearController(torch.nn.Module):
+    """A stand-in controller whose action is a fixed linear map of the relative subgoal (and of z)."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = torch.nn.Parameter(
+            torch.tensor([[1.0, 0.0, -2.0, 0.5, 0.0, 1.0, 0.3, -1.0], [0.0, 1.0, 1.0, 0.0, -1.0, 2.0, 0.0, 0.4]])
+        )
+
+    def forward(self, states, goals):
+        return goals @ self.weight + 0.1 * states[..., 2:3]
+
+
+def actions_for(controller, states, first_goals):
+    """The controller's actions along stored states when its relative subgoal starts at `first_goals` and is
+    re-targeted by the subgoal transition at every step."""
+    batch, k = len(states), states.shape[1] - 1
+    goals = np.empty((batch, k, 2))
+    goals[:, 0] = first_goals
+    for t in range(1, k):
+        goals[:, t] = hrac.subgoal_transition(states[:, t - 1], goals[:, t - 1], states[:, t])
+    with torch.no_grad():
+        states_t = torch.as_tensor(hrac.controller_input(states[:, :k]), dtype=torch.float32)
+        return controller(states_t, torch.as_tensor(goals, dtype=torch.float32)).numpy()
+
+
+def test_off_policy_correction_keeps_a_true_stored_subgoal_and_finds_a_true_achieved_one():
+    rng = np.random.default_rng(0)
+    controller, scale = LinearController(), np.array([10.0, 10.0])
+    states = np.cumsum(rng.normal(0, 0.3, (16, 11, 30)), 1)  # 16 segments of k = 10 steps
+    true_goals = rng.uniform(-5, 5, (16, 2))
+    kept = hrac.off_policy_correction(controller, states, actions_for(controller, states, true_goals), true_goals, scale, rng)
+    np.testing.assert_allclose(kept, true_goals)
+    # The stored subgoals are stale (an older manager's); the actions were taken for the achieved offset s_k - s_0.
+    achieved = states[:, -1, :2] - states[:, 0, :2]
+    stale = rng.uniform(-5, 5, (16, 2))
+    corrected = hrac.off_policy_correction(controller, states, actions_for(controller, states, achieved), stale, scale, rng)
+    np.testing.assert_allclose(corrected, achieved, rtol=1e-6, atol=1e-6)
+
+
+def test_off_policy_correction_candidates_are_clipped_to_the_scale():
+    rng = np.random.default_rng(1)
+    controller = LinearController()
+    states = np.zeros((4, 11, 30))
+    states[:, -1, :2] = 100.0  # an achieved offset far outside the subgoal range
+    actions = np.zeros((4, 10, 8))
+    scale = np.array([10.0, 10.0])
+    chosen = hrac.off_policy_correction(controller, states, actions, np.zeros((4, 2)), scale, rng)
+    assert np.all(np.abs(chosen) <= 100.0)
+    np.testing.assert_allclose(chosen, 0.0)  # zero actions are explained exactly by the stored zero subgoal
+
+
+def test_contrastive_and_adjacency_losses_by_hand():
+    a = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    b = torch.tensor([[3.0, 4.0], [0.6, 0.8], [0.3, 0.4]])  # distances 5, 1, 0.5
+    labels = torch.tensor([1.0, 0.0, 0.0])
+    # positives: max(0, 5 - 1) = 4 -> mean over 3 = 4/3; negatives: max(0, 1.2 - 1) + max(0, 1.2 - 0.5) = 0.9 -> 0.3
+    assert hrac.contrastive_loss(a, b, labels).item() == pytest.approx(4 / 3 + 0.3, abs=1e-5)
+    anet = hrac.AdjacencyNet(2)
+    positions, subgoals = torch.randn(6, 30), torch.randn(6, 2) * 5
+    distance = (anet(positions[:, :2]) - anet(positions[:, :2] + subgoals)).norm(dim=-1)
+    expected = (distance - 1.1).clamp(min=0).mean()
+    assert hrac.adjacency_loss(anet, positions, subgoals).item() == pytest.approx(expected.item())
+
+
+def test_adjacency_memory_marks_pairs_within_k_steps_of_one_trajectory():
+    memory = hrac.AdjacencyMemory(k=3)
+    memory.add_trajectory(np.array([[0.1, 0.0], [1.2, 0.0], [1.9, 0.2], [3.0, 0.0]]))  # cells (0,0) (1,0) (2,0) (3,0)
+    memory.add_trajectory(np.array([[0.0, 5.2], [0.0, 5.4]]))  # one cell (0,5): no pair with itself
+    cells_a, cells_b, labels = memory.labelled_pairs()
+    pairs = {(tuple(a), tuple(b)): label for a, b, label in zip(cells_a, cells_b, labels, strict=True)}
+    assert len(pairs) == 10  # 5 distinct cells
+    assert pairs[((0, 0), (1, 0))] == 1 and pairs[((0, 0), (2, 0))] == 1  # 1 and 2 steps apart (j <= k - 1 = 2)
+    assert pairs[((0, 0), (3, 0))] == 0  # 3 steps apart
+    assert pairs[((0, 0), (0, 5))] == 0  # other trajectory
+    assert sum(labels) == 5  # (0,1) (0,2) (1,2) (1,3) (2,3)
+
+
+def test_networks_shapes_and_action_range():
+    actor = hrac.Actor(30, 2, 8, max_action=30.0)
+    actions = actor(torch.randn(5, 30) * 100, torch.randn(5, 2) * 100)
+    assert actions.shape == (5, 8) and actions.abs().max() <= 30.0
+    q1, q2 = hrac.TwinCritic(30, 2, 8)(torch.randn(5, 30), torch.randn(5, 2), actions)
+    assert q1.shape == q2.shape == (5,) and not torch.equal(q1, q2)
+    assert hrac.AdjacencyNet(2)(torch.randn(4, 2)).shape == (4, 32)

@@ -27,6 +27,8 @@ import torch
 import torch.nn as nn
 import tyro
 
+from vq import update_target
+
 
 @dataclass
 class Args:
@@ -420,6 +422,53 @@ class AdjacencyMemory:
         first, second = np.triu_indices(len(cells), 1)
         labels = np.array([(a, b) in self.edges for a, b in zip(first, second, strict=True)], dtype=np.float32)
         return cells[first], cells[second], labels
+
+
+class Replay:
+    """A ring of preallocated numpy arrays, one per field (shapes given at construction); `sample` draws uniformly."""
+
+    def __init__(self, capacity: int, **shapes: tuple[int, ...]):
+        self.capacity, self.size, self.position = capacity, 0, 0
+        self.fields = {name: np.zeros((capacity, *shape), dtype=np.float32) for name, shape in shapes.items()}
+
+    def add(self, **values) -> None:
+        for name, array in self.fields.items():
+            array[self.position] = values[name]
+        self.position = (self.position + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        index = rng.integers(self.size, size=batch_size)
+        return {name: array[index] for name, array in self.fields.items()}
+
+
+def td3_update(nets: dict, optimizers: dict, batch: dict[str, torch.Tensor], gamma: float, max_action: float,
+               tau: float = 0.005, policy_noise: float = 0.2, noise_clip: float = 0.5,
+               actor_extra=None) -> dict[str, torch.Tensor]:  # fmt: skip
+    """One TD3 step as HRAC runs it at both levels: target actions with clipped Gaussian noise, the min of the target
+    critics, a Huber critic loss (the critic optimizer carries the weight decay), the actor updated at every step (no
+    policy delay) to maximise Q1, plus `actor_extra(actions)` if given (the manager's adjacency term), then Polyak
+    targets. `batch`: states, goals, actions, rewards, next_states, next_goals, dones."""
+    with torch.no_grad():
+        noise = (torch.randn_like(batch["actions"]) * policy_noise).clamp(-noise_clip, noise_clip)
+        next_actions = (nets["actor_target"](batch["next_states"], batch["next_goals"]) + noise).clamp(-max_action, max_action)
+        target_q = torch.min(*nets["critic_target"](batch["next_states"], batch["next_goals"], next_actions))
+        target = batch["rewards"] + gamma * (1.0 - batch["dones"]) * target_q
+    q1, q2 = nets["critic"](batch["states"], batch["goals"], batch["actions"])
+    critic_loss = nn.functional.smooth_l1_loss(q1, target) + nn.functional.smooth_l1_loss(q2, target)
+    optimizers["critic"].zero_grad(set_to_none=True)
+    critic_loss.backward()
+    optimizers["critic"].step()
+    actions = nets["actor"](batch["states"], batch["goals"])
+    actor_loss = -nets["critic"](batch["states"], batch["goals"], actions)[0].mean()
+    if actor_extra is not None:
+        actor_loss = actor_loss + actor_extra(actions)
+    optimizers["actor"].zero_grad(set_to_none=True)
+    actor_loss.backward()
+    optimizers["actor"].step()
+    update_target(nets["actor_target"], nets["actor"], tau)
+    update_target(nets["critic_target"], nets["critic"], tau)
+    return {"critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(), "q": q1.detach().mean()}
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import dgrl_hrac as hrac
+from vq import make_target
 
 ENV_IDS = ("AntMaze", "AntMazeSparse", "AntPush", "AntFall", "AntGather")
 
@@ -306,3 +307,64 @@ def test_networks_shapes_and_action_range():
     q1, q2 = hrac.TwinCritic(30, 2, 8)(torch.randn(5, 30), torch.randn(5, 2), actions)
     assert q1.shape == q2.shape == (5,) and not torch.equal(q1, q2)
     assert hrac.AdjacencyNet(2)(torch.randn(4, 2)).shape == (4, 32)
+
+
+def test_replay_is_a_ring_of_preallocated_arrays():
+    replay = hrac.Replay(3, states=(2,), rewards=())
+    for i in range(5):
+        replay.add(states=(i, -i), rewards=float(i))
+    assert replay.size == 3 and sorted(replay.fields["rewards"].tolist()) == [2.0, 3.0, 4.0]
+    batch = replay.sample(7, np.random.default_rng(0))
+    assert batch["states"].shape == (7, 2) and set(batch["rewards"].tolist()) <= {2.0, 3.0, 4.0}
+
+
+def bandit_nets(max_action: float):
+    actor, critic = hrac.Actor(3, 2, 2, max_action, hidden_dim=64), hrac.TwinCritic(3, 2, 2, hidden_dim=64)
+    nets = {"actor": actor, "critic": critic, "actor_target": make_target(actor), "critic_target": make_target(critic)}
+    optimizers = {
+        "actor": torch.optim.Adam(actor.parameters(), lr=1e-3),
+        "critic": torch.optim.Adam(critic.parameters(), lr=1e-3, weight_decay=1e-4),
+    }
+    return nets, optimizers
+
+
+def test_td3_update_learns_a_one_step_task_and_moves_the_targets_by_tau():
+    """Reward -||a - g||^2 with every transition terminal: the actor must learn to output its goal."""
+    rng = np.random.default_rng(0)
+    nets, optimizers = bandit_nets(max_action=1.0)
+    before = [p.detach().clone() for p in nets["actor_target"].parameters()]
+    online_before = [p.detach().clone() for p in nets["actor"].parameters()]
+    for step in range(600):
+        states, goals = torch.randn(128, 3), torch.as_tensor(rng.uniform(-0.8, 0.8, (128, 2)), dtype=torch.float32)
+        actions = torch.as_tensor(rng.uniform(-1, 1, (128, 2)), dtype=torch.float32)
+        batch = dict(
+            states=states, goals=goals, actions=actions, rewards=-((actions - goals) ** 2).sum(1),
+            next_states=states, next_goals=goals, dones=torch.ones(128),
+        )  # fmt: skip
+        metrics = hrac.td3_update(nets, optimizers, batch, gamma=0.99, max_action=1.0, tau=0.05)
+        if step == 0:
+            online_after = list(nets["actor"].parameters())
+            for target, old_target, old_online, new_online in zip(
+                nets["actor_target"].parameters(), before, online_before, online_after, strict=True
+            ):
+                # the actor stepped before the Polyak update: target = old_target + tau * (new_online - old_target)
+                torch.testing.assert_close(target, old_target + 0.05 * (new_online.detach() - old_target))
+                assert not torch.equal(new_online.detach(), old_online)
+    goals = torch.tensor([[0.5, -0.3], [-0.6, 0.2]])
+    with torch.no_grad():
+        actions = nets["actor"](torch.zeros(2, 3), goals)
+    assert (actions - goals).abs().max() < 0.15, actions
+    assert torch.isfinite(metrics["critic_loss"])
+
+
+def test_td3_update_adds_the_actor_extra_term():
+    batch = dict(
+        states=torch.randn(8, 3), goals=torch.randn(8, 2), actions=torch.rand(8, 2), rewards=torch.randn(8),
+        next_states=torch.randn(8, 3), next_goals=torch.randn(8, 2), dones=torch.zeros(8),
+    )  # fmt: skip
+    losses = []
+    for extra in (None, lambda actions: 7.0 + 0 * actions.sum()):
+        torch.manual_seed(0)  # the same networks and the same target noise in both runs
+        nets, optimizers = bandit_nets(max_action=1.0)
+        losses.append(hrac.td3_update(nets, optimizers, batch, 0.99, 1.0, actor_extra=extra)["actor_loss"].item())
+    assert losses[1] == pytest.approx(losses[0] + 7.0, abs=1e-5)

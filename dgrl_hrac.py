@@ -468,7 +468,8 @@ def td3_update(nets: dict, optimizers: dict, batch: dict[str, torch.Tensor], gam
     optimizers["actor"].step()
     update_target(nets["actor_target"], nets["actor"], tau)
     update_target(nets["critic_target"], nets["critic"], tau)
-    return {"critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(), "q": q1.detach().mean()}
+    metrics = {"critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(), "q": q1.detach().mean()}
+    return metrics | {"target_q": target_q.mean()}
 
 
 if __name__ == "__main__":

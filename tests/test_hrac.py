@@ -368,3 +368,15 @@ def test_td3_update_adds_the_actor_extra_term():
         nets, optimizers = bandit_nets(max_action=1.0)
         losses.append(hrac.td3_update(nets, optimizers, batch, 0.99, 1.0, actor_extra=extra)["actor_loss"].item())
     assert losses[1] == pytest.approx(losses[0] + 7.0, abs=1e-5)
+
+
+def test_td3_target_is_the_smaller_of_the_two_target_critics():
+    nets, optimizers = bandit_nets(max_action=1.0)
+    for head, value in ((nets["critic_target"].q1, 10.0), (nets["critic_target"].q2, -5.0)):
+        torch.nn.init.zeros_(head[-1].weight)
+        torch.nn.init.constant_(head[-1].bias, value)
+    batch = dict(
+        states=torch.randn(8, 3), goals=torch.randn(8, 2), actions=torch.rand(8, 2), rewards=torch.zeros(8),
+        next_states=torch.randn(8, 3), next_goals=torch.randn(8, 2), dones=torch.zeros(8),
+    )  # fmt: skip
+    assert hrac.td3_update(nets, optimizers, batch, 0.99, 1.0)["target_q"].item() == pytest.approx(-5.0)

@@ -117,9 +117,9 @@ def hiro_ant_xml(env_id: str) -> str:
     world = root.find("worldbody")
     world.find("geom[@name='floor']").set("size", "60 60 40")
     blocks = [] if env_id == "AntGather" else structure_blocks(env_id)
-    elevated = any(block["name"].startswith("platform") for block in blocks)
-    if elevated:
-        world.find("body[@name='torso']").set("pos", f"0 0 {0.75 + MAZE_HEIGHT * STRUCTURES[env_id][0]}")
+    scaling = STRUCTURES[env_id][0] if blocks else 0.0
+    if any(block["name"].startswith("platform") for block in blocks):  # the ant starts on the platform
+        world.find("body[@name='torso']").set("pos", f"0 0 {0.75 + MAZE_HEIGHT * scaling}")
     for block in blocks:
         pos, size = " ".join(map(str, block["pos"])), " ".join(map(str, block["size"]))
         if not block["axes"]:
@@ -133,7 +133,6 @@ def hiro_ant_xml(env_id: str) -> str:
             body, "geom", name=block["name"] + "_geom", type="box", size=size, mass=str(block["mass"]), conaffinity="1",
             contype="1", rgba="0.9 0.1 0.1 1", solimp="0.995 0.995 0.01",
         )  # fmt: skip
-        scaling = STRUCTURES[env_id][0]
         for axis in block["axes"]:
             direction = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}[axis]
             joint = dict(
@@ -150,7 +149,7 @@ def hiro_ant_xml(env_id: str) -> str:
         xs = [b["pos"][0] for b in blocks]
         ys = [b["pos"][1] for b in blocks]
         centre_x, centre_y = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
-        extent = max(max(xs) - min(xs), max(ys) - min(ys)) + STRUCTURES[env_id][0]
+        extent = max(max(xs) - min(xs), max(ys) - min(ys)) + scaling
     else:
         centre_x, centre_y, extent = 0.0, 0.0, 2 * GATHER["wall"] + 1
     ET.SubElement(world, "camera", name="top", pos=f"{centre_x} {centre_y} {1.25 * extent}", xyaxes="1 0 0 0 1 0")
@@ -169,15 +168,12 @@ def gather_readings(xy: np.ndarray, yaw: float, objects: np.ndarray) -> np.ndarr
     """rllab's range sensor: `bins` bins over a 2*pi span centred on the ant's heading; each bin holds the largest
     1 - distance / range of the objects within range whose bearing falls in it."""
     readings = np.zeros(GATHER["bins"])
-    if len(objects) == 0:
-        return readings
     offsets = objects - xy
     distance = np.linalg.norm(offsets, axis=1)
     bearing = (np.arctan2(offsets[:, 1], offsets[:, 0]) - yaw + GATHER["span"] / 2) % (2 * np.pi)
     bins = np.minimum((bearing / (GATHER["span"] / GATHER["bins"])).astype(int), GATHER["bins"] - 1)
-    for b, d in zip(bins, distance, strict=True):
-        if d < GATHER["range"]:
-            readings[b] = max(readings[b], 1.0 - d / GATHER["range"])
+    seen = distance < GATHER["range"]
+    np.maximum.at(readings, bins[seen], 1.0 - distance[seen] / GATHER["range"])
     return readings
 
 

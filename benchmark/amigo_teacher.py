@@ -38,19 +38,21 @@ class Args:
     """layouts (env seeds 0 .. summary_layouts - 1) of the printed summary"""
 
 
-def teacher_map(checkpoint: str, seed: int) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
-    """(rendered frame, goal probabilities as (W, H), label, wall mask as (W, H)) of one checkpoint's teacher on the
-    layout of `seed`."""
+def teacher_maps(checkpoint: str, seeds: int) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], str]:
+    """One checkpoint's teacher on the layouts of env seeds 0 .. seeds - 1: a list of (rendered frame, goal
+    probabilities as (W, H), wall mask as (W, H)), and a label for the checkpoint."""
     saved = torch.load(checkpoint, map_location="cpu")
     envs = amigo.MiniGridVecEnv(saved["args"]["env_id"], 1, render_env0=True)
-    grids, _ = envs.reset(seed=seed)
     teacher = amigo.Teacher(envs.width, envs.height)
     teacher.load_state_dict(saved["teacher"])
-    with torch.no_grad():
-        logits, _ = teacher(torch.as_tensor(grids))
-    probs = torch.softmax(logits, -1).view(envs.width, envs.height).numpy()
-    label = f"G{saved['args']['groups']} seed {saved['args']['seed']}, t* {saved['t_star']}"
-    return envs.render(), probs, label, grids[0, ..., 0] == amigo.OBJECT_TO_IDX["wall"]
+    maps = []
+    for seed in range(seeds):
+        grids, _ = envs.reset(seed=seed)
+        with torch.no_grad():
+            logits, _ = teacher(torch.as_tensor(grids))
+        probs = torch.softmax(logits, -1).view(envs.width, envs.height).numpy()
+        maps.append((envs.render(), probs, grids[0, ..., 0] == amigo.OBJECT_TO_IDX["wall"]))
+    return maps, f"G{saved['args']['groups']} seed {saved['args']['seed']}, t* {saved['t_star']}"
 
 
 def tint(frame: np.ndarray, probs: np.ndarray, tile: int = 32) -> np.ndarray:
@@ -67,16 +69,16 @@ if __name__ == "__main__":
     fig, axes = plt.subplots(len(args.checkpoints), args.layouts, figsize=(2.6 * args.layouts, 2.9 * len(args.checkpoints)))
     axes = np.atleast_2d(axes)
     for row, checkpoint in enumerate(args.checkpoints):
-        for col in range(args.layouts):
-            frame, probs, label, _ = teacher_map(checkpoint, col)
+        maps, label = teacher_maps(checkpoint, max(args.layouts, args.summary_layouts))
+        for col, (frame, probs, _) in enumerate(maps[: args.layouts]):
             axes[row, col].imshow(tint(frame, probs))
             axes[row, col].set_title(f"{label}\nmax p {probs.max():.2f}", fontsize=8)
             axes[row, col].axis("off")
-        maps = [teacher_map(checkpoint, seed) for seed in range(args.summary_layouts)]
-        on_walls = np.mean([probs[walls].sum() for _, probs, _, walls in maps])
+        maps = maps[: args.summary_layouts]
+        on_walls = np.mean([probs[walls].sum() for _, probs, walls in maps])
         wall_share = np.mean([walls.mean() for *_, walls in maps])
-        top = np.mean([probs.max() for _, probs, _, _ in maps])
-        top_wall = np.mean([walls.flat[probs.argmax()] for _, probs, _, walls in maps])
+        top = np.mean([probs.max() for _, probs, _ in maps])
+        top_wall = np.mean([walls.flat[probs.argmax()] for _, probs, walls in maps])
         print(
             f"{checkpoint}: mass on walls {on_walls:.2f} (walls are {wall_share:.2f} of the cells), largest cell "
             f"probability {top:.2f}, largest cell is a wall in {top_wall:.0%} of {args.summary_layouts} layouts"

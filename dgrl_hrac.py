@@ -1,18 +1,24 @@
-"""DGRL on HRAC in the HIRO Ant suite (AntMaze, AntMazeSparse, AntPush, AntFall, AntGather).
-
-STATUS (issue 8, in progress): the environments and HRAC's building blocks (networks, subgoal transition, controller
-reward, HIRO's off-policy correction, adjacency labels and losses) are written and tested; the training loop, the
-replay buffers, evaluation and the DGRL integration are not, so running this file only checks its flags and builds,
-resets and steps the chosen environment.
+"""DGRL on HRAC in the HIRO Ant suite (AntMaze, AntMazeSparse, AntPush, AntFall, AntGather): discretized subgoals.
 
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Ant
-Manipulation Control Domains" and appendix "Ant Manipulation tasks". The environments are the HIRO Ant suite as HRAC
-uses it (reference hrac-keychest.md): gymnasium's Ant model edited in code (ctrl +-30, gear 1, timestep 0.02 with RK4,
-frame_skip 5) inside structures of fixed, sliding and elevated blocks generated into MJCF at run time.
+Manipulation Control Domains" and appendix "Ant Manipulation tasks". The agent is HRAC (Zhang et al., NeurIPS 2020): a
+TD3 manager that proposes a relative xy subgoal every k = 10 steps, a TD3 controller rewarded for reaching it (the
+subgoal re-targeted after every step), HIRO's off-policy correction of the manager's stored subgoals, and an adjacency
+network over 1 m grid cells, retrained every 50k steps with a contrastive loss, whose k-step reachability constrains the
+manager's subgoals through an extra actor loss. DGRL (`--groups G`) passes the manager's output (the subgoal) through an
+encoder and the shared-codebook bottleneck of vq.py; the controller's actor and critic see the discrete subgoal
+embedding z_q instead of the raw subgoal. `--groups 0` is plain HRAC from the same file.
 
-    python dgrl_hrac.py --env-id AntPush      # builds, resets and steps AntPush (the agent is not written yet)
+The environments are the HIRO Ant suite as HRAC uses it (reference hrac-keychest.md): gymnasium's Ant model edited in
+code (ctrl +-30, gear 1, timestep 0.02 with RK4, frame_skip 5) inside structures of fixed, sliding and elevated blocks
+generated into MJCF at run time; AntGather adds apples, bombs and range sensors.
 
-Docs: docs/dgrl_hrac.md (to come with the agent).
+    python dgrl_hrac.py --env-id AntPush --groups 16      # DGRL G=16 on AntPush, the paper's 5M steps (a GPU job)
+    python dgrl_hrac.py --env-id AntMaze --groups 0       # HRAC on AntMaze
+    python dgrl_hrac.py --env-id AntMaze --total-timesteps 150000   # the short CPU run of docs/dgrl_hrac.md
+    python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5   # 1-minute smoke run
+
+The study: benchmark/hrac.sh; env speed and renders: benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """
 
 import os
@@ -374,8 +380,10 @@ class HiroAntEnv(gym.Env):
         return self._observe(), reward, False, truncated, info
 
     def render(self):
-        if self._renderer is None:
+        if self._renderer is None:  # no shadows or reflections: 3x faster under software EGL on a CPU
+            self.model.vis.quality.shadowsize = 0  # a visual setting only; the physics is unchanged
             self._renderer = mujoco.Renderer(self.model, 240, 240)
+            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._renderer.update_scene(self.data, camera="top")
         return self._renderer.render()
 

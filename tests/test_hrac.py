@@ -1,6 +1,15 @@
-"""dgrl_hrac.py's environments (the HIRO Ant suite; the agent is not written yet, issue 8): structure-to-MJCF geometry
-against the reference tables, movable joints and their ranges, the elevated platform of AntFall, the ant's edits,
-observations, resets, goals, rewards, success tests and AntGather's sensors."""
+"""dgrl_hrac.py: the HIRO Ant suite's environments (structure-to-MJCF geometry against the reference tables, movable
+joints and their ranges, the elevated platform of AntFall, the ant's edits, observations, resets, goals, rewards, success
+tests and AntGather's sensors), HRAC's computations (subgoal transition, controller reward, off-policy correction,
+adjacency labels and losses, the TD3 step), the agent's updates under DGRL, evaluation, flag validation and smoke runs of
+every env id in both modes (train, checkpoint, evaluate, video, Ctrl-C)."""
+
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -10,6 +19,7 @@ import torch
 import dgrl_hrac as hrac
 from vq import make_target
 
+ROOT = Path(__file__).resolve().parent.parent
 ENV_IDS = ("AntMaze", "AntMazeSparse", "AntPush", "AntFall", "AntGather")
 
 
@@ -188,15 +198,6 @@ def test_fall_block_drops_into_the_chasm_but_not_on_the_platform():
     for _ in range(40):
         env.step(np.zeros(8))
     assert env.data.qpos[z] < -3.5  # fell to the bottom of its range (-4)
-
-
-def test_script_steps_an_env_and_rejects_an_unknown_id(run_script):
-    out = run_script("dgrl_hrac.py", "--env-id", "AntFall", "--steps", "50")
-    assert out.returncode == 0, out.stderr
-    assert "AntFall: 17 qpos, observation 30-d, 50 random steps" in out.stdout
-    bad = run_script("dgrl_hrac.py", "--env-id", "AntMaze2")
-    assert bad.returncode != 0
-    assert "--env-id" in bad.stderr and "AntMazeSparse" in bad.stderr
 
 
 # --- HRAC's building blocks -------------------------------------------------------------------------------------------
@@ -380,3 +381,242 @@ def test_td3_target_is_the_smaller_of_the_two_target_critics():
         next_states=torch.randn(8, 3), next_goals=torch.randn(8, 2), dones=torch.zeros(8),
     )  # fmt: skip
     assert hrac.td3_update(nets, optimizers, batch, 0.99, 1.0)["target_q"].item() == pytest.approx(-5.0)
+
+
+# --- the agent: DGRL's controller update, the manager update, adjacency training, evaluation --------------------------
+
+
+def agent(groups: int, env_id: str = "AntMaze", **overrides):
+    """Both levels, the adjacency network and (DGRL) the subgoal encoder as the script builds them, small and seeded."""
+    torch.manual_seed(0)
+    args = hrac.Args(env_id=env_id, groups=groups, hidden_dim=32, batch_size=16, **overrides)
+    bounds = hrac.subgoal_bounds(env_id, args.subgoal_scale)
+    goal_dim, state_dim = len(bounds), 30
+    ctrl_goal_dim = args.embed_dim if groups else goal_dim
+    manager = {"actor": hrac.Actor(state_dim, hrac.MANAGER_GOAL_DIMS[env_id], goal_dim, bounds, 32),
+               "critic": hrac.TwinCritic(state_dim, hrac.MANAGER_GOAL_DIMS[env_id], goal_dim, 32)}  # fmt: skip
+    controller = {
+        "actor": hrac.Actor(state_dim, ctrl_goal_dim, 8, 30.0, 32),
+        "critic": hrac.TwinCritic(state_dim, ctrl_goal_dim, 8, 32),
+    }
+    for level in (manager, controller):
+        level["actor_target"], level["critic_target"] = make_target(level["actor"]), make_target(level["critic"])
+    encoder = hrac.SubgoalEncoder(goal_dim, bounds, args) if groups else None
+    nets = {"manager": manager, "controller": controller, "anet": hrac.AdjacencyNet(2), "encoder": encoder}
+    return args, bounds, nets
+
+
+def optimizers_for(level: dict, extra=()) -> dict:
+    return {"actor": torch.optim.Adam(level["actor"].parameters(), lr=1e-3),
+            "critic": torch.optim.Adam([{"params": level["critic"].parameters()}, *extra], lr=1e-3)}  # fmt: skip
+
+
+def filled_controller_replay(rng, n=64, goal_dim=2):
+    replay = hrac.Replay(n, states=(30,), goals=(goal_dim,), actions=(8,), rewards=(), next_states=(30,),
+                         next_goals=(goal_dim,), dones=())  # fmt: skip
+    for _ in range(n):
+        replay.add(states=rng.normal(size=30), goals=rng.uniform(-10, 10, goal_dim), actions=rng.uniform(-30, 30, 8),
+                   rewards=-rng.uniform(0, 5), next_states=rng.normal(size=30), next_goals=rng.uniform(-10, 10, goal_dim),
+                   dones=0.0)  # fmt: skip
+    return replay
+
+
+def test_controller_update_under_dgrl_moves_the_codebook_the_encoder_and_both_networks():
+    args, bounds, nets = agent(groups=16)
+    encoder, controller = nets["encoder"], nets["controller"]
+    rng = np.random.default_rng(0)
+    buffers = {name: value.clone() for name, value in encoder.vq.named_buffers()}
+    hrac.controller_action(nets, rng.normal(size=30), np.array([3.0, -2.0]), 1.0, rng)  # acting: no codebook update
+    hrac.off_policy_correction(controller["actor"], rng.normal(size=(4, 11, 30)), rng.normal(size=(4, 10, 8)),
+                               rng.normal(size=(4, 2)), bounds, rng, goal_encoder=encoder)  # fmt: skip
+    for name, value in encoder.vq.named_buffers():
+        torch.testing.assert_close(value, buffers[name])
+    watched = [*controller["actor"].named_parameters(), *controller["critic"].named_parameters(), *encoder.named_parameters()]
+    before = {name: p.detach().clone() for name, p in watched}
+    optimizer = optimizers_for(controller, ({"params": encoder.parameters()},))
+    metrics = hrac.controller_update(nets, optimizer, filled_controller_replay(rng), args, rng, "cpu")
+    assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
+    for name, p in watched:
+        assert not torch.equal(p, before[name]), name  # the encoder's decoder too: the reconstruction loss reaches it
+    assert metrics["codes"].shape == (2 * args.batch_size, 16)  # the subgoals and the next subgoals in one call
+    assert metrics["vq_loss"].item() > 0 and metrics["reconstruction_loss"].item() > 0
+
+
+def test_the_controller_sees_the_discrete_embedding_under_dgrl_and_the_raw_subgoal_under_hrac():
+    _, _, dgrl_nets = agent(groups=16)
+    subgoals = torch.tensor([[3.0, -2.0], [3.01, -2.0]])
+    z_q = hrac.controller_goal_input(dgrl_nets["encoder"], subgoals)
+    assert z_q.shape == (2, 64)
+    codebook = dgrl_nets["encoder"].vq.codebook
+    assert all((codebook == segment).all(-1).any() for segment in z_q.reshape(-1, 4))  # every factor is a code
+    _, _, hrac_nets = agent(groups=0)
+    assert torch.equal(hrac.controller_goal_input(hrac_nets["encoder"], subgoals), subgoals)
+
+
+def test_manager_update_learns_from_corrected_subgoals_with_the_weighted_adjacency_term(monkeypatch):
+    """The stored subgoals are stale; the controller took the actions it takes for the achieved offset, so the TD3 step
+    must see the achieved offsets, and its actor term must be adj_weight x the adjacency loss."""
+    args, bounds, nets = agent(groups=0, adj_weight=7.0)
+    rng = np.random.default_rng(1)
+    n, k = args.batch_size, args.k
+    states = np.cumsum(rng.normal(0, 0.3, (n, k + 1, 30)), axis=1)
+    achieved = states[:, -1, :2] - states[:, 0, :2]
+    goals = np.empty((n, k, 2))
+    goals[:, 0] = achieved
+    for t in range(1, k):
+        goals[:, t] = hrac.subgoal_transition(states[:, t - 1], goals[:, t - 1], states[:, t])
+    with torch.no_grad():
+        actions = nets["controller"]["actor"](torch.as_tensor(hrac.controller_input(states[:, :k]), dtype=torch.float32),
+                                              torch.as_tensor(goals, dtype=torch.float32)).numpy()  # fmt: skip
+    replay = hrac.Replay(n, states=(30,), goals=(2,), actions=(2,), rewards=(), next_states=(30,), dones=(),
+                         state_seq=(k + 1, 30), action_seq=(k, 8))  # fmt: skip
+    for i in range(n):
+        replay.add(states=states[i, 0], goals=np.array([0.0, 16.0]), actions=np.array([-9.0, 9.0]), rewards=-1.0,
+                   next_states=states[i, -1], dones=0.0, state_seq=states[i], action_seq=actions[i])  # fmt: skip
+    seen = {}
+
+    def spy(level, optimizer, batch, *rest, actor_extra=None, **kw):
+        seen["actions"], seen["states"], seen["extra"] = batch["actions"], batch["states"], actor_extra
+        return {"critic_loss": torch.tensor(0.0)}
+
+    monkeypatch.setattr(hrac, "td3_update", spy)
+    sampler = np.random.default_rng(2)
+    hrac.manager_update(nets, {}, replay, args, bounds, sampler, "cpu")
+    index = np.random.default_rng(2).integers(n, size=n)
+    np.testing.assert_allclose(seen["actions"].numpy(), achieved[index], atol=1e-5)
+    proposals = torch.full((n, 2), 9.0)
+    expected = 7.0 * hrac.adjacency_loss(nets["anet"], seen["states"][:, :2], proposals, threshold=1.1)
+    torch.testing.assert_close(seen["extra"](proposals), expected)
+
+
+def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():
+    args = hrac.Args(adj_epochs=60, adj_lr=1e-3)
+    memory = hrac.AdjacencyMemory(k=10)
+    memory.add_trajectory(np.stack([np.arange(0, 30, 0.5), np.zeros(60)], 1))  # 1 m cells 0..29 along x
+    torch.manual_seed(0)
+    anet = hrac.AdjacencyNet(2)
+    loss, accuracy = hrac.train_adjacency(anet, torch.optim.Adam(anet.parameters(), lr=args.adj_lr), memory, args,
+                                          np.random.default_rng(0), "cpu")  # fmt: skip
+    assert accuracy > 0.9 and loss < 0.05
+    with torch.no_grad():
+        near = (anet(torch.tensor([[10.0, 0.0]])) - anet(torch.tensor([[13.0, 0.0]]))).norm()
+        far = (anet(torch.tensor([[10.0, 0.0]])) - anet(torch.tensor([[25.0, 0.0]]))).norm()
+    assert near < 1.1 < far
+
+
+def test_evaluate_ends_an_episode_at_the_first_success(monkeypatch):
+    """With the evaluation goal put at the start, the first step passes the distance test and ends the episode: success
+    1, and the return is that one step's reward."""
+    monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (1.0, 0.0))
+    args, bounds, nets = agent(groups=16)
+    env = hrac.HiroAntEnv("AntMaze", evaluate=True)
+    env.reset(seed=0)
+    result = hrac.evaluate(env, nets, args, bounds, np.random.default_rng(0), episodes=2)
+    assert result["success"] == 1.0 and env.steps == 1
+    assert result["return"] == pytest.approx(-result["distance"]) and result["distance"] < 5.0
+    monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (0.0, 16.0))
+    result = hrac.evaluate(env, nets, args, bounds, np.random.default_rng(0), episodes=1)
+    assert result["success"] == 0.0 and env.steps == hrac.EPISODE_STEPS and result["distance"] > 10
+
+
+def test_manager_goal_and_subgoal_bounds_per_env():
+    for env_id in ENV_IDS:
+        env = hrac.HiroAntEnv(env_id, evaluate=True)
+        env.reset(seed=0)
+        assert hrac.manager_goal(env).shape == (hrac.MANAGER_GOAL_DIMS[env_id],)
+    np.testing.assert_array_equal(hrac.subgoal_bounds("AntFall", 10.0), [10.0, 10.0, 0.5])
+    np.testing.assert_array_equal(hrac.subgoal_bounds("AntPush", 10.0), [10.0, 10.0])
+    env = hrac.HiroAntEnv("AntFall", evaluate=True)
+    env.reset(seed=0)
+    np.testing.assert_array_equal(hrac.manager_goal(env), [0.0, 27.0, 4.5])
+
+
+# --- flags and smoke runs ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("overrides", "messages"),
+    [
+        (
+            {"env_id": "AntMaze2"},
+            ["--env-id 'AntMaze2' is unknown: use one of AntMaze, AntMazeSparse, AntPush, AntFall, AntGather"],
+        ),
+        ({"groups": 5}, ["--groups must be 0 (HRAC) or divide --embed-dim 64: one of [1, 2, 4, 8, 16, 32, 64]; got 5"]),
+        ({"k": 7}, ["--k must divide the episode length 500", "got 7"]),
+        ({"ctrl_gamma": 1.0}, ["--ctrl-gamma must be in [0, 1); got 1.0"]),
+        ({"margin_pos": 2.0}, ["--margin-neg (1.2) must be >= --margin-pos (2.0)"]),
+        ({"batch_size": 0, "man_noise": -1.0}, ["--batch-size must be >= 1; got 0", "--man-noise must be >= 0; got -1.0"]),
+        ({"checkpoint": "missing.pt"}, ["--checkpoint missing.pt: no such file"]),
+    ],
+)
+def test_validate_names_the_flag(overrides, messages):
+    with pytest.raises(SystemExit) as error:
+        hrac.validate(hrac.Args(**overrides))
+    for message in messages:
+        assert message in str(error.value)
+
+
+def test_validate_accepts_the_defaults():
+    hrac.validate(hrac.Args())
+    hrac.validate(hrac.Args(env_id="AntGather", groups=0, k=25))
+
+
+TINY = ["--total-timesteps", "30", "--ctrl-updates", "4", "--man-updates", "2", "--batch-size", "8", "--eval-episodes", "1",
+        "--adj-frequency", "20", "--adj-epochs", "1", "--hidden-dim", "32"]  # fmt: skip
+
+
+@pytest.mark.parametrize("groups", [0, 16])
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_smoke_run_every_env_in_both_modes(run_script, tmp_path, env_id, groups):
+    result = run_script("dgrl_hrac.py", "--env-id", env_id, "--groups", str(groups), *TINY)
+    assert result.returncode == 0, result.stderr
+    assert "adjacency network trained on" in result.stdout
+    assert re.search(r"done: 30 steps, 1 episodes, last eval success \d+% distance", result.stdout), result.stdout
+    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
+    for tag in (b"eval/final_distance", b"eval/return", b"charts/subgoal_distance", b"losses/manager_critic_loss",
+                b"losses/controller_actor_loss", b"adjacency/accuracy", b"charts/SPS"):  # fmt: skip
+        assert tag in events, tag
+    assert (b"vq/perplexity" in events) == (groups > 0)
+
+
+def test_smoke_run_saves_evaluates_refuses_other_settings_and_records_video(run_script, tmp_path):
+    gl = {"MUJOCO_GL": "egl"}
+    result = run_script(
+        "dgrl_hrac.py", "--env-id", "AntPush", "--groups", "16", *TINY, "--save-model", "--capture-video", env=gl
+    )
+    assert result.returncode == 0, result.stderr
+    assert list(tmp_path.glob("videos/*/eval_30.mp4"))
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_hrac.cleanrl_model"))
+    saved = torch.load(checkpoint, weights_only=False)
+    assert "vq.codebook" in saved["subgoal_encoder"] and saved["args"]["groups"] == 16
+    assert set(saved) >= {"manager_actor", "manager_critic", "controller_actor", "controller_critic", "adjacency"}
+    evaluation = run_script("dgrl_hrac.py", "--env-id", "AntPush", "--hidden-dim", "32", "--eval-episodes", "1",
+                            "--checkpoint", str(checkpoint))  # fmt: skip
+    assert evaluation.returncode == 0, evaluation.stderr
+    assert re.search(r"1 evaluation episodes: success \d+%, distance [\d.]+, return -?[\d.]+", evaluation.stdout)
+    mismatched = run_script("dgrl_hrac.py", "--env-id", "AntPush", "--groups", "0", "--checkpoint", str(checkpoint))
+    assert mismatched.returncode != 0
+    assert "was saved with other settings: pass --groups 16 --hidden-dim 32" in mismatched.stderr
+
+
+def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved(tmp_path):
+    flags = ["--total-timesteps", "100000", "--ctrl-updates", "2", "--man-updates", "1", "--batch-size", "8",
+             "--eval-episodes", "1", "--hidden-dim", "32", "--save-model", "--groups", "0"]  # fmt: skip
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    process = subprocess.Popen([sys.executable, str(ROOT / "dgrl_hrac.py"), *flags], cwd=tmp_path, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    assert "AntMaze__G0__" in process.stdout.readline()  # the run has started
+    time.sleep(3)
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err
+    assert re.search(r"stopped: \d+ steps", out), out
+    assert list(tmp_path.glob("runs/*/dgrl_hrac.cleanrl_model"))
+
+
+def test_bad_flag_fails_before_any_work(run_script, tmp_path):
+    result = run_script("dgrl_hrac.py", "--env-id", "AntMaze2", "--groups", "5")
+    assert result.returncode != 0
+    assert "--env-id 'AntMaze2' is unknown: use one of AntMaze, AntMazeSparse" in result.stderr
+    assert "--groups must be 0 (HRAC) or divide --embed-dim 64" in result.stderr
+    assert not (tmp_path / "runs").exists()

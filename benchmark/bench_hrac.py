@@ -1,0 +1,112 @@
+"""Where the time of dgrl_hrac.py goes: acting, one update at each level, and whole training runs, HRAC vs DGRL.
+
+    python benchmark/bench_hrac.py               # about 4 min on a CPU core; run nothing else meanwhile
+    python benchmark/bench_hrac.py --device cuda # the same updates on a GPU (acting and training runs on the CPU path)
+
+Prints one line per measurement (env steps/s per env: benchmark/hrac_envs.py):
+- act: one controller action (state masked, subgoal through the encoder under DGRL), batch 1;
+- controller update: one TD3 step at batch 128 (under DGRL also the encoder, the quantizer and its EMA step);
+- manager update: one TD3 step at batch 128 with HIRO's off-policy correction (12 candidate subgoals rolled through 10
+  stored steps: 15,360 controller forward passes) and the adjacency term;
+- per 500-step episode: 500 acts + 500 controller updates + 50 manager updates, the steady-state training cost;
+- training: the script itself on AntMaze for --train-steps steps, one process on one thread, its final SPS (env steps,
+  acting, all updates, one evaluation of 5 episodes; the adjacency network not yet trained).
+"""
+
+import re
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import dgrl_hrac as hrac
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class Args:
+    device: str = "cpu"
+    """torch device of the update measurements"""
+    threads: int = 1
+    """torch CPU threads"""
+    train_steps: int = 5000
+    """steps of the whole-script measurement (0 skips it)"""
+
+
+def build(groups: int, device: str):
+    args = hrac.Args(groups=groups)
+    bounds = hrac.subgoal_bounds("AntMaze", args.subgoal_scale)
+    goal_in = args.embed_dim if groups else 2
+    manager = {"actor": hrac.Actor(30, 2, 2, bounds), "critic": hrac.TwinCritic(30, 2, 2)}
+    controller = {"actor": hrac.Actor(30, goal_in, 8, 30.0), "critic": hrac.TwinCritic(30, goal_in, 8)}
+    for level in (manager, controller):
+        level["actor_target"], level["critic_target"] = hrac.make_target(level["actor"]), hrac.make_target(level["critic"])
+        for net in level.values():
+            net.to(device)
+    encoder = hrac.SubgoalEncoder(2, bounds, args).to(device) if groups else None
+    nets = {"manager": manager, "controller": controller, "anet": hrac.AdjacencyNet(2).to(device), "encoder": encoder}
+
+    def optimizers(level, extra=()):
+        critic_groups = [{"params": level["critic"].parameters(), "weight_decay": args.critic_weight_decay}, *extra]
+        return {"actor": torch.optim.Adam(level["actor"].parameters(), lr=args.actor_lr),
+                "critic": torch.optim.Adam(critic_groups, lr=args.critic_lr)}  # fmt: skip
+
+    extra = ({"params": encoder.parameters(), "lr": args.encoder_lr},) if groups else ()
+    return args, bounds, nets, optimizers(manager), optimizers(controller, extra)
+
+
+def timed(fn, repeats: int) -> float:
+    for _ in range(3):
+        fn()
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+    return (time.perf_counter() - start) / repeats
+
+
+def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
+    args, bounds, nets, man_opt, ctrl_opt = build(groups, cli.device)
+    ctrl_replay = hrac.Replay(20_000, states=(30,), goals=(2,), actions=(8,), rewards=(), next_states=(30,),
+                              next_goals=(2,), dones=())  # fmt: skip
+    man_replay = hrac.Replay(2_000, states=(30,), goals=(2,), actions=(2,), rewards=(), next_states=(30,), dones=(),
+                             state_seq=(11, 30), action_seq=(10, 8))  # fmt: skip
+    for replay in (ctrl_replay, man_replay):
+        for array in replay.fields.values():
+            array[:] = rng.normal(size=array.shape)
+        replay.size = replay.capacity
+    act = timed(lambda: hrac.controller_action(nets, rng.normal(size=30), rng.normal(size=2), 1.0, rng), 500)
+    ctrl = timed(lambda: hrac.controller_update(nets, ctrl_opt, ctrl_replay, args, rng, cli.device), 100)
+    man = timed(lambda: hrac.manager_update(nets, man_opt, man_replay, args, bounds, rng, cli.device), 20)
+    episode = 500 * act + 500 * ctrl + 50 * man
+    print(
+        f"G{groups:<2} ({cli.device}, {cli.threads} thread): act {act * 1e6:.0f} us, "
+        f"controller update {ctrl * 1e3:.1f} ms, manager update {man * 1e3:.1f} ms; per 500-step episode {episode:.2f} s "
+        f"of agent time (at most {500 / episode:.0f} SPS before env time)"
+    )
+
+
+if __name__ == "__main__":
+    cli = tyro.cli(Args)
+    torch.set_num_threads(cli.threads)
+    rng = np.random.default_rng(0)
+    for groups in (0, 16):
+        measure_updates(groups, cli, rng)
+    for groups in (0, 16) if cli.train_steps else ():
+        out = subprocess.run(
+            [sys.executable, str(ROOT / "dgrl_hrac.py"), "--env-id", "AntMaze", "--groups", str(groups), "--total-timesteps",
+             str(cli.train_steps), "--eval-frequency", str(cli.train_steps), "--exp-name", "bench", "--no-cuda"],
+            capture_output=True, text=True, cwd="/tmp", env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"}, check=True,
+        ).stdout  # fmt: skip
+        sps = re.findall(r"SPS (\d+)", out)[-1]
+        print(f"training G{groups:<2}: AntMaze, {cli.train_steps} steps, one CPU thread: SPS {sps}")

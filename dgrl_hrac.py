@@ -828,6 +828,9 @@ if __name__ == "__main__":
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.set_num_threads(args.threads)
+    # The critics' weight decay drives the weights of dead ReLU units into subnormal floats, which slow a CPU's matrix
+    # multiplies 20x (measured: 27 ms instead of 1.2 ms per batch after 5k steps); flush them to zero.
+    torch.set_flush_denormal(True)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
     env = HiroAntEnv(args.env_id)

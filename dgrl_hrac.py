@@ -385,6 +385,21 @@ class HiroAntEnv(gym.Env):
             self._renderer = mujoco.Renderer(self.model, 240, 240)
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._renderer.update_scene(self.data, camera="top")
+        # Markers drawn into the scene only (no bodies, so no physics): AntGather's apples (green) and bombs (red); the
+        # goal of the other envs (a translucent green disc of the success radius, at the goal's height for AntFall).
+        if self.env_id == "AntGather":
+            markers = [((x, y, 0.5), 0.5, (0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1))
+                       for (x, y), kind in zip(self.objects, self.kinds, strict=True)]  # fmt: skip
+        else:
+            z = self.goal[2] if len(self.goal) == 3 else 0.05
+            markers = [((*self.goal[:2], z), SUCCESS_DISTANCE[self.env_id], (0.1, 0.8, 0.1, 0.35))]
+        scene = self._renderer.scene
+        for pos, radius, rgba in markers[: scene.maxgeom - scene.ngeom]:
+            shape = mujoco.mjtGeom.mjGEOM_SPHERE if self.env_id == "AntGather" else mujoco.mjtGeom.mjGEOM_CYLINDER
+            size = np.array([radius, radius, radius]) if self.env_id == "AntGather" else np.array([radius, 0.05, 0])
+            mujoco.mjv_initGeom(scene.geoms[scene.ngeom], shape, size, np.array(pos, dtype=np.float64), np.eye(3).ravel(),
+                                np.array(rgba, dtype=np.float32))  # fmt: skip
+            scene.ngeom += 1
         return self._renderer.render()
 
     def close(self):

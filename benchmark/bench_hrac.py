@@ -99,6 +99,7 @@ def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
 if __name__ == "__main__":
     cli = tyro.cli(Args)
     torch.set_num_threads(cli.threads)
+    torch.set_flush_denormal(True)  # as the script does
     rng = np.random.default_rng(0)
     for groups in (0, 16):
         measure_updates(groups, cli, rng)

@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest study-ris bench-ris study-amigo bench-amigo clean-venv
+.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest study-ris bench-ris study-amigo bench-amigo study-hrac bench-hrac clean-venv
 
 $(VENV)/installed: requirements.txt requirements-nodeps.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -53,6 +53,14 @@ study-amigo: $(VENV)/installed
 
 bench-amigo: $(VENV)/installed
 	$(PY) benchmark/bench_amigo.py
+
+# The short CPU run of docs/dgrl_hrac.md: HRAC and HRAC+DGRL (G = 16) on AntMaze, 150k steps (about 1 h on 2 cores).
+study-hrac: $(VENV)/installed
+	PYTHON=$(PY) bash benchmark/hrac.sh
+
+bench-hrac: $(VENV)/installed
+	$(PY) benchmark/bench_hrac.py
+	MUJOCO_GL=egl $(PY) benchmark/hrac_envs.py --out docs/img/hrac_envs.png
 
 clean-venv:
 	rm -rf $(VENV)

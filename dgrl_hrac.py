@@ -956,7 +956,7 @@ if __name__ == "__main__":
     while step < args.total_timesteps and not stop:
         # One episode: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted.
         goal, positions = manager_goal(env), [state[:2]]
-        episode_return, episode_steps, seg_reward, remaining, ctrl_rewards = 0.0, 0, 0.0, [], 0.0
+        episode_return, episode_steps, seg_reward, remaining, proposals, ctrl_rewards = 0.0, 0, 0.0, [], [], 0.0
         while True:
             t = episode_steps % args.k
             if t == 0:
@@ -982,6 +982,7 @@ if __name__ == "__main__":
                     state_seq=seg_states, action_seq=seg_actions,
                 )  # fmt: skip
                 remaining.append(np.linalg.norm(subgoal[:2]))
+                proposals.append(np.linalg.norm(proposed[:2]))
             if terminated or truncated or stop or step >= args.total_timesteps:
                 break
         episodes += 1
@@ -993,6 +994,7 @@ if __name__ == "__main__":
         writer.add_scalar("charts/controller_reward", ctrl_rewards / episode_steps, step)
         if remaining:
             writer.add_scalar("charts/subgoal_distance", float(np.mean(remaining)), step)
+            writer.add_scalar("charts/subgoal_norm", float(np.mean(proposals)), step)
         if "distance" in info:
             recent["final_distance"].append(info["distance"])
             writer.add_scalar("charts/final_distance", info["distance"], step)

@@ -442,6 +442,24 @@ def test_controller_update_under_dgrl_moves_the_codebook_the_encoder_and_both_ne
     assert metrics["vq_loss"].item() > 0 and metrics["reconstruction_loss"].item() > 0
 
 
+def test_the_controller_critic_loss_shapes_the_subgoal_encoder():
+    """The reconstruction and commitment losses do not depend on rewards; the critic loss does. If the critic's
+    gradient reaches the encoder (straight-through), one update on the same batch with other rewards moves it
+    differently."""
+
+    def encoder_after_update(reward: float) -> list[torch.Tensor]:
+        args, _, nets = agent(groups=16)
+        replay = filled_controller_replay(np.random.default_rng(0))
+        replay.fields["rewards"][:] = reward
+        optimizer = optimizers_for(nets["controller"], ({"params": nets["encoder"].parameters()},))
+        hrac.controller_update(nets, optimizer, replay, args, np.random.default_rng(1), "cpu")
+        return [p.detach().clone() for p in nets["encoder"].encoder.parameters()]
+
+    same = [torch.equal(a, b) for a, b in zip(encoder_after_update(0.0), encoder_after_update(0.0), strict=True)]
+    differ = [torch.equal(a, b) for a, b in zip(encoder_after_update(0.0), encoder_after_update(-50.0), strict=True)]
+    assert all(same) and not any(differ)
+
+
 def test_the_controller_sees_the_discrete_embedding_under_dgrl_and_the_raw_subgoal_under_hrac():
     _, _, dgrl_nets = agent(groups=16)
     subgoals = torch.tensor([[3.0, -2.0], [3.01, -2.0]])

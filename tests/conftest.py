@@ -1,6 +1,9 @@
+import os
 import subprocess
 import sys
 from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless in-process rendering; read when mujoco is first imported
 
 import pytest
 import torch

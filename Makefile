@@ -54,7 +54,8 @@ study-amigo: $(VENV)/installed
 bench-amigo: $(VENV)/installed
 	$(PY) benchmark/bench_amigo.py
 
-# The short CPU run of docs/dgrl_hrac.md: HRAC and HRAC+DGRL (G = 16) on AntMaze, 150k steps (about 1 h on 2 cores).
+# The short CPU run of docs/dgrl_hrac.md: HRAC and HRAC+DGRL (G = 16) on AntMaze, 300k steps (HRAC 84 min on a core;
+# DGRL about 1.6x that).
 study-hrac: $(VENV)/installed
 	PYTHON=$(PY) bash benchmark/hrac.sh
 

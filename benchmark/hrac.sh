@@ -2,14 +2,14 @@
 # The HRAC study (docs/dgrl_hrac.md): HRAC (--groups 0) against HRAC+DGRL (--groups 16) on one HIRO Ant env, JOBS runs
 # at a time (one torch thread each), then curves and a table from the TensorBoard logs. The default is the short CPU
 # run on AntMaze; ENV, STEPS and THREADS select the others (the paper's budget is 5M steps, a GPU job).
-#   bash benchmark/hrac.sh                                                   # AntMaze, 150k steps, seed 1, G0 and G16
+#   bash benchmark/hrac.sh                                                   # AntMaze, 300k steps, seed 1, G0 and G16
 #   ENV=AntPush STEPS=50000 bash benchmark/hrac.sh                           # a shorter AntPush run
 #   STEPS=5000000 SEEDS="1 2 3" JOBS=6 TAG=paper bash benchmark/hrac.sh      # the paper's budget (GPU machine)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-.venv/bin/python}
 ENV=${ENV:-AntMaze}
-STEPS=${STEPS:-150000}
+STEPS=${STEPS:-300000}
 SEEDS=${SEEDS:-1}
 GROUPS_LIST=${GROUPS_LIST:-"0 16"}
 JOBS=${JOBS:-2}

@@ -1,16 +1,20 @@
 """dgrl_ris_sawyer.py: the Sawyer push-and-reach environment (scene layout, training and test reset distributions, the
 success test and its termination, goal images and exact state restoration after rendering one, images that show the
-hand and the puck, mocap xy control, pushing, walls) and a smoke run of the script."""
+hand and the puck, mocap xy control, pushing, walls); the agent (random-translate augmentation, the image encoder, the
+DRIML loss, the image replay's relabelling and rewards, one RIS update with and without DGRL, acting); flag validation;
+smoke runs of the script in both modes, with a checkpoint evaluated and a video written."""
 
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # in-process rendering on a headless machine; read when mujoco is imported
 
+import math
 import re
 
 import mujoco
 import numpy as np
 import pytest
+import torch
 
 import dgrl_ris_sawyer as sawyer
 
@@ -229,10 +233,377 @@ def test_observation_layout(env):
     big.close()
 
 
-def test_smoke_run_of_the_script(run_script):
-    result = run_script("dgrl_ris_sawyer.py", "--steps", "120", "--seed", "3", env={"MUJOCO_GL": "egl"})
-    assert result.returncode == 0, result.stderr
-    assert "agent is not written yet" in result.stdout
-    assert re.search(r"120 steps \(1 episodes, 0 successes\) at [\d,]+ frames/s", result.stdout), result.stdout  # reset at 100
-    test = run_script("dgrl_ris_sawyer.py", "--steps", "20", "--test", env={"MUJOCO_GL": "egl"})
-    assert test.returncode == 0 and "20 steps (0 episodes" in test.stdout, test.stderr
+def test_reached_is_the_envs_success_test(env):
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    states = rng.uniform((-0.2, 0.5, -0.2, 0.5), (0.2, 0.7, 0.2, 0.7), (200, 4)).astype(np.float32)
+    goals = (states + rng.normal(0, 0.04, (200, 4))).astype(np.float32)
+    expected = []
+    for state, goal in zip(states, goals, strict=True):
+        env.goal = goal
+        expected.append(env._info(state)["success"])
+    assert 20 < sum(expected) < 180
+    np.testing.assert_array_equal(sawyer.reached(states, goals), expected)
+
+
+# --- augmentation -----------------------------------------------------------------------------------------------------
+
+
+def test_translate_shapes_and_uint8_to_float():
+    images = torch.randint(0, 256, (5, 84, 84, 3), dtype=torch.uint8)
+    images[0, 0, 0] = 255
+    out = sawyer.translate(images, torch.zeros(5, 2, dtype=torch.long))
+    assert out.shape == (5, 3, 84, 84) and out.dtype == torch.float32
+    torch.testing.assert_close(out, images.permute(0, 3, 1, 2).float() / 255, rtol=0, atol=1e-7)  # no shift: identity
+    assert out[0, :, 0, 0].tolist() == [1.0, 1.0, 1.0]
+    augmented = sawyer.random_translate(images, 8)
+    assert augmented.shape == (5, 3, 84, 84) and augmented.min() >= 0 and augmented.max() <= 1
+    assert not torch.equal(augmented, out)
+
+
+def test_a_shift_moves_the_content_by_its_offset_and_replicates_the_edges():
+    image = np.zeros((84, 84, 3), np.uint8)
+    image[..., 0] = np.arange(84)[:, None]  # rows numbered in red, columns in green
+    image[..., 1] = np.arange(84)[None, :]
+    image[40:43, 30:33, 2] = 200  # a blue square
+    shifts = torch.tensor([[3, -5], [-8, 8], [0, 0]])
+    out = (sawyer.translate(torch.as_tensor(image).expand(3, -1, -1, -1), shifts) * 255).round().to(torch.uint8).numpy()
+    for sample, (dy, dx) in enumerate(shifts.tolist()):
+        blue = np.argwhere(out[sample, 2] == 200)
+        assert blue.min(0).tolist() == [40 + dy, 30 + dx] and blue.max(0).tolist() == [42 + dy, 32 + dx]
+        # pad 8 with edge replication, crop at (8 - dy, 8 - dx): the same picture
+        padded = np.pad(image, ((8, 8), (8, 8), (0, 0)), mode="edge")
+        crop = padded[8 - dy : 8 - dy + 84, 8 - dx : 8 - dx + 84].transpose(2, 0, 1)
+        np.testing.assert_array_equal(out[sample], crop)
+    assert (out[0, 0, :3] == 0).all() and (out[0, 1, :, -5:] == 83).all()  # the uncovered border repeats the edge
+
+
+def test_random_translate_gives_each_sample_its_own_shift():
+    image = torch.zeros(400, 84, 84, 3, dtype=torch.uint8)
+    image[:, 42, 42] = 255  # one white pixel: its new place reads off the shift
+    out = sawyer.random_translate(image, 8)
+    where = (out[:, 0] == 1).flatten(1).float().argmax(1)
+    shifts = torch.stack((where // 84 - 42, where % 84 - 42), 1)
+    assert (out[:, 0] == 1).flatten(1).sum(1).eq(1).all()
+    assert shifts.min() == -8 and shifts.max() == 8  # pad 8: offsets from -8 to 8, both ends reached
+    assert (shifts[:, 0] == -8).any() and (shifts[:, 1] == 8).any()
+    assert len({tuple(shift) for shift in shifts.tolist()}) > 150  # 17 x 17 offsets, drawn per sample
+    assert (shifts[:, 0] != shifts[:, 1]).float().mean() > 0.8  # rows and columns drawn independently
+
+
+# --- networks and the DRIML loss --------------------------------------------------------------------------------------
+
+
+def test_encoder_shapes_and_initialisation():
+    encoder = sawyer.ImageEncoder(16)
+    images = torch.rand(5, 3, 84, 84)
+    assert encoder.conv_map(images).shape == (5, 32, 7, 7) and encoder(images).shape == (5, 16)
+    torch.testing.assert_close(encoder(images), encoder.head(encoder.conv_map(images)))
+    convs = [m for m in encoder.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [(c.in_channels, c.out_channels, c.kernel_size, c.stride) for c in convs] == [
+        (3, 32, (3, 3), (2, 2)), (32, 32, (3, 3), (2, 2)), (32, 32, (3, 3), (2, 2)), (32, 32, (3, 3), (1, 1)),
+    ]  # fmt: skip
+    gain = math.sqrt(2)
+    for conv in convs:  # delta-orthogonal: an orthogonal matrix at the kernel's centre, zeros elsewhere
+        centre = conv.weight[:, :, 1, 1].detach()
+        assert conv.weight.detach().abs().sum().item() == pytest.approx(centre.abs().sum().item())
+        torch.testing.assert_close(centre.T @ centre, gain**2 * torch.eye(conv.in_channels), atol=1e-4, rtol=0)
+        assert (conv.bias == 0).all()
+    weight = encoder.linear.weight.detach()
+    assert weight.shape == (16, 1568) and (encoder.linear.bias == 0).all()
+    torch.testing.assert_close(weight @ weight.T, torch.eye(16), atol=1e-4, rtol=0)
+
+
+def test_infonce_is_log_batch_for_constant_features_and_lower_when_pairs_align():
+    batch = 6
+    constant = sawyer.local_global_infonce(torch.full((batch, 49, 8), 0.3), torch.full((batch, 8), -1.2))
+    assert constant.item() == pytest.approx(math.log(batch), rel=1e-6)
+    aligned_global = torch.eye(batch)
+    aligned_local = 3 * torch.eye(batch).unsqueeze(1).expand(-1, 49, -1)  # every position points at its own sample
+    aligned = sawyer.local_global_infonce(aligned_local, aligned_global)
+    assert aligned.item() == pytest.approx(math.log(1 + (batch - 1) * math.exp(-3)), rel=1e-5)
+    assert aligned < 0.15 * math.log(batch)
+    shuffled = sawyer.local_global_infonce(aligned_local, aligned_global.roll(1, 0))  # matched with the wrong samples
+    assert shuffled > math.log(batch)
+
+
+def test_infonce_matches_a_hand_computation():
+    local = torch.tensor([[[1.0, 0.0], [0.0, 1.0]], [[2.0, 1.0], [0.0, 0.0]]])  # (B=2, P=2, D=2)
+    global_ = torch.tensor([[1.0, 2.0], [0.0, 1.0]])
+    # scores (b, p) -> (own, other): (1, 0), (2, 1), (4, 1), (0, 0); loss = -own + log(exp(own) + exp(other))
+    expected = (2 * math.log(1 + math.exp(-1)) + math.log(1 + math.exp(3)) + math.log(2)) / 4
+    assert sawyer.local_global_infonce(local, global_).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_driml_loss_pairs_each_conv_position_and_action_with_the_next_features():
+    heads = sawyer.DrimlHeads(32, 2, 16, 8)
+    conv_map, actions, next_features = torch.randn(4, 32, 7, 7, requires_grad=True), torch.randn(4, 2), torch.randn(4, 16)
+    loss = sawyer.driml_loss(heads, conv_map, actions, next_features)
+    # the same loss, one conv position at a time
+    globals_ = heads.globl(next_features)
+    per_position = []
+    for i in range(7):
+        for j in range(7):
+            local = heads.local(torch.cat((conv_map[:, :, i, j], actions), 1))
+            per_position.append(torch.nn.functional.cross_entropy(local @ globals_.T, torch.arange(4)))
+    torch.testing.assert_close(loss, torch.stack(per_position).mean())
+    loss.backward()
+    assert conv_map.grad.abs().sum() > 0
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in heads.parameters())
+    assert not torch.isclose(loss, sawyer.driml_loss(heads, conv_map, -actions, next_features))  # the action matters
+
+
+def test_ris_losses_prior_kl_advantage_weights_subgoal_cost():
+    u, mean, std = torch.randn(3, 2), torch.randn(3, 2), torch.rand(3, 2) + 0.5
+    prior_mean, prior_std = torch.randn(4, 3, 2), torch.rand(4, 3, 2) + 0.5
+    normal = torch.distributions.Normal
+    prior = normal(prior_mean, prior_std).log_prob(u).sum(-1).exp().mean(0)
+    expected = normal(mean, std).log_prob(u).sum(-1) - torch.log(prior + 1e-4)
+    torch.testing.assert_close(sawyer.prior_kl(u, mean, std, prior_mean, prior_std, 1e-4), expected)
+    weights = sawyer.advantage_weights(torch.full((3,), 5.0), torch.tensor([3.0, 7.0, 5.0]), 0.1)
+    assert weights.sum().item() == pytest.approx(1.0) and weights.argmax() == 0 and weights[1] < weights[2]
+    cost = sawyer.subgoal_cost(torch.tensor([-3.0, -150.0, 2.0]), torch.tensor([-5.0, -1.0, -0.5]))
+    assert cost.tolist() == [5.0, 100.0, 0.5]  # the longer half, values clipped to [-100, 0]
+
+
+# --- replay: relabelling and rewards ----------------------------------------------------------------------------------
+
+STEP_X = 0.02  # the hand moves 0.02 along x per step in the labelled episodes: goals 2 steps away are reached, 3 are not
+
+
+def labelled_episode(episode: int, length: int):
+    """Images that name themselves: red = the episode, green = t for o_t and 255 for the goal. States: the hand moves
+    STEP_X per step along x at a height set by the episode (episodes 0.1 apart), the puck stays; the goal is the hand 2
+    steps past o_L. Actions are (episode, t)."""
+    t = np.arange(length + 1)
+    images = np.zeros((length + 1, 84, 84, 3), np.uint8)
+    images[..., 0], images[..., 1] = episode, t[:, None, None]
+    states = np.stack((-0.2 + STEP_X * t, np.full(length + 1, 0.1 * episode), np.zeros(length + 1), np.full(length + 1, 0.6)))
+    goal_image = np.zeros((84, 84, 3), np.uint8)
+    goal_image[..., 0], goal_image[..., 1] = episode, 255
+    goal_state = np.array((-0.2 + STEP_X * (length + 2), 0.1 * episode, 0.0, 0.6), np.float32)
+    actions = np.stack((np.full(length, episode), t[:-1]), 1).astype(np.float32)
+    return images, states.T.astype(np.float32), actions, goal_image, goal_state
+
+
+def decode(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(episode, t or 255) of each image."""
+    return images[:, 0, 0, 0].astype(int), images[:, 0, 0, 1].astype(int)
+
+
+def test_relabelled_batches_hold_stored_rows_and_rewards_follow_the_success_test():
+    replay = sawyer.ImageEpisodeReplay(1000, (84, 84, 3), 2)
+    lengths = [12, 7, 20, 1, 15]
+    for episode, length in enumerate(lengths):
+        replay.add_episode(*labelled_episode(episode, length))
+    assert replay.size == sum(lengths) + 2 * len(lengths)
+    n = 1000
+    batch = replay.sample(n, 0.2, 0.4, np.random.default_rng(0))
+    assert batch["images"].shape == (4 * n, 84, 84, 3) and batch["images"].dtype == np.uint8
+    ep, t = decode(batch["images"][:n])
+    next_ep, next_t = decode(batch["images"][n : 2 * n])
+    goal_ep, goal_t = decode(batch["images"][2 * n : 3 * n])
+    subgoal_ep, subgoal_t = decode(batch["images"][3 * n :])
+    length_of = np.array(lengths)
+    # s is a stored transition (never o_L or a goal), s' its successor; actions and states belong to the same rows.
+    assert (t < length_of[ep]).all() and (next_ep == ep).all() and (next_t == t + 1).all()
+    np.testing.assert_array_equal(batch["actions"], np.stack((ep, t), 1))
+    np.testing.assert_allclose(batch["states"][:, 0], -0.2 + STEP_X * t, atol=1e-6)
+    np.testing.assert_allclose(batch["next_states"][:, 0], -0.2 + STEP_X * (t + 1), atol=1e-6)
+    # Every goal's state is the state stored with its image.
+    is_goal_row = goal_t == 255
+    x = np.where(is_goal_row, -0.2 + STEP_X * (length_of[goal_ep] + 2), -0.2 + STEP_X * goal_t)
+    np.testing.assert_allclose(batch["goal_states"][:, 0], x, atol=1e-6)
+    np.testing.assert_allclose(batch["goal_states"][:, 1], 0.1 * goal_ep, atol=1e-6)
+    # First 200: the rollout goal; next 400: random stored transitions' s; last 400: s'_t..s'_end of the same episode.
+    assert is_goal_row[:200].all() and (goal_ep[:200] == ep[:200]).all()
+    assert not is_goal_row[200:].any() and (goal_t[200:600] < length_of[goal_ep[200:600]]).all()
+    assert len(set(goal_ep[200:600])) == len(lengths) and (goal_ep[200:600] != ep[200:600]).mean() > 0.3
+    future_offset = goal_t[600:] - t[600:]
+    assert (goal_ep[600:] == ep[600:]).all() and (future_offset >= 1).all() and (goal_t[600:] <= length_of[ep[600:]]).all()
+    assert (future_offset == 1).any() and ((goal_t[600:] == length_of[ep[600:]]) & (future_offset > 1)).any()  # o_L too
+    # Rewards -1; done exactly when max(hand, puck distance) between s' and the relabelled goal is below 0.05.
+    assert (batch["rewards"] == -1).all()
+    hand = np.linalg.norm(batch["next_states"][:, :2] - batch["goal_states"][:, :2], axis=1)
+    puck = np.linalg.norm(batch["next_states"][:, 2:] - batch["goal_states"][:, 2:], axis=1)
+    np.testing.assert_array_equal(batch["done"], (np.maximum(hand, puck) < 0.05).astype(np.float32))
+    np.testing.assert_array_equal(batch["done"][600:], future_offset <= 3)  # 1..2 steps of 0.02 apart: within 0.05
+    np.testing.assert_array_equal(batch["done"][:200], t[:200] + 1 >= length_of[ep[:200]])  # 2 steps past o_L
+    for part in (slice(0, 200), slice(600, None)):
+        assert batch["done"][part].any() and not batch["done"][part].all()
+    # The high level's candidates: stored transitions' s.
+    assert (subgoal_t < length_of[subgoal_ep]).all() and len(set(subgoal_ep)) == len(lengths)
+
+
+def test_replay_ring_keeps_episode_suffixes_with_their_goals():
+    replay = sawyer.ImageEpisodeReplay(60, (84, 84, 3), 2)
+    rng = np.random.default_rng(0)
+    lengths = rng.integers(1, 16, size=40)
+    for episode, length in enumerate(lengths):
+        replay.add_episode(*labelled_episode(episode, int(length)))
+        rows = np.flatnonzero(replay.is_transition[: replay.size])
+        ep, t = decode(replay.images[rows])
+        assert (t < lengths[ep]).all()
+        next_ep, next_t = decode(replay.images[rows + 1])
+        assert (next_ep == ep).all() and (next_t == t + 1).all()  # s' is the next row, of the same episode
+        end_ep, end_t = decode(replay.images[replay.episode_end[rows]])
+        assert (end_ep == ep).all() and (end_t == lengths[ep] - 1).all()  # the stored last transition is the episode's
+        goal_ep, goal_t = decode(replay.images[replay.goal_row[rows]])
+        assert (goal_ep == ep).all() and (goal_t == 255).all()  # the goal survives with the suffix
+    assert sum(lengths) > 5 * 60  # the ring wrapped several times
+    batch = replay.sample(2000, 0.0, 0.0, rng)  # all future goals
+    ep, t = decode(batch["images"][:2000])
+    goal_ep, goal_t = decode(batch["images"][4000:6000])
+    assert (goal_ep == ep).all() and (goal_t > t).all() and (goal_t <= lengths[ep]).all()
+    assert ep.max() == len(lengths) - 1  # the latest episode is stored
+
+
+# --- one RIS update ---------------------------------------------------------------------------------------------------
+
+
+def tiny_agent(groups: int):
+    args = sawyer.Args(groups=groups, n_embed=8, hidden_dim=32, n_subgoals=3, batch_size=8, tau=0.25, driml_dim=16)
+    nets, optimizers = sawyer.make_agent(args, 84, 2, torch.device("cpu"))
+    replay = sawyer.ImageEpisodeReplay(200, (84, 84, 3), 2)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        replay.add_episode(
+            rng.integers(0, 256, (11, 84, 84, 3), dtype=np.uint8), rng.uniform(-0.2, 0.7, (11, 4)).astype(np.float32),
+            rng.uniform(-1, 1, (10, 2)).astype(np.float32), rng.integers(0, 256, (84, 84, 3), dtype=np.uint8),
+            rng.uniform(-0.2, 0.7, 4).astype(np.float32),
+        )  # fmt: skip
+    return args, nets, optimizers, replay, rng
+
+
+def random_observations(n: int) -> dict:
+    rng = np.random.default_rng(1)
+    return {key: rng.integers(0, 256, (n, 84, 84, 3), dtype=np.uint8) for key in ("image", "goal_image")}
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_one_update_moves_every_network_the_codebook_and_the_targets_by_polyak(groups):
+    args, nets, optimizers, replay, rng = tiny_agent(groups)
+    for target in (nets["actor_target"], nets["critic_target"]):
+        with torch.no_grad():
+            for parameter in target.parameters():
+                parameter.add_(torch.randn_like(parameter))
+    before = {name: [p.clone() for p in nets[name].parameters()] for name in nets if nets[name] is not None}
+    codebook = None if groups == 0 else {name: b.clone() for name, b in nets["vq"].named_buffers()}
+    goal_inputs = {"critic": [], "actor_target": []}  # what the critic and the prior see of goals and subgoals
+    for name in goal_inputs:
+        nets[name].register_forward_pre_hook(lambda module, inputs, name=name: goal_inputs[name].append(inputs[-1].detach()))
+    metrics = sawyer.ris_update(nets, optimizers, replay.sample(args.batch_size, 0.2, 0.4, rng), args)
+    for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
+        assert metrics[name].shape == () and torch.isfinite(metrics[name]) and not metrics[name].requires_grad, name
+    assert 0 < metrics["driml_loss"] < 2 * math.log(args.batch_size)
+    for name in ("encoder", "driml", "critic", "actor", "high"):  # every parameter tensor of every online net moved
+        for (parameter_name, new), old in zip(nets[name].named_parameters(), before[name], strict=True):
+            assert not torch.equal(new, old), f"{name}.{parameter_name}"
+    for target, online in (("actor_target", "actor"), ("critic_target", "critic")):
+        for old, new, source in zip(before[target], nets[target].parameters(), nets[online].parameters(), strict=True):
+            torch.testing.assert_close(new, old + args.tau * (source - old))
+    if groups:
+        vq = nets["vq"]
+        assert metrics["codes"].shape == (4 * args.batch_size, groups) and torch.isfinite(metrics["vq_loss"])
+        assert not torch.equal(vq.codebook, codebook["codebook"]) and not torch.equal(vq.ema_count, codebook["ema_count"])
+        assert not any(p is vq.codebook for group in optimizers["critic"].param_groups for p in group["params"])
+        for name, inputs in goal_inputs.items():  # DGRL: goals and imagined subgoals reach the nets as codebook rows
+            for goal in inputs:
+                segments = goal.reshape(-1, 16 // groups)
+                rows = torch.cat((codebook["codebook"], vq.codebook))
+                assert ((segments[:, None, :] == rows[None]).all(-1)).any(1).all(), name
+    else:
+        assert "codes" not in metrics and "vq_loss" not in metrics
+
+
+def test_acting_quantizes_the_goal_without_moving_the_codebook():
+    _, nets, _, _, _ = tiny_agent(4)
+    vq, observations = nets["vq"], random_observations(6)
+    buffers = {name: b.clone() for name, b in vq.named_buffers()}
+    seen = []
+    nets["actor"].register_forward_pre_hook(lambda module, inputs: seen.append(inputs[1].detach()))
+    actions = sawyer.act(nets["actor"], nets["encoder"], vq, observations, "cpu", deterministic=False)
+    mean_actions = sawyer.act(nets["actor"], nets["encoder"], vq, observations, "cpu", deterministic=True)
+    assert actions.shape == (6, 2) and np.abs(actions).max() <= 1 and not np.allclose(actions, mean_actions)
+    for name, buffer in vq.named_buffers():
+        assert torch.equal(buffer, buffers[name]), name  # acting never moves the codebook
+    segments = seen[0].reshape(-1, 4)
+    assert ((segments[:, None, :] == vq.codebook[None]).all(-1)).any(1).all()  # the actor saw a discrete goal
+    with torch.no_grad():
+        images = sawyer.image_batch(np.concatenate((observations["image"], observations["goal_image"])), "cpu")
+        features = nets["encoder"](images)
+        mean = nets["actor"](features[:6], vq(features[6:], update=False)[0])[0]
+    np.testing.assert_allclose(mean_actions, torch.tanh(mean).numpy(), rtol=1e-5, atol=1e-6)
+
+
+# --- flags and smoke runs ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"groups": 5}, r"--groups must be 0 \(RIS\) or divide --feature-dim 16: one of \[1, 2, 4, 8, 16\]; got 5"),
+        ({"groups": 32}, r"--groups must be 0 \(RIS\) or divide --feature-dim 16: one of \[1, 2, 4, 8, 16\]; got 32"),
+        ({"buffer_size": 101}, r"--buffer-size \(101\) must hold one whole episode: >= 102 rows"),
+        ({"her_goal_frac": 0.8, "her_random_frac": 0.4}, r"--her-goal-frac \(0.8\) and --her-random-frac \(0.4\)"),
+        ({"vq_decay": 1.0}, r"--vq-decay must be in \[0, 1\); got 1.0"),
+        ({"driml_coef": -1.0}, r"--driml-coef must be >= 0; got -1.0"),
+        ({"eval_episodes": 0}, r"--eval-episodes must be >= 1; got 0"),
+    ],
+)
+def test_validate_names_the_bad_flag(overrides, message):
+    with pytest.raises(SystemExit) as error:
+        sawyer.validate(sawyer.Args(**overrides))
+    assert re.search(message, str(error.value.code)), error.value.code
+    for groups in (0, 1, 2, 4, 8, 16):
+        sawyer.validate(sawyer.Args(groups=groups))  # the defaults pass
+
+
+def test_bad_flags_fail_before_any_work(run_script, tmp_path):
+    result = run_script("dgrl_ris_sawyer.py", "--groups", "3", "--buffer-size", "50", env={"MUJOCO_GL": "egl"})
+    assert result.returncode != 0
+    assert "--groups must be 0 (RIS) or divide --feature-dim 16: one of [1, 2, 4, 8, 16]; got 3" in result.stderr
+    assert "--buffer-size (50) must be >= --batch-size (256)" in result.stderr
+    assert "images" not in result.stdout and not (tmp_path / "runs").exists()
+
+
+TINY = ["--total-timesteps", "300", "--start-timesteps", "100", "--batch-size", "16", "--eval-frequency", "300"]
+TINY += ["--eval-episodes", "2"]
+TAGS = [
+    "charts/episodic_return", "charts/success_rate", "charts/hand_distance", "charts/puck_distance", "charts/SPS",
+    "eval/success_rate", "eval/hand_success_rate", "eval/final_hand_distance", "eval/final_puck_distance",
+    "losses/critic_loss", "losses/actor_loss", "losses/high_loss", "losses/driml_loss", "losses/kl",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("groups", ["0", "16"])
+def test_smoke_run(run_script, tmp_path, groups):
+    """RIS with a video; DGRL with a checkpoint, then evaluated from it (and refused with other architecture flags)."""
+    extra = ["--save-model"] if groups == "16" else ["--capture-video"]
+    result = run_script("dgrl_ris_sawyer.py", *TINY, "--groups", groups, *extra, env={"MUJOCO_GL": "egl"})
+    assert result.returncode == 0, result.stderr[-3000:]
+    progress = r"step +300/300 +eval success +\d+% hand +\d+% +distance hand [\d.]+ puck [\d.]+ +train success +(\d+%|-) +SPS"
+    assert re.search(progress, result.stdout), result.stdout
+    assert re.search(r"done: 300 steps, 201 updates, last eval success \d+% \(hand \d+%\)", result.stdout), result.stdout
+    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
+    for tag in TAGS:
+        assert tag.encode() in events, tag
+    for tag in ("vq/commit_loss", "vq/perplexity", "vq/active_codes"):
+        assert (tag.encode() in events) == (groups == "16"), tag
+    if groups == "0":
+        videos = list(tmp_path.glob("videos/*/eval_300.mp4"))
+        assert len(videos) == 1 and videos[0].stat().st_size > 1000
+        return
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_ris_sawyer.cleanrl_model"))
+    saved = torch.load(checkpoint)
+    assert {"actor", "critic", "high", "encoder", "driml", "vq", "args"} <= set(saved)
+    assert "codebook" in saved["vq"] and "ema_count" in saved["vq"] and "linear.weight" in saved["encoder"]
+    reloaded = run_script(
+        "dgrl_ris_sawyer.py", "--groups", "16", "--eval-episodes", "2", "--checkpoint", str(checkpoint),
+        env={"MUJOCO_GL": "egl"},
+    )  # fmt: skip
+    assert reloaded.returncode == 0, reloaded.stderr[-3000:]
+    assert re.search(r"2 test episodes: success \d+%, hand success \d+%, final hand distance [\d.]+", reloaded.stdout)
+    flags = ["--groups", "8", "--eval-episodes", "2", "--checkpoint", str(checkpoint)]
+    mismatch = run_script("dgrl_ris_sawyer.py", *flags, env={"MUJOCO_GL": "egl"})
+    assert mismatch.returncode != 0 and "was saved with other settings: pass --groups 16" in mismatch.stderr

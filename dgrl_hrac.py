@@ -16,7 +16,7 @@ generated into MJCF at run time; AntGather adds apples, bombs and range sensors.
     python dgrl_hrac.py --env-id AntPush --groups 16      # DGRL G=16 on AntPush, the paper's 5M steps (a GPU job)
     python dgrl_hrac.py --env-id AntMaze --groups 0       # HRAC on AntMaze
     python dgrl_hrac.py --env-id AntMaze --groups 0 --total-timesteps 300000   # the short CPU run of docs/dgrl_hrac.md
-    python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5   # 1-minute smoke run
+    python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5   # 15-second smoke run
 
 The study: benchmark/hrac.sh; env speed and renders: benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """

@@ -55,7 +55,7 @@ bench-amigo: $(VENV)/installed
 	$(PY) benchmark/bench_amigo.py
 
 # The short CPU run of docs/dgrl_hrac.md: HRAC and HRAC+DGRL (G = 16) on AntMaze, 300k steps (HRAC 84 min on a core;
-# DGRL about 1.6x that).
+# DGRL about 1.7x that).
 study-hrac: $(VENV)/installed
 	PYTHON=$(PY) bash benchmark/hrac.sh
 

@@ -774,6 +774,43 @@ def evaluate(env: HiroAntEnv, nets: dict, args: "Args", bounds: np.ndarray, rng:
     return {"success": float(np.mean(successes)), "distance": float(np.mean(distances)), "return": float(np.mean(returns))}
 
 
+def make_agent(args: "Args", state_dim: int, action_dim: int, device) -> tuple[dict, dict]:
+    """Both levels (actor, twin critics and their targets), the adjacency network and, under DGRL, the subgoal encoder
+    with its codebook; and their optimizers (critics with weight decay; the encoder a parameter group of the controller's
+    critic optimizer, no weight decay; the codebook moves by EMA, in no optimizer)."""
+    bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
+    goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
+    ctrl_goal_input_dim = args.embed_dim if args.groups else goal_dim  # DGRL: the controller takes z_q(g) instead of g
+    manager = {
+        "actor": Actor(state_dim, man_goal_dim, goal_dim, bounds, args.hidden_dim).to(device),
+        "critic": TwinCritic(state_dim, man_goal_dim, goal_dim, args.hidden_dim).to(device),
+    }
+    controller = {
+        "actor": Actor(state_dim, ctrl_goal_input_dim, action_dim, 30.0, args.hidden_dim).to(device),
+        "critic": TwinCritic(state_dim, ctrl_goal_input_dim, action_dim, args.hidden_dim).to(device),
+    }
+    anet = AdjacencyNet(2).to(device)  # over xy cells at every env (AntFall's z is not part of the grid)
+    encoder = SubgoalEncoder(goal_dim, bounds, args).to(device) if args.groups else None  # DGRL
+    for level in (manager, controller):
+        level["actor_target"], level["critic_target"] = make_target(level["actor"]), make_target(level["critic"])
+    fused = device.type in ("cpu", "cuda")
+
+    def level_optimizers(level: dict, extra_groups: tuple = ()) -> dict:
+        critic_groups = [{"params": level["critic"].parameters(), "weight_decay": args.critic_weight_decay}, *extra_groups]
+        return {
+            "actor": torch.optim.Adam(level["actor"].parameters(), lr=args.actor_lr, fused=fused),
+            "critic": torch.optim.Adam(critic_groups, lr=args.critic_lr, fused=fused),
+        }
+
+    encoder_group = ({"params": encoder.parameters(), "lr": args.encoder_lr, "weight_decay": 0.0},) if encoder else ()  # DGRL
+    optimizers = {
+        "manager": level_optimizers(manager),
+        "controller": level_optimizers(controller, encoder_group),
+        "adjacency": torch.optim.Adam(anet.parameters(), lr=args.adj_lr, fused=fused),
+    }
+    return {"manager": manager, "controller": controller, "anet": anet, "encoder": encoder}, optimizers
+
+
 # --- Checkpoints, videos, flags ---------------------------------------------------------------------------------------
 
 
@@ -851,26 +888,16 @@ if __name__ == "__main__":
     env = HiroAntEnv(args.env_id)
     eval_env = HiroAntEnv(args.env_id, evaluate=True, render_mode="rgb_array" if args.capture_video else None)
     eval_env.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    state_dim, action_dim, max_action = env.observation_space.shape[0], env.action_space.shape[0], 30.0
+    state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
     goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
-    ctrl_goal_input_dim = args.embed_dim if dgrl else goal_dim  # DGRL: the controller takes z_q(g) instead of g
 
-    manager = {
-        "actor": Actor(state_dim, man_goal_dim, goal_dim, bounds, args.hidden_dim).to(device),
-        "critic": TwinCritic(state_dim, man_goal_dim, goal_dim, args.hidden_dim).to(device),
-    }
-    controller = {
-        "actor": Actor(state_dim, ctrl_goal_input_dim, action_dim, max_action, args.hidden_dim).to(device),
-        "critic": TwinCritic(state_dim, ctrl_goal_input_dim, action_dim, args.hidden_dim).to(device),
-    }
-    anet = AdjacencyNet(2).to(device)  # over xy cells at every env (AntFall's z is not part of the grid)
-    encoder = SubgoalEncoder(goal_dim, bounds, args).to(device) if dgrl else None  # DGRL
+    nets, optimizers = make_agent(args, state_dim, action_dim, device)
     modules = {
-        "manager_actor": manager["actor"], "manager_critic": manager["critic"], "controller_actor": controller["actor"],
-        "controller_critic": controller["critic"], "adjacency": anet, "subgoal_encoder": encoder,
+        "manager_actor": nets["manager"]["actor"], "manager_critic": nets["manager"]["critic"],
+        "controller_actor": nets["controller"]["actor"], "controller_critic": nets["controller"]["critic"],
+        "adjacency": nets["anet"], "subgoal_encoder": nets["encoder"],
     }  # fmt: skip
-    nets = {"manager": manager, "controller": controller, "anet": anet, "encoder": encoder}
 
     if args.checkpoint is not None:
         saved = torch.load(args.checkpoint, map_location=device)
@@ -909,24 +936,6 @@ if __name__ == "__main__":
         f"{args.total_timesteps} steps, device {device}"
     )
 
-    for level in (manager, controller):
-        level["actor_target"], level["critic_target"] = make_target(level["actor"]), make_target(level["critic"])
-    fused = device.type in ("cpu", "cuda")
-
-    def level_optimizers(level: dict, extra_groups: tuple = ()) -> dict:
-        critic_groups = [{"params": level["critic"].parameters(), "weight_decay": args.critic_weight_decay}, *extra_groups]
-        return {
-            "actor": torch.optim.Adam(level["actor"].parameters(), lr=args.actor_lr, fused=fused),
-            "critic": torch.optim.Adam(critic_groups, lr=args.critic_lr, fused=fused),
-        }
-
-    optimizers = {
-        "manager": level_optimizers(manager),
-        "controller": level_optimizers(
-            controller, ({"params": encoder.parameters(), "lr": args.encoder_lr, "weight_decay": 0.0},) if dgrl else ()
-        ),  # DGRL: the encoder learns with the controller's critic; the codebook moves by EMA
-        "adjacency": torch.optim.Adam(anet.parameters(), lr=args.adj_lr, fused=fused),
-    }
     ctrl_replay = Replay(
         args.buffer_size, states=(state_dim,), goals=(goal_dim,), actions=(action_dim,), rewards=(), next_states=(state_dim,),
         next_goals=(goal_dim,), dones=(),
@@ -1022,7 +1031,7 @@ if __name__ == "__main__":
         if step >= next_adjacency:
             next_adjacency += args.adj_frequency
             began = time.time()
-            adj_loss, adj_accuracy = train_adjacency(anet, optimizers["adjacency"], memory, args, rng, device)
+            adj_loss, adj_accuracy = train_adjacency(nets["anet"], optimizers["adjacency"], memory, args, rng, device)
             writer.add_scalar("adjacency/loss", adj_loss, step)
             writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
             writer.add_scalar("adjacency/cells", len(memory.index), step)

@@ -41,25 +41,10 @@ class Args:
 
 
 def build(groups: int, device: str):
+    """The script's agent on AntMaze (30-d state, 8 torques), as its training loop builds it."""
     args = hrac.Args(groups=groups)
-    bounds = hrac.subgoal_bounds("AntMaze", args.subgoal_scale)
-    goal_in = args.embed_dim if groups else 2
-    manager = {"actor": hrac.Actor(30, 2, 2, bounds), "critic": hrac.TwinCritic(30, 2, 2)}
-    controller = {"actor": hrac.Actor(30, goal_in, 8, 30.0), "critic": hrac.TwinCritic(30, goal_in, 8)}
-    for level in (manager, controller):
-        level["actor_target"], level["critic_target"] = hrac.make_target(level["actor"]), hrac.make_target(level["critic"])
-        for net in level.values():
-            net.to(device)
-    encoder = hrac.SubgoalEncoder(2, bounds, args).to(device) if groups else None
-    nets = {"manager": manager, "controller": controller, "anet": hrac.AdjacencyNet(2).to(device), "encoder": encoder}
-
-    def optimizers(level, extra=()):
-        critic_groups = [{"params": level["critic"].parameters(), "weight_decay": args.critic_weight_decay}, *extra]
-        return {"actor": torch.optim.Adam(level["actor"].parameters(), lr=args.actor_lr),
-                "critic": torch.optim.Adam(critic_groups, lr=args.critic_lr)}  # fmt: skip
-
-    extra = ({"params": encoder.parameters(), "lr": args.encoder_lr},) if groups else ()
-    return args, bounds, nets, optimizers(manager), optimizers(controller, extra)
+    nets, optimizers = hrac.make_agent(args, 30, 8, torch.device(device))
+    return args, hrac.subgoal_bounds("AntMaze", args.subgoal_scale), nets, optimizers["manager"], optimizers["controller"]
 
 
 def timed(fn, repeats: int) -> float:

@@ -390,20 +390,8 @@ def agent(groups: int, env_id: str = "AntMaze", **overrides):
     """Both levels, the adjacency network and (DGRL) the subgoal encoder as the script builds them, small and seeded."""
     torch.manual_seed(0)
     args = hrac.Args(env_id=env_id, groups=groups, hidden_dim=32, batch_size=16, **overrides)
-    bounds = hrac.subgoal_bounds(env_id, args.subgoal_scale)
-    goal_dim, state_dim = len(bounds), 30
-    ctrl_goal_dim = args.embed_dim if groups else goal_dim
-    manager = {"actor": hrac.Actor(state_dim, hrac.MANAGER_GOAL_DIMS[env_id], goal_dim, bounds, 32),
-               "critic": hrac.TwinCritic(state_dim, hrac.MANAGER_GOAL_DIMS[env_id], goal_dim, 32)}  # fmt: skip
-    controller = {
-        "actor": hrac.Actor(state_dim, ctrl_goal_dim, 8, 30.0, 32),
-        "critic": hrac.TwinCritic(state_dim, ctrl_goal_dim, 8, 32),
-    }
-    for level in (manager, controller):
-        level["actor_target"], level["critic_target"] = make_target(level["actor"]), make_target(level["critic"])
-    encoder = hrac.SubgoalEncoder(goal_dim, bounds, args) if groups else None
-    nets = {"manager": manager, "controller": controller, "anet": hrac.AdjacencyNet(2), "encoder": encoder}
-    return args, bounds, nets
+    nets, _ = hrac.make_agent(args, 30, 8, torch.device("cpu"))
+    return args, hrac.subgoal_bounds(env_id, args.subgoal_scale), nets
 
 
 def optimizers_for(level: dict, extra=()) -> dict:

@@ -1,0 +1,107 @@
+"""Where the time of dgrl_ris_sawyer.py goes: acting (env step with rendering + encoder + actor) and one RIS update from
+pixels, with and without DGRL.
+
+    MUJOCO_GL=egl python benchmark/bench_ris_sawyer.py                 # about 2 min on a CPU core; run nothing else meanwhile
+    MUJOCO_GL=egl python benchmark/bench_ris_sawyer.py --device cuda   # the same on a GPU (the paper's batch 256)
+
+Prints one line per measurement (median of 5 blocks): one training step's acting (an 84x84 render of the new state, the
+encoder on state and goal images, the actor's sample), and one `ris_update` (HER batch of 4 x batch uint8 images sampled
+from the replay in host memory, moved to the device, random translate, encoder, DRIML loss, critic, high level, actor
+with 10 imagined subgoals, targets) for --groups 0 and 16 at each batch size. RIS does one update per environment
+step, so training steps/s is about 1 / (update time + acting time).
+"""
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import dgrl_ris_sawyer as sawyer
+
+
+def median_time(fn, repeats: int, blocks: int = 5) -> float:
+    fn()
+    times = []
+    for _ in range(blocks):
+        start = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        times.append((time.perf_counter() - start) / repeats)
+    return statistics.median(times)
+
+
+def filled_replay(episodes: int, rng: np.random.Generator) -> sawyer.ImageEpisodeReplay:
+    """A replay of random-action episodes of the training env (real images, so the DRIML loss sees real inputs)."""
+    env = sawyer.SawyerPushAndReachEnv()
+    replay = sawyer.ImageEpisodeReplay(episodes * (sawyer.EPISODE_STEPS + 2), (84, 84, 3), 2)
+    for episode in range(episodes):
+        observation, _ = env.reset(seed=episode)
+        images, states, actions = [observation["image"]], [observation["state"]], []
+        for _ in range(sawyer.EPISODE_STEPS):
+            actions.append(rng.uniform(-1, 1, 2).astype(np.float32))
+            step = env.step(actions[-1])
+            images.append(step[0]["image"])
+            states.append(step[0]["state"])
+            if step[2]:
+                break
+        replay.add_episode(
+            np.stack(images), np.stack(states), np.stack(actions), observation["goal_image"], observation["goal"]
+        )
+    env.close()
+    return replay
+
+
+def act_time(groups: int, device: torch.device) -> float:
+    args = sawyer.Args(groups=groups)
+    nets, _ = sawyer.make_agent(args, 84, 2, device)
+    envs = sawyer.make_vector_env(1, 0, test=False)
+    observations, _ = envs.reset(seed=0)
+
+    def step():
+        nonlocal observations
+        actions = sawyer.act(nets["actor"], nets["encoder"], nets["vq"], observations, device, deterministic=False)
+        observations = envs.step(actions)[0]
+
+    seconds = median_time(step, repeats=200)
+    envs.close()
+    return seconds
+
+
+def update_time(replay, groups: int, batch: int, device: torch.device, rng: np.random.Generator) -> float:
+    args = sawyer.Args(groups=groups, batch_size=batch)
+    nets, optimizers = sawyer.make_agent(args, 84, 2, device)
+
+    def step():
+        sample = replay.sample(batch, args.her_goal_frac, args.her_random_frac, rng)
+        sawyer.ris_update(nets, optimizers, sample, args)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    return median_time(step, repeats=max(2, 256 // batch * 2))
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--batches", type=int, nargs="+", default=[32, 256])
+    options = parser.parse_args()
+    torch.set_num_threads(options.threads)
+    device = torch.device(options.device)
+    rng = np.random.default_rng(0)
+    replay = filled_replay(20, rng)
+    for groups in (0, 16):
+        print(
+            f"act + env step, G{groups:<2}: {act_time(groups, device) * 1e3:6.1f} ms ({options.threads} thread(s), {device})"
+        )
+    for batch in options.batches:
+        times = {groups: update_time(replay, groups, batch, device, rng) for groups in (0, 16)}
+        print(
+            f"update batch {batch:>4}: RIS {times[0] * 1e3:7.1f} ms, RIS+DGRL G16 {times[16] * 1e3:7.1f} ms "
+            f"({times[16] / times[0]:.2f}x), {options.threads} thread(s), {device}"
+        )

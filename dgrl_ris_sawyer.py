@@ -1,8 +1,5 @@
 """DGRL on RIS in the vision-based Sawyer push-and-reach task: discretized goal and subgoal embeddings from pixels.
 
-STATUS (issue 9, in progress): environment, agent, training loop and tests are written; the CPU study, its docs page
-and the README row are not.
-
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Vision
 Based Robotic Manipulation", appendix "Robotic Manipulation Task", Algorithm 1 and the code snippet's image branch. The agent
 is RIS (Chane-Sane et al., ICML 2021) in its vision variant: a conv encoder maps 84x84 images of states and goals to 16-d
@@ -20,12 +17,13 @@ Training resets everywhere in the arena; evaluation on the test configuration, w
 
     MUJOCO_GL=egl python dgrl_ris_sawyer.py --groups 16     # paper setting (G=16, batch 256, one update per step): a GPU job
     MUJOCO_GL=egl python dgrl_ris_sawyer.py --groups 0      # RIS
-    MUJOCO_GL=egl python dgrl_ris_sawyer.py --total-timesteps 20000 --batch-size 32 --start-timesteps 2000 \
-        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (30 min on one busy CPU core, 11 SPS)
+    MUJOCO_GL=egl python dgrl_ris_sawyer.py --total-timesteps 30000 --batch-size 32 --start-timesteps 2000 \
+        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (30 min on a CPU core, 16-19 SPS)
     MUJOCO_GL=egl python dgrl_ris_sawyer.py --total-timesteps 600 --start-timesteps 300 --batch-size 16 \
         --eval-frequency 600 --eval-episodes 2              # 1-minute smoke run
 
-Env frames/s and a picture of state and goal images: benchmark/sawyer_env.py. Docs (to be written): docs/dgrl_ris_sawyer.md.
+Env frames/s and a picture of state and goal images: benchmark/sawyer_env.py; update times: benchmark/bench_ris_sawyer.py;
+the CPU study: benchmark/ris_sawyer.sh. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
 """
 
 import math
@@ -876,7 +874,7 @@ if __name__ == "__main__":
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
     print(f"{run_name}: {image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}")
     if device.type == "cpu" and args.batch_size >= 128:
-        print(f"note: --batch-size {args.batch_size} takes about a second per update on a CPU; see the docstring's CPU preset")
+        print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
 
     replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim)
     n_envs = args.num_envs

@@ -14,9 +14,7 @@ with 1 and 2 torch threads. HRAC does one TD3 update per k = 10 frames, so frame
 10 / (TD3 update time) whatever else is made fast.
 """
 
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,19 +22,10 @@ import torch
 import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from timing import median_time  # benchmark/timing.py
+
 import dgrl_hrac_keychest as kc
 from vq import make_target
-
-
-def median_time(fn, repeats: int, blocks: int = 5) -> float:
-    fn()
-    times = []
-    for _ in range(blocks):
-        start = time.perf_counter()
-        for _ in range(repeats):
-            fn()
-        times.append((time.perf_counter() - start) / repeats)
-    return statistics.median(times)
 
 
 def td3_seconds(rng: np.random.Generator) -> float:

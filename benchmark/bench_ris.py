@@ -11,7 +11,6 @@ is about 1 / (update time + acting time).
 """
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -20,19 +19,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from timing import median_time  # benchmark/timing.py
+
 import dgrl_ris as ris
 from vq import make_target
-
-
-def median_time(fn, repeats: int, blocks: int = 5) -> float:
-    fn()
-    times = []
-    for _ in range(blocks):
-        start = time.perf_counter()
-        for _ in range(repeats):
-            fn()
-        times.append((time.perf_counter() - start) / repeats)
-    return statistics.median(times)
 
 
 def env_speed(env_id: str, steps: int = 1000) -> float:

@@ -12,27 +12,16 @@ step, so training steps/s is about 1 / (update time + acting time).
 """
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from timing import median_time  # benchmark/timing.py
+
 import dgrl_ris_sawyer as sawyer
-
-
-def median_time(fn, repeats: int, blocks: int = 5) -> float:
-    fn()
-    times = []
-    for _ in range(blocks):
-        start = time.perf_counter()
-        for _ in range(repeats):
-            fn()
-        times.append((time.perf_counter() - start) / repeats)
-    return statistics.median(times)
 
 
 def filled_replay(episodes: int, rng: np.random.Generator) -> sawyer.ImageEpisodeReplay:

@@ -559,7 +559,7 @@ class ImageEpisodeReplay:
         return dict(
             images=self.images[rows], actions=self.actions[index], rewards=-np.ones(batch_size, np.float32),
             done=reached(next_states, goal_states).astype(np.float32), states=self.states[index], next_states=next_states,
-            goal_states=goal_states, rows=rows,
+            goal_states=goal_states,
         )  # fmt: skip
 
 
@@ -890,7 +890,7 @@ if __name__ == "__main__":
 
     observations, _ = envs.reset(seed=args.seed)
     start_time, step, updates, evaluations, next_eval, next_log = time.time(), 0, 0, 0, args.eval_frequency, 1
-    last_eval = (0, 0.0)  # (step, elapsed seconds) at the last evaluation
+    last_eval_step, last_eval_time = 0, 0.0  # for the time left: the rate since the last evaluation
     last_print = start_time  # a heartbeat line at least every 60 s, so that a slow run never looks hung
     recent_success, metrics = [], {}
     result = dict.fromkeys(("success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance"), float("nan"))
@@ -953,8 +953,8 @@ if __name__ == "__main__":
             elapsed = time.time() - start_time
             sps = int(step / elapsed)
             # The time left from the rate since the last evaluation: the random phase steps 10x faster than training
-            recent_sps = (step - last_eval[0]) / max(elapsed - last_eval[1], 1e-9)
-            last_eval = (step, elapsed)
+            recent_sps = (step - last_eval_step) / max(elapsed - last_eval_time, 1e-9)
+            last_eval_step, last_eval_time = step, elapsed
             for name, value in result.items():
                 writer.add_scalar(f"eval/{name}", value, step)
             writer.add_scalar("charts/SPS", sps, step)

@@ -15,7 +15,7 @@ This is the only module the scripts share. Everything else a script needs lives 
     reward = factor_match(indices_state, indices_goal)  # DGRL intrinsic reward in [0, 1]
     update_target(target_net, online_net, tau)         # Polyak on parameters, codebook buffers copied
 
-Docs: docs/vq.md. Demo (the quick-start job until the maze study lands): `python vq.py`.
+Docs: docs/vq.md. Demo (factorial codes generalise to unseen combinations, 2 s on a CPU): `python vq.py`.
 """
 
 import argparse
@@ -34,7 +34,10 @@ class VectorQuantizerEMA(nn.Module):
         n_embed: number of codes in the shared codebook (L in the paper).
         groups: number of factors per vector (G in the paper); each code has dim // groups entries.
         beta: commitment-loss weight.
-        decay: EMA decay (eta in the paper): a selected code moves as e <- decay * e + (1 - decay) * mean(c).
+        decay: EMA decay (eta in the paper) of each code's counts and sums (VQ-VAE, appendix A.1): every update,
+            N_j <- decay * N_j + (1 - decay) * n_j and m_j <- decay * m_j + (1 - decay) * s_j, where n_j segments of the
+            batch chose code j and s_j is their sum; the code is e_j = m_j / N_j (N_j Laplace-smoothed with eps). With
+            one segment per code this is the paper's e <- decay * e + (1 - decay) * c.
         eps: Laplace-smoothing constant of the EMA counts.
         dead_code_steps: if > 0, a code selected by no segment for this many consecutive updates is restarted at a
             random segment of the current batch (a common remedy for codebook collapse; not in the paper, so 0 = off).
@@ -52,7 +55,9 @@ class VectorQuantizerEMA(nn.Module):
     codebook, so every code starts as its own EMA mean and an unused code decays smoothly instead of exploding.
 
     The EMA update runs once per call, pooled over all batch * groups segments, only in training mode and only when
-    `update=True`. `torch.no_grad()` does not stop it: acting code passes `update=False` (or uses eval mode).
+    `update=True`. `torch.no_grad()` does not stop it: acting code passes `update=False` (or uses eval mode). A segment
+    with a NaN or infinite entry takes no part in the update (its quantized output is not finite either), so one bad
+    input never poisons the codebook for every later one.
     Distances and statistics are computed in fp32 with autocast disabled, whatever the input dtype.
     """
 
@@ -132,8 +137,15 @@ class VectorQuantizerEMA(nn.Module):
 
     @torch.no_grad()
     def _ema_update(self, segments: torch.Tensor, flat_indices: torch.Tensor) -> None:
-        """One pooled EMA step over all segments of the batch (the codebook is shared, so one update, not G)."""
-        counts = torch.bincount(flat_indices, minlength=self.n_embed).float()
+        """One pooled EMA step over all segments of the batch (the codebook is shared, so one update, not G).
+
+        Non-finite segments are counted in an extra bin that is dropped and summed as zeros, without a data-dependent
+        shape, so the GPU never waits for the host; finite inputs give bit-identical results.
+        """
+        finite = segments.isfinite().all(1)
+        segments = torch.where(finite.unsqueeze(1), segments, 0.0)
+        binned = torch.where(finite, flat_indices, self.n_embed)
+        counts = torch.bincount(binned, minlength=self.n_embed + 1)[: self.n_embed].float()
         sums = code_sums(segments, flat_indices, self.n_embed, use_gemm=segments.device.type != "cpu")
         self.ema_count.mul_(self.decay).add_(counts, alpha=1.0 - self.decay)
         self.ema_sum.mul_(self.decay).add_(sums, alpha=1.0 - self.decay)

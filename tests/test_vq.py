@@ -370,3 +370,34 @@ def test_bad_shapes_raise_value_errors():
         vq.embed_indices(torch.zeros(4, 3, dtype=torch.long))
     with pytest.raises(ValueError, match="index shapes differ"):
         factor_match(torch.zeros(2, 4), torch.zeros(2, 3))
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_segments_never_reach_the_codebook(bad):
+    """A segment with a NaN or infinite entry takes no part in the EMA update: codebook, counts and sums move exactly as
+    if the batch held only its finite segments (the other segment of a half-bad row still counts), and later finite
+    inputs are quantized as before."""
+    torch.manual_seed(3)
+    batch = torch.randn(33, 8)  # groups=2: each row is two segments of 4
+    batch[16] = bad  # a wholly bad row
+    batch[5, 3] = bad  # one bad entry in the first segment of row 5
+    tested = VectorQuantizerEMA(8, 16, groups=2)
+    reference = VectorQuantizerEMA(4, 16, groups=1)  # the same codebook fed the finite segments alone, in order
+    reference.load_state_dict(tested.state_dict())
+    segments = batch.reshape(-1, 4)
+    tested(batch)
+    reference(segments[segments.isfinite().all(1)])
+    for name in ("codebook", "ema_count", "ema_sum"):
+        assert torch.isfinite(getattr(tested, name)).all(), name
+        torch.testing.assert_close(getattr(tested, name), getattr(reference, name), rtol=0, atol=0)
+    clean = torch.randn(64, 8)
+    _, _, after = tested(clean, update=False)
+    _, _, expected = reference(clean.reshape(-1, 4), update=False)
+    assert torch.equal(after.flatten(), expected.flatten())
+
+
+def test_non_finite_segments_add_nothing_on_the_gemm_path():
+    """code_sums' one-hot GEMM (the CUDA path) and index_add_ (the CPU path) agree on the zeroed rows the guard makes."""
+    segments = torch.randn(10, 3)
+    indices = torch.randint(4, (10,))
+    torch.testing.assert_close(code_sums(segments, indices, 4, use_gemm=True), code_sums(segments, indices, 4, use_gemm=False))

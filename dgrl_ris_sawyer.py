@@ -15,25 +15,31 @@ modern `mujoco` bindings with an MJCF scene generated in code (a table, four low
 effector driven by a mocap body; the original Sawyer arm meshes ship with no installable package, so the arm is left out).
 Training resets everywhere in the arena; evaluation on the test configuration, where hand and puck cross the arena.
 
-    MUJOCO_GL=egl python dgrl_ris_sawyer.py --groups 16     # paper setting (G=16, batch 256, one update per step): a GPU job
-    MUJOCO_GL=egl python dgrl_ris_sawyer.py --groups 0      # RIS
-    MUJOCO_GL=egl python dgrl_ris_sawyer.py --total-timesteps 30000 --batch-size 32 --start-timesteps 2000 \
+    python dgrl_ris_sawyer.py --groups 16     # paper setting (G=16, batch 256, one update per step): a GPU job
+    python dgrl_ris_sawyer.py --groups 0      # RIS
+    python dgrl_ris_sawyer.py --total-timesteps 30000 --batch-size 32 --start-timesteps 2000 \
         --eval-frequency 2000 --eval-episodes 10            # the CPU preset (30 min on a CPU core, 16-19 SPS)
-    MUJOCO_GL=egl python dgrl_ris_sawyer.py --total-timesteps 600 --start-timesteps 300 --batch-size 16 \
+    python dgrl_ris_sawyer.py --total-timesteps 600 --start-timesteps 300 --batch-size 16 \
         --eval-frequency 600 --eval-episodes 2              # 1-minute smoke run
 
-Env frames/s and a picture of state and goal images: benchmark/sawyer_env.py; update times: benchmark/bench_ris_sawyer.py;
-the CPU study: benchmark/ris_sawyer.sh. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
+Without a display, rendering is headless (MUJOCO_GL defaults to egl; set it to osmesa where EGL is missing). Env frames/s
+and a picture of state and goal images: benchmark/sawyer_env.py; update times: benchmark/bench_ris_sawyer.py; the CPU
+study: benchmark/ris_sawyer.sh. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
 """
 
+import importlib.util
 import math
 import os
 import random
 import signal
+import sys
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import ClassVar
+
+if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos, pixels) without a display; set it to override
 
 import gymnasium as gym
 import mujoco
@@ -56,21 +62,21 @@ class Args:
     torch_deterministic: bool = True
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
-    """if toggled, cuda will be enabled when available (batch 256 of images at one update per step needs a GPU)"""
+    """if toggled, cuda will be enabled when available"""
     track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "dgrl"
     """the wandb's project name"""
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to record the first episode of every 10th evaluation (state | goal images, saved in `videos/`)"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
     save_model: bool = False
-    """whether to save a checkpoint (actor, critics, high level, encoder, DRIML heads, codebook) at every evaluation"""
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
-    """path of a saved checkpoint: evaluate it over --eval-episodes episodes on the test configuration, then exit"""
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
-    """torch CPU threads"""
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
 
     # Environment
     num_envs: int = 1
@@ -217,7 +223,7 @@ def sawyer_xml() -> str:
 
 
 class SawyerPushAndReachEnv(gym.Env):
-    """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings (reference ris.md).
+    """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings.
 
     The Sawyer arm is replaced by its end effector: a capsule of radius 0.015 at the fixed height z = 0.06, on two slide
     joints, welded to a mocap body; as in the original, an action in [-1, 1]^2 moves the mocap target by
@@ -330,7 +336,10 @@ class SawyerPushAndReachEnv(gym.Env):
             try:
                 self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
             except mujoco.FatalError as error:
-                raise RuntimeError("off-screen rendering failed: on a machine without a display set MUJOCO_GL=egl") from error
+                backend = os.environ.get("MUJOCO_GL", "the default")
+                raise RuntimeError(
+                    f"off-screen rendering failed (MUJOCO_GL={backend}): try MUJOCO_GL=egl or osmesa"
+                ) from error
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._renderer.update_scene(self.data, camera="top")
         return self._renderer.render()
@@ -463,11 +472,11 @@ class DrimlHeads(nn.Module):
         self.globl = nn.Sequential(nn.Linear(feature_dim, dim), nn.ReLU(), nn.Linear(dim, dim))
 
 
-def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.Tensor:
+def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.Tensor:  # DGRL
     """What the actor and critics see of a goal or subgoal: its features (RIS) or their discrete embedding (DGRL), with the
     codebook untouched."""
-    if vq is None:
-        return features
+    if vq is None:  # DGRL
+        return features  # DGRL
     return vq(features, update=False)[0]  # DGRL
 
 
@@ -616,104 +625,157 @@ def prior_kl(
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
-def make_agent(args: Args, image_size: int, action_dim: int, device) -> tuple[dict, dict]:
-    """The networks (with the actor and critic targets and, under DGRL, the codebook) and their optimizers. The critic's
-    optimizer also trains the encoder (at --encoder-lr) and the DRIML heads (at --q-lr: at --encoder-lr the DRIML loss
-    stayed at log(batch) for the first thousand updates); the codebook moves by EMA, in no optimizer."""
+@dataclass
+class Agent:
+    """RIS from pixels: the networks, the actor and critic targets, the optimizers and, under DGRL, the codebook.
+
+    The critic's optimizer also trains the encoder (at --encoder-lr) and the DRIML heads (at --q-lr: at --encoder-lr the
+    DRIML loss stayed at log(batch) for the first thousand updates); the codebook moves by EMA, in no optimizer."""
+
+    encoder: ImageEncoder
+    driml_heads: DrimlHeads
+    actor: Actor
+    critic: TwinCritic
+    high: HighLevelPolicy
+    actor_target: Actor
+    critic_target: TwinCritic
+    critic_optimizer: torch.optim.Adam
+    actor_optimizer: torch.optim.Adam
+    high_optimizer: torch.optim.Adam
+    vq: VectorQuantizerEMA | None  # DGRL: the bottleneck; None under --groups 0
+
+    def checkpoint_entries(self) -> dict[str, dict | None]:
+        """What evaluation needs: the state dicts of the online networks and of the codebook (None under --groups 0)."""
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "high": self.high.state_dict(),
+            "encoder": self.encoder.state_dict(),
+            "driml": self.driml_heads.state_dict(),
+            "vq": None if self.vq is None else self.vq.state_dict(),  # DGRL: codebook, EMA counts and sums
+        }
+
+    def load_checkpoint_entries(self, saved: dict) -> None:
+        self.actor.load_state_dict(saved["actor"])
+        self.critic.load_state_dict(saved["critic"])
+        self.high.load_state_dict(saved["high"])
+        self.encoder.load_state_dict(saved["encoder"])
+        self.driml_heads.load_state_dict(saved["driml"])
+        if self.vq is not None:  # DGRL
+            self.vq.load_state_dict(saved["vq"])  # DGRL
+
+
+def make_agent(args: Args, image_size: int, action_dim: int, device) -> Agent:
+    """The agent of the flags in `args` (sizes, learning rates and the DGRL bottleneck), on `device`."""
     actor = Actor(args.feature_dim, action_dim, args.hidden_dim).to(device)
     critic = TwinCritic(args.feature_dim, action_dim, args.hidden_dim).to(device)
     encoder = ImageEncoder(args.feature_dim, image_size).to(device)
-    heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
-    nets = dict(
-        actor=actor, critic=critic, high=HighLevelPolicy(args.feature_dim, args.hidden_dim).to(device), encoder=encoder,
-        driml=heads, vq=None, actor_target=make_target(actor), critic_target=make_target(critic),
-    )  # fmt: skip
+    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
+    high = HighLevelPolicy(args.feature_dim, args.hidden_dim).to(device)
+    vq = None
     if args.groups > 0:  # DGRL
-        nets["vq"] = VectorQuantizerEMA(  # DGRL
+        vq = VectorQuantizerEMA(  # DGRL
             args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
         ).to(device)  # DGRL
     fused = device.type in ("cpu", "cuda")
     critic_groups = [
-        {"params": [*critic.parameters(), *heads.parameters()], "lr": args.q_lr},
+        {"params": [*critic.parameters(), *driml_heads.parameters()], "lr": args.q_lr},
         {"params": encoder.parameters(), "lr": args.encoder_lr},
     ]
-    optimizers = {
-        "critic": torch.optim.Adam(critic_groups, fused=fused),
-        "actor": torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused),
-        "high": torch.optim.Adam(nets["high"].parameters(), lr=args.h_lr, fused=fused),
-    }
-    return nets, optimizers
+    return Agent(
+        encoder=encoder,
+        driml_heads=driml_heads,
+        actor=actor,
+        critic=critic,
+        high=high,
+        actor_target=make_target(actor),
+        critic_target=make_target(critic),
+        critic_optimizer=torch.optim.Adam(critic_groups, fused=fused),
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused),
+        high_optimizer=torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=fused),
+        vq=vq,  # DGRL
+    )
 
 
-def ris_update(nets: dict, optimizers: dict, batch: dict, args: Args) -> dict[str, torch.Tensor]:
+def ris_update(
+    agent: Agent,
+    batch: dict,
+    *,
+    gamma: float,
+    tau: float,
+    alpha: float,
+    h_lambda: float,
+    n_subgoals: int,
+    prior_epsilon: float,
+    image_pad: int,
+    driml_coef: float,
+) -> dict[str, torch.Tensor]:
     """One RIS update from pixels (encoder + critic with the DRIML loss, high level, actor, targets) with DGRL's bottleneck;
     returns detached metrics."""
-    actor, critic, high, encoder, heads = nets["actor"], nets["critic"], nets["high"], nets["encoder"], nets["driml"]
-    actor_target, critic_target, vq = nets["actor_target"], nets["critic_target"], nets["vq"]
-    device = next(critic.parameters()).device
+    device = next(agent.critic.parameters()).device
     actions = torch.as_tensor(batch["actions"], device=device)
-    rewards, done = torch.as_tensor(batch["rewards"], device=device), torch.as_tensor(batch["done"], device=device)
+    rewards = torch.as_tensor(batch["rewards"], device=device)
+    done = torch.as_tensor(batch["done"], device=device)
     batch_size = len(actions)
     metrics = {}
 
     # Features of the augmented s, s', g, s_g: only s passes through the encoder with gradient (RIS); the target critic
     # and the DRIML loss's global side see the online encoder's features of s' (no target encoder, as in RIS).
-    images = random_translate(torch.as_tensor(batch["images"], device=device), args.image_pad)
-    conv_map = encoder.conv_map(images[:batch_size])
-    state_z = encoder.head(conv_map)
+    images = random_translate(torch.as_tensor(batch["images"], device=device), image_pad)
+    conv_map = agent.encoder.conv_map(images[:batch_size])
+    state_z = agent.encoder.head(conv_map)
     with torch.no_grad():
-        next_z, goal_z, subgoal_z = encoder(images[batch_size:]).chunk(3)
-    driml = driml_loss(heads, conv_map, actions, next_z)
-    representation_loss = args.driml_coef * driml
-    if vq is not None:  # DGRL
-        z_q, vq_loss, codes = vq(torch.cat((state_z, next_z, goal_z, subgoal_z)), update=True)  # DGRL: one EMA step, four
+        next_z, goal_z, subgoal_z = agent.encoder(images[batch_size:]).chunk(3)
+    driml = driml_loss(agent.driml_heads, conv_map, actions, next_z)
+    representation_loss = driml_coef * driml
+    goal_in = goal_z  # what the actor and the critics see of the goal
+    if agent.vq is not None:  # DGRL
+        z_q, vq_loss, codes = agent.vq(torch.cat((state_z, next_z, goal_z, subgoal_z)), update=True)  # DGRL: one EMA step
         goal_in = z_q[2 * batch_size : 3 * batch_size].detach()  # DGRL: the nets see the discrete goal embedding
         representation_loss = representation_loss + vq_loss  # DGRL: the mean of the four commitment losses
         metrics.update(vq_loss=vq_loss, codes=codes)  # DGRL
-    else:
-        goal_in = goal_z
 
     # Critic (policy evaluation); its loss also trains the encoder, the DRIML heads (and, under DGRL, commits to codes).
     with torch.no_grad():
-        next_actions = actor.sample(next_z, goal_in)
-        next_q = critic_target(next_z, next_actions, goal_in).min(0).values
-        target_q = rewards + (1.0 - done) * args.gamma * next_q
-    q_values = critic(state_z, actions, goal_in)
+        next_actions = agent.actor.sample(next_z, goal_in)
+        next_q = agent.critic_target(next_z, next_actions, goal_in).min(0).values
+        target_q = rewards + (1.0 - done) * gamma * next_q
+    q_values = agent.critic(state_z, actions, goal_in)
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
-    optimizers["critic"].zero_grad(set_to_none=True)
+    agent.critic_optimizer.zero_grad(set_to_none=True)
     (critic_loss + representation_loss).backward()
-    optimizers["critic"].step()
+    agent.critic_optimizer.step()
     state_z = state_z.detach()
 
     # High level: advantage-weighted regression onto the features of random replay states.
-    subgoal_distribution = high(state_z, goal_z)
+    subgoal_distribution = agent.high(state_z, goal_z)
     proposed = subgoal_distribution.loc.detach()
     with torch.no_grad():
         value_states = torch.cat((state_z, subgoal_z, state_z, proposed))
-        value_goals = goal_input(vq, torch.cat((subgoal_z, goal_z, proposed, goal_z)))  # DGRL: V(x, y) sees y discretized
-        value_actions = torch.tanh(actor(value_states, value_goals)[0])
-        values = critic(value_states, value_actions, value_goals).min(0).values.view(4, batch_size)
-        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
+        value_goals = goal_input(agent.vq, torch.cat((subgoal_z, goal_z, proposed, goal_z)))  # DGRL: V(x, y) sees y discrete
+        value_actions = torch.tanh(agent.actor(value_states, value_goals)[0])
+        values = agent.critic(value_states, value_actions, value_goals).min(0).values.view(4, batch_size)
+        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoal_z).sum(-1)).mean()
-    optimizers["high"].zero_grad(set_to_none=True)
+    agent.high_optimizer.zero_grad(set_to_none=True)
     high_loss.backward()
-    optimizers["high"].step()
+    agent.high_optimizer.step()
 
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
-        imagined = goal_input(vq, high(state_z, goal_z).sample((args.n_subgoals,)))  # DGRL: the prior sees discrete subgoals
-        prior_mean, prior_std = actor_target(state_z.expand(args.n_subgoals, -1, -1), imagined)
-    mean, std = actor(state_z, goal_in)
+        imagined = goal_input(agent.vq, agent.high(state_z, goal_z).sample((n_subgoals,)))  # DGRL: discrete subgoals
+        prior_mean, prior_std = agent.actor_target(state_z.expand(n_subgoals, -1, -1), imagined)
+    mean, std = agent.actor(state_z, goal_in)
     actions_pre_tanh = mean + std * torch.randn_like(mean)
-    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, args.prior_epsilon)
-    actor_q = critic(state_z, torch.tanh(actions_pre_tanh), goal_in).min(0).values
-    actor_loss = (args.alpha * kl - actor_q).mean()
-    optimizers["actor"].zero_grad(set_to_none=True)
+    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, prior_epsilon)
+    actor_q = agent.critic(state_z, torch.tanh(actions_pre_tanh), goal_in).min(0).values
+    actor_loss = (alpha * kl - actor_q).mean()
+    agent.actor_optimizer.zero_grad(set_to_none=True)
     actor_loss.backward()
-    optimizers["actor"].step()
+    agent.actor_optimizer.step()
 
-    update_target(critic_target, critic, args.tau)
-    update_target(actor_target, actor, args.tau)
+    update_target(agent.critic_target, agent.critic, tau)
+    update_target(agent.actor_target, agent.actor, tau)
     metrics.update(
         critic_loss=critic_loss, driml_loss=driml, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean(),
         q_values=q_values.mean(), high_weight_max=weights.max(),
@@ -721,18 +783,19 @@ def ris_update(nets: dict, optimizers: dict, batch: dict, args: Args) -> dict[st
     return {name: value.detach() for name, value in metrics.items()}
 
 
-# --- Acting, evaluation, checkpoints, flags ---------------------------------------------------------------------------
+# --- Acting and evaluation --------------------------------------------------------------------------------------------
 
 
 @torch.no_grad()
-def act(actor: Actor, encoder: ImageEncoder, vq, observations: dict, device, deterministic: bool) -> np.ndarray:
+def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.ndarray:
     """Actions for a batch of observations: the un-augmented state and goal images through the encoder."""
     n = len(observations["image"])
-    features = encoder(image_batch(np.concatenate((observations["image"], observations["goal_image"])), device))
-    state_z, goal_in = features[:n], goal_input(vq, features[n:])  # DGRL: the goal quantized, no codebook update
+    features = agent.encoder(image_batch(np.concatenate((observations["image"], observations["goal_image"])), device))
+    state_z = features[:n]
+    goal_in = goal_input(agent.vq, features[n:])  # DGRL: the goal quantized, no codebook update
     if deterministic:
-        return torch.tanh(actor(state_z, goal_in)[0]).cpu().numpy()
-    return actor.sample(state_z, goal_in).cpu().numpy()
+        return torch.tanh(agent.actor(state_z, goal_in)[0]).cpu().numpy()
+    return agent.actor.sample(state_z, goal_in).cpu().numpy()
 
 
 def video_frame(image: np.ndarray, goal_image: np.ndarray, scale: int = 3) -> np.ndarray:
@@ -740,20 +803,27 @@ def video_frame(image: np.ndarray, goal_image: np.ndarray, scale: int = 3) -> np
     return np.concatenate((image, goal_image), 1).repeat(scale, 0).repeat(scale, 1)
 
 
-def evaluate(envs: gym.vector.SyncVectorEnv, actor, encoder, vq, device, deterministic: bool, frames=None) -> dict:
+def evaluate(
+    envs: gym.vector.SyncVectorEnv, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=()
+) -> dict | None:
     """One episode per env on the test configuration: success rate, hand-only success rate (the hand within 0.05 of its
-    goal at the end), mean final hand and puck distances to their goals."""
+    goal at the end), mean final hand and puck distances to their goals. None if `stop` fills before every episode ends."""
     observations, _ = envs.reset()
     finished = np.zeros(envs.num_envs, dtype=bool)
-    success, hand, puck = np.zeros(envs.num_envs), np.zeros(envs.num_envs), np.zeros(envs.num_envs)
+    success = np.zeros(envs.num_envs)
+    hand = np.zeros(envs.num_envs)
+    puck = np.zeros(envs.num_envs)
     while not finished.all():
+        if stop:
+            return None
         if frames is not None and not finished[0]:
             frames.append(video_frame(observations["image"][0], observations["goal_image"][0]))
-        actions = act(actor, encoder, vq, observations, device, deterministic)
+        actions = act(agent, observations, device, deterministic)
         observations, _, terminations, truncations, infos = envs.step(actions)
         ended = (terminations | truncations) & ~finished
         for env in np.flatnonzero(ended):
-            hand[env], puck[env] = infos["final_info"]["hand_distance"][env], infos["final_info"]["puck_distance"][env]
+            hand[env] = infos["final_info"]["hand_distance"][env]
+            puck[env] = infos["final_info"]["puck_distance"][env]
             success[env] = terminations[env]
         finished |= ended
     return {
@@ -762,102 +832,76 @@ def evaluate(envs: gym.vector.SyncVectorEnv, actor, encoder, vq, device, determi
     }  # fmt: skip
 
 
-def save_checkpoint(path: str, modules: dict[str, nn.Module | None], args: Args) -> None:
-    """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
-    payload = {name: None if module is None else module.state_dict() for name, module in modules.items()}
-    payload["args"] = vars(args)
-    torch.save(payload, path + ".tmp")
-    os.replace(path + ".tmp", path)
+# A checkpoint evaluates only with the flags that shape its networks (the env and the test configuration are fixed).
+MUST_MATCH = (
+    "feature_dim",
+    "hidden_dim",
+    "driml_dim",
+    "groups",  # DGRL
+    "n_embed",  # DGRL
+)
 
 
-def write_video(path: str, frames: list[np.ndarray], fps: int = 10) -> None:
-    from moviepy import ImageSequenceClip
+# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
 
 
-def validate(args: Args) -> None:
-    """Reject bad flags before any work, naming the flag and the valid choices."""
+def flag_text(key: str, value) -> str:
+    """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
+    name = key.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
+
+
+def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
     errors = []
-    if args.feature_dim >= 1 and (args.groups < 0 or (args.groups and args.feature_dim % args.groups)):
-        divisors = [g for g in range(1, args.feature_dim + 1) if args.feature_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (RIS) or divide --feature-dim {args.feature_dim}: one of {divisors}; got {args.groups}"
-        )
-    for flag in (
-        "total_timesteps", "num_envs", "buffer_size", "batch_size", "hidden_dim", "n_subgoals", "eval_frequency",
-        "eval_episodes", "n_embed", "feature_dim", "driml_dim", "threads",
-    ):  # fmt: skip
-        if getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
-    for flag in ("start_timesteps", "vq_dead_code_steps", "image_pad", "driml_coef", "vq_beta"):
-        if getattr(args, flag) < 0:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
-    for flag in ("alpha", "h_lambda", "prior_epsilon", "tau", "q_lr", "actor_lr", "h_lr", "encoder_lr"):
-        if getattr(args, flag) <= 0:
-            errors.append(f"--{flag.replace('_', '-')} must be > 0; got {getattr(args, flag)}")
-    if not 0 <= args.gamma <= 1:
-        errors.append(f"--gamma must be in [0, 1]; got {args.gamma}")
-    if not 0 <= args.vq_decay < 1:
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")
-    if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
-        errors.append(
-            f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
-            "sum <= 1 (the rest are future goals)"
-        )
-    if args.buffer_size < args.batch_size:
-        errors.append(f"--buffer-size ({args.buffer_size}) must be >= --batch-size ({args.batch_size})")
-    if args.buffer_size < EPISODE_STEPS + 2:  # the replay writes whole episodes, with their last observation and goal
-        errors.append(f"--buffer-size ({args.buffer_size}) must hold one whole episode: >= {EPISODE_STEPS + 2} rows")
+    for key in flags.split():
+        value = getattr(args, key)
+        if value < low or (low_open and value == low) or value > high:
+            if high == math.inf:
+                wanted = f"{'>' if low_open else '>='} {low:g}"
+            else:
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+            errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
+    return errors
+
+
+def common_errors(args) -> list[str]:
+    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    errors = [
+        f"--{key.replace('_', '-')} must be a finite number; got {value}"
+        for key, value in vars(args).items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    errors += range_errors(args, "threads", 1)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    return errors
+
+
+def exit_on_errors(errors: list[str]) -> None:
+    """Print every error with the script's name and exit with status 2 (as for an unknown flag), before any work."""
     if errors:
-        raise SystemExit("dgrl_ris_sawyer.py: invalid arguments:\n  " + "\n  ".join(errors))
+        print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
+        raise SystemExit(2)
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    dgrl = args.groups > 0
-    run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
     random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    rng = np.random.default_rng(args.seed)  # replay sampling
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    envs = make_vector_env(args.num_envs, args.seed, test=False)
-    eval_envs = make_vector_env(args.eval_episodes, args.seed + 10_000, test=True)
-    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    image_shape = envs.single_observation_space["image"].shape
-    action_dim = envs.single_action_space.shape[0]
 
-    nets, optimizers = make_agent(args, image_shape[0], action_dim, device)
-    actor, encoder, vq = nets["actor"], nets["encoder"], nets["vq"]
-    modules = {name: nets[name] for name in ("actor", "critic", "high", "encoder", "driml", "vq")}
-
-    if args.checkpoint is not None:
-        saved = torch.load(args.checkpoint, map_location=device)
-        architecture = ("groups", "n_embed", "feature_dim", "hidden_dim", "driml_dim")
-        differ = [
-            f"--{key.replace('_', '-')} {saved['args'][key]}" for key in architecture if saved["args"][key] != vars(args)[key]
-        ]
-        if differ:
-            raise SystemExit(f"--checkpoint {args.checkpoint} was saved with other settings: pass {' '.join(differ)}")
-        for name, module in modules.items():
-            if module is not None:
-                module.load_state_dict(saved[name])
-        result = evaluate(eval_envs, actor, encoder, vq, device, args.eval_deterministic)
-        print(
-            f"{args.eval_episodes} test episodes: success {result['success_rate']:.0%}, hand success "
-            f"{result['hand_success_rate']:.0%}, final hand distance {result['final_hand_distance']:.3f}, "
-            f"final puck distance {result['final_puck_distance']:.3f}"
-        )
-        raise SystemExit(0)
-
+def make_writer(args, run_name: str) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
     if args.track:
         import wandb
 
@@ -872,44 +916,204 @@ if __name__ == "__main__":
     writer = SummaryWriter(f"runs/{run_name}")
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
+    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
+    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+
+    def __init__(self, total: int, unit: str = "step"):
+        self.total, self.unit = total, unit
+        self.start_time = self.line_time = self.print_time = time.time()
+        self.line_step = 0
+
+    def sps(self, step: int) -> int:
+        return int(step / max(time.time() - self.start_time, 1e-6))
+
+    def line(self, step: int, figures: str) -> None:
+        now = time.time()
+        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
+        self.line_time = self.print_time = now
+        self.line_step = step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
+            self.print_time = time.time()
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
+    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
+    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
+    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
+    script = os.path.basename(__file__)
+    try:
+        saved = torch.load(path, map_location=device, weights_only=True)
+    except Exception as error:
+        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
+              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
+              "with --save-model", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
+    if differ:
+        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it)."""
+    from moviepy import ImageSequenceClip
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+# --- end of run management ---------------------------------------------------------------------------------------------
+
+
+def validate(args: Args) -> None:
+    """Refuse bad flags before any work: each message names the flag and the valid values; exit status 2."""
+    errors = common_errors(args)
+    errors += range_errors(args, "seed start_timesteps image_pad driml_coef", 0)
+    errors += range_errors(
+        args, "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals feature_dim driml_dim eval_frequency", 1
+    )
+    errors += range_errors(args, "eval_episodes", 1)
+    errors += range_errors(args, "n_embed", 1)  # DGRL
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
+    errors += range_errors(args, "q_lr actor_lr h_lr encoder_lr alpha h_lambda prior_epsilon", 0, low_open=True)
+    errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
+    if not 0 <= args.vq_decay < 1:  # DGRL
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
+    if args.feature_dim >= 1 and (args.groups < 0 or (args.groups and args.feature_dim % args.groups)):  # DGRL
+        divisors = [g for g in range(1, args.feature_dim + 1) if args.feature_dim % g == 0]  # DGRL
+        choices = f"0 (RIS) or divide --feature-dim {args.feature_dim}: one of {divisors}"  # DGRL
+        errors.append(f"--groups must be {choices}; got {args.groups}")  # DGRL
+    if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
+        errors.append(
+            f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
+            "sum <= 1 (the rest are future goals)"
+        )
+    # The replay stores whole episodes (up to EPISODE_STEPS + 2 rows) and starts again at row 0 when the next one does not
+    # fit, so it surely fills to --batch-size rows only if it holds a batch and one such episode besides.
+    need_rows = args.batch_size + EPISODE_STEPS + 1
+    if args.batch_size >= 1 and args.buffer_size < need_rows:
+        errors.append(
+            f"--buffer-size must be >= --batch-size + {EPISODE_STEPS + 1} = {need_rows} (whole episodes of up to "
+            f"{EPISODE_STEPS + 2} rows, and a batch besides); got {args.buffer_size}"
+        )
+    # Updates start after the random steps, once finished episodes (up to EPISODE_STEPS steps each) hold a batch.
+    first_update = max(args.start_timesteps + 1, args.batch_size + (EPISODE_STEPS - 1) * args.num_envs)
+    if args.total_timesteps < first_update:
+        errors.append(
+            f"--total-timesteps must be >= {first_update} for any update to run: updates start after --start-timesteps "
+            f"({args.start_timesteps}) random steps, once finished episodes of up to {EPISODE_STEPS} steps per env hold "
+            f"--batch-size ({args.batch_size}) transitions; got {args.total_timesteps}"
+        )
+    exit_on_errors(errors)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    device = seed_and_device(args)
+    saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+    rng = np.random.default_rng(args.seed)  # replay sampling
+
+    envs = make_vector_env(args.num_envs, args.seed, test=False)
+    eval_envs = make_vector_env(args.eval_episodes, args.seed + 10_000, test=True)
+    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    image_shape = envs.single_observation_space["image"].shape
+    action_dim = envs.single_action_space.shape[0]
+    agent = make_agent(args, image_shape[0], action_dim, device)
+
+    if saved is not None:
+        agent.load_checkpoint_entries(saved)
+        video = [] if args.capture_video else None
+        result = evaluate(eval_envs, agent, device, args.eval_deterministic, video)
+        print(
+            f"{args.eval_episodes} test episodes: success {result['success_rate']:.0%}, hand success "
+            f"{result['hand_success_rate']:.0%}, final hand distance {result['final_hand_distance']:.3f}, "
+            f"final puck distance {result['final_puck_distance']:.3f}"
+        )
+        if video:
+            write_video(f"videos/{run_name}/checkpoint_eval.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
+        raise SystemExit(0)
+
+    writer = make_writer(args, run_name)
     print(f"{run_name}: {image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}")
     if device.type == "cpu" and args.batch_size >= 128:
         print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
+    stop = stop_on_signals()
+    progress = Progress(args.total_timesteps)
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
 
     replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim)
-    n_envs = args.num_envs
-    episode = {key: [[] for _ in range(n_envs)] for key in ("images", "states", "actions")}
-    stop = []  # Ctrl-C or SIGTERM ends the run after the current step, with the checkpoint saved and the logs flushed
-
-    def request_stop(number, frame):
-        stop.append(number)
-        signal.signal(number, signal.SIG_DFL)  # a second Ctrl-C or SIGTERM stops at once
-
-    for signal_number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signal_number, request_stop)
-
+    episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
     observations, _ = envs.reset(seed=args.seed)
-    start_time, step, updates, evaluations, next_eval, next_log = time.time(), 0, 0, 0, args.eval_frequency, 1
-    last_eval_step, last_eval_time = 0, 0.0  # for the time left: the rate since the last evaluation
-    last_print = start_time  # a heartbeat line at least every 60 s, so that a slow run never looks hung
-    recent_success, metrics = [], {}
+    step = 0
+    updates = 0
+    evaluations = 0
+    next_eval = args.eval_frequency
+    next_log = 1  # losses every 100 updates, from the first
+    recent_success = []
     result = dict.fromkeys(("success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance"), float("nan"))
     while step < args.total_timesteps and not stop:
+        # Act: uniform random actions during the warm-up, then the policy.
         if step < args.start_timesteps:
             actions = envs.action_space.sample()
         else:
-            actions = act(actor, encoder, vq, observations, device, deterministic=False)
+            actions = act(agent, observations, device, deterministic=False)
         next_observations, _, terminations, truncations, infos = envs.step(actions)
-        step += n_envs
+        step += args.num_envs
 
         # Stage each env's transitions; a finished episode goes to the replay whole, with its true last observation
         # (final_obs) and its goal.
-        for env in range(n_envs):
+        for env in range(args.num_envs):
             episode["images"][env].append(observations["image"][env])
             episode["states"][env].append(observations["state"][env])
             episode["actions"][env].append(actions[env])
             if terminations[env] or truncations[env]:
-                last, final_info = infos["final_obs"][env], infos["final_info"]
+                last = infos["final_obs"][env]
+                final_info = infos["final_info"]
                 replay.add_episode(
                     np.stack([*episode["images"][env], last["image"]]), np.stack([*episode["states"][env], last["state"]]),
                     np.stack(episode["actions"][env]), observations["goal_image"][env], observations["goal"][env],
@@ -926,11 +1130,15 @@ if __name__ == "__main__":
 
         # Train: one update per environment step once the random phase is over.
         if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
-            for _ in range(n_envs):
+            for _ in range(args.num_envs):
                 batch = replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng)
-                metrics = ris_update(nets, optimizers, batch, args)
+                metrics = ris_update(
+                    agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
+                    n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
+                    driml_coef=args.driml_coef,
+                )  # fmt: skip
                 updates += 1
-            if updates >= next_log:  # every 100 updates, from the first
+            if updates >= next_log:
                 next_log += 100
                 for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
                     writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
@@ -938,46 +1146,37 @@ if __name__ == "__main__":
                     writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
                     writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
                     writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
-
-        if time.time() - last_print > 60:
-            last_print = time.time()
-            print(f"step {step:>8}/{args.total_timesteps}  {updates} updates  SPS {int(step / (last_print - start_time))}")
+        progress.heartbeat(step, f"{updates} updates")
 
         # Evaluate on the test configuration, log, print progress, checkpoint.
         if step >= next_eval or step >= args.total_timesteps:
-            last_print = time.time()
             next_eval += args.eval_frequency
             video = [] if args.capture_video and evaluations % 10 == 0 else None
-            result = evaluate(eval_envs, actor, encoder, vq, device, args.eval_deterministic, video)
+            evaluation = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
+            if evaluation is None:  # stopped mid-evaluation: nothing to log
+                break
+            result = evaluation
             evaluations += 1
-            elapsed = time.time() - start_time
-            sps = int(step / elapsed)
-            # The time left from the rate since the last evaluation: the random phase steps 10x faster than training
-            recent_sps = (step - last_eval_step) / max(elapsed - last_eval_time, 1e-9)
-            last_eval_step, last_eval_time = step, elapsed
             for name, value in result.items():
                 writer.add_scalar(f"eval/{name}", value, step)
-            writer.add_scalar("charts/SPS", sps, step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
             train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
             recent_success = []
-            print(
-                f"step {step:>8}/{args.total_timesteps}  eval success {result['success_rate']:4.0%} hand "
-                f"{result['hand_success_rate']:4.0%}  distance hand {result['final_hand_distance']:.3f} puck "
-                f"{result['final_puck_distance']:.3f}  train success {train_success}  SPS {sps}  {elapsed:.0f}s elapsed, "
-                f"{(args.total_timesteps - step) / max(recent_sps, 1e-9):.0f}s left"
+            progress.line(
+                step,
+                f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}  distance hand "
+                f"{result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}  train success {train_success}",
             )
             if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video)
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
             if args.save_model:
-                save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
+                save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
 
     if args.save_model:
-        save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
-        print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
-    print(
-        f"{'stopped' if stop else 'done'}: {step} steps, {updates} updates, last eval success {result['success_rate']:.0%} "
-        f"(hand {result['hand_success_rate']:.0%}), {time.time() - start_time:.0f} s"
-    )
+        save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
+        print(f"checkpoint: {checkpoint_path}")
+    summary = f"last eval success {result['success_rate']:.0%} (hand {result['hand_success_rate']:.0%})"
+    progress.finish(bool(stop), run_name, f"{step} steps, {updates} updates, {summary}")
     envs.close()
     eval_envs.close()
     writer.close()

@@ -9,6 +9,7 @@ there, picking up an object there); the teacher earns +0.7 when the student need
 frame and a one-hot goal cell), snaps the embedding to G codes of one shared EMA codebook and feeds the discrete
 embedding to the student. `--groups 0` is AMIGo from the same file, with the same goal encoder left continuous.
 The student is trained like the original's IMPALA learner: one pass of V-trace actor-critic per batch of rollouts.
+Budgets and frequencies count frames: env steps x --num-envs.
 
     python dgrl_amigo.py --groups 16                           # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
     python dgrl_amigo.py --groups 0                            # AMIGo
@@ -17,13 +18,17 @@ The student is trained like the original's IMPALA learner: one pass of V-trace a
 The study: benchmark/amigo.sh. Docs: docs/dgrl_amigo.md.
 """
 
+import importlib.util
 import itertools
+import math
 import os
 import random
 import re
 import signal
+import sys
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid-* ids)
@@ -35,7 +40,7 @@ import tyro
 from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
 from torch.utils.tensorboard import SummaryWriter
 
-from vq import VectorQuantizerEMA, active_codes, perplexity
+from vq import VectorQuantizerEMA, active_codes, perplexity  # DGRL
 
 
 @dataclass
@@ -46,36 +51,34 @@ class Args:
     """seed of the experiment"""
     torch_deterministic: bool = True
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
-    cuda: bool = False
-    """if toggled, cuda will be enabled when available (off by default: these small networks run faster on the CPU)"""
+    cuda: bool = True
+    """if toggled, cuda will be enabled when available"""
     track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "dgrl"
     """the wandb's project name"""
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to record every --video-frequency-th episode of env 0, the current goal outlined (saved in `videos/`)"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
     save_model: bool = False
-    """whether to save a checkpoint (student, teacher, goal encoder with its codebook, t*) at every progress line and at
-    the end"""
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
-    """path of a saved checkpoint: run it for --eval-episodes episodes with its teacher's goals, then exit"""
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
-    """torch CPU threads (one is fastest for these small networks; two runs then fit side by side on 2 cores)"""
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
 
     # Environment
     env_id: str = "MiniGrid-KeyCorridorS3R3-v0"
     """any MiniGrid id (the paper's KCmedium is read as KeyCorridorS3R3: see the docs)"""
     total_timesteps: int = 30_000_000
-    """total environment frames; both learning rates decay linearly to 0 over exactly this budget"""
+    """total frames (env steps x --num-envs); both learning rates decay linearly to 0 over exactly this budget"""
     num_envs: int = 16
     """parallel environments (the original runs 40 actor processes)"""
     num_steps: int = 100
-    """unroll length of each rollout"""
+    """unroll length of each rollout (steps of every env per collection)"""
     batch_envs: int = 8
-    """rollouts per learner batch (the original's batch size): each collection gives num_envs / batch_envs updates,
-    every one after the first behind the acting policy by one or more updates, which V-trace corrects"""
+    """rollouts per learner batch: each collection gives num_envs / batch_envs updates, the later ones corrected by V-trace"""
 
     # Algorithm: student (IMPALA-style actor-critic with V-trace)
     learning_rate: float = 1e-3
@@ -95,8 +98,7 @@ class Args:
     intrinsic_coef: float = 1.0
     """weight of the goal-reaching reward 1 - 0.9 * steps_since_goal / max_steps"""
     goal_channel: bool = True
-    """the student's conv stack also sees the goal as a one-hot map channel (the original AMIGo student); with
-    --no-goal-channel the goal reaches the student only through the goal encoder (and, under DGRL, its bottleneck)"""
+    """the student also sees the goal as a one-hot map channel (the original student); else only through the goal encoder"""
 
     # Algorithm: teacher (goal generator)
     teacher_learning_rate: float = 2e-3
@@ -116,8 +118,7 @@ class Args:
     t_star_max: int = 100
     """t* never exceeds this"""
     t_star_threshold: float = -0.5
-    """t* rises by one after --t-star-patience consecutive teacher updates with mean teacher reward >= this. The
-    published -0.5 is always met (rewards are >= -0.3), which makes t* rise every 10 updates; -0.1 makes it adaptive"""
+    """t* rises after --t-star-patience teacher updates with mean reward >= this (published -0.5: always met; -0.1 adapts)"""
     t_star_patience: int = 10
     """consecutive teacher updates at or above --t-star-threshold that raise t* by one"""
 
@@ -125,7 +126,7 @@ class Args:
     progress_frequency: int = 100_000
     """frames between two progress lines (and checkpoints with --save-model)"""
     video_frequency: int = 100
-    """with --capture-video, record every this-many-th episode of env 0"""
+    """with --capture-video, record env 0's first episode and then every this-many-th (counted in episodes, not frames)"""
     eval_episodes: int = 100
     """episodes of a --checkpoint evaluation"""
 
@@ -139,10 +140,9 @@ class Args:
     vq_decay: float = 0.99
     """EMA decay of the codebook"""
     vq_dead_code_steps: int = 50
-    """restart a code unused for this many student updates at a random current segment (0 = off, as in the paper;
-    without it the codebook collapses to one code here: see the docs)"""
+    """restart a code unused for this many student updates at a random current segment (0 = off, the paper; see the docs)"""
     embed_dim: int = 128
-    """size of the goal embedding (m) in both modes; must be divisible by groups"""
+    """size of the goal embedding (m) in both modes; must be divisible by --groups"""
 
 
 # --- Environment ------------------------------------------------------------------------------------------------------
@@ -175,13 +175,23 @@ def carried(env) -> tuple[int, int]:
     return (EMPTY, 0) if env.carrying is None else (OBJECT_TO_IDX[env.carrying.type], COLOR_TO_IDX[env.carrying.color])
 
 
-class MiniGridVecEnv:
-    """`num_envs` MiniGrid envs stepped in one loop, fully observed, with same-step autoreset.
+class MiniGridVecEnv(gym.vector.VectorEnv):
+    """`num_envs` MiniGrid envs stepped in one loop, fully observed, with same-step autoreset: gymnasium's VectorEnv API.
 
-    `step` returns the observations to act on next (reset frames for envs whose episode ended), the frames right after
-    the step (before any reset: what the goal-reach test compares), the extrinsic rewards, terminated and truncated
-    flags, and (return, length) of finished episodes. A new layout is generated at every reset (procedural generation).
+    An observation is a dict of batched arrays: "grid", (num_envs, W, H, 3) uint8 [object, colour, state] ids
+    (`full_grid`), and "carried", (num_envs, 2) int64 (`carried`). `reset(seed=s)` seeds env i with s + i (a list gives
+    each env its seed) and returns (obs, {}). `step(actions)` returns (obs, rewards, terminated, truncated, info); an env
+    whose episode ended is reset in the same step (AutoresetMode.SAME_STEP: obs holds its reset frame), and info holds
+    - "final_grid": every env's grid right after the step, before any reset: what the goal-reach test compares (equal
+      to obs["grid"] where no episode ended). A dense (num_envs, W, H, 3) array rather than gymnasium's "final_obs"
+      object array of the ended envs only, so that the reach test runs on all envs at once;
+    - "episode": {"r": return, "l": length} of the episodes that ended, where the mask "_episode" is set (the layout of
+      gymnasium's RecordEpisodeStatistics).
+    A new layout is generated at every reset (procedural generation). Only env 0 renders (`render_env0`): `render()`
+    returns (env 0's frame,), and while `record` is set, `frame0` is env 0's frame after the last step, before any reset.
     """
+
+    metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
 
     def __init__(self, env_id: str, num_envs: int, render_env0: bool = False):
         self.envs = [
@@ -189,15 +199,27 @@ class MiniGridVecEnv:
         ]
         for env in self.envs:
             env.gen_obs = _no_partial_view
-        self.env_id, self.num_envs = env_id, num_envs
-        self.width, self.height, self.max_steps = self.envs[0].width, self.envs[0].height, self.envs[0].max_steps
-        self.n_actions = self.envs[0].action_space.n
+        self.env_id = env_id
+        self.num_envs = num_envs
+        self.render_mode = "rgb_array" if render_env0 else None
+        self.width = self.envs[0].width
+        self.height = self.envs[0].height
+        self.max_steps = self.envs[0].max_steps
+        self.n_actions = int(self.envs[0].action_space.n)
+        highest_id = np.broadcast_to(np.array([N_OBJECTS, N_COLORS, N_STATES]) - 1, (self.width, self.height, 3))
+        grid_space = gym.spaces.Box(0, highest_id.astype(np.uint8), dtype=np.uint8)
+        carried_space = gym.spaces.Box(0, np.array([N_OBJECTS - 1, N_COLORS - 1]), dtype=np.int64)
+        self.single_observation_space = gym.spaces.Dict({"grid": grid_space, "carried": carried_space})
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.single_action_space = gym.spaces.Discrete(self.n_actions)
+        self.action_space = gym.spaces.MultiDiscrete(np.full(num_envs, self.n_actions))
         self.grids = np.zeros((num_envs, self.width, self.height, 3), dtype=np.uint8)  # observation to act on
         self.after = np.zeros_like(self.grids)  # frame right after the last step, before autoreset
         self.carried = np.zeros((num_envs, 2), dtype=np.int64)
         self.episode_return = np.zeros(num_envs)
         self.episode_length = np.zeros(num_envs, dtype=np.int64)
-        self.record, self.frame0 = False, None  # when `record` is set, `frame0` is env 0's render after each step
+        self.record = False  # while set, `frame0` is env 0's render after each step
+        self.frame0 = None
 
     def _observe(self, i: int, target: np.ndarray) -> None:
         env = self.envs[i]
@@ -207,12 +229,17 @@ class MiniGridVecEnv:
         target[i] = grid
         self.carried[i] = carried(env)
 
-    def reset(self, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _observation(self) -> dict[str, np.ndarray]:
+        return {"grid": self.grids.copy(), "carried": self.carried.copy()}
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
+        seeds = seed if isinstance(seed, list) else [None if seed is None else seed + i for i in range(self.num_envs)]
         for i, env in enumerate(self.envs):
-            env.reset(seed=None if seed is None else seed + i)
+            env.reset(seed=seeds[i], options=options)
             self._observe(i, self.grids)
-        self.episode_return[:], self.episode_length[:] = 0, 0
-        return self.grids.copy(), self.carried.copy()
+        self.episode_return[:] = 0
+        self.episode_length[:] = 0
+        return self._observation(), {}
 
     def step(self, actions: np.ndarray):
         rewards = np.zeros(self.num_envs)
@@ -227,17 +254,22 @@ class MiniGridVecEnv:
         self.episode_return += rewards
         self.episode_length += 1
         done = terminated | truncated
-        finished = (self.episode_return[done].copy(), self.episode_length[done].copy())
+        info = {
+            "final_grid": self.after.copy(),
+            "episode": {"r": np.where(done, self.episode_return, 0.0), "l": np.where(done, self.episode_length, 0)},
+            "_episode": done,
+        }
         for i in np.flatnonzero(done):
             self.envs[i].reset()
             self._observe(i, self.grids)
-        self.episode_return[done], self.episode_length[done] = 0, 0
-        return (self.grids.copy(), self.carried.copy()), self.after.copy(), rewards, terminated, truncated, finished
+        self.episode_return[done] = 0
+        self.episode_length[done] = 0
+        return self._observation(), rewards, terminated, truncated, info
 
-    def render(self) -> np.ndarray:
-        return self.envs[0].render()
+    def render(self) -> tuple[np.ndarray]:
+        return (self.envs[0].render(),)
 
-    def close(self) -> None:
+    def close_extras(self, **kwargs) -> None:
         for env in self.envs:
             env.close()
 
@@ -266,7 +298,10 @@ class GoalBook:
         return self.reached(after)
 
     def issue(self, mask: np.ndarray, frames: np.ndarray, goals: np.ndarray, logps: np.ndarray) -> None:
-        self.goal[mask], self.frame[mask], self.logp[mask], self.steps[mask] = goals, frames, logps, 0
+        self.goal[mask] = goals
+        self.frame[mask] = frames
+        self.logp[mask] = logps
+        self.steps[mask] = 0
 
 
 def intrinsic_reward(reached: np.ndarray, steps: np.ndarray, max_steps: int, coef: float) -> np.ndarray:
@@ -291,13 +326,17 @@ class TStar:
     (anything lower ends it); a streak of `patience` raises t* by one (up to `maximum`) and starts a new streak."""
 
     def __init__(self, start: int, threshold: float, patience: int, maximum: int):
-        self.value, self.threshold, self.patience, self.maximum = start, threshold, patience, maximum
+        self.value = start
+        self.threshold = threshold
+        self.patience = patience
+        self.maximum = maximum
         self.streak = 0
 
     def update(self, mean_teacher_reward: float) -> int:
         self.streak = self.streak + 1 if mean_teacher_reward >= self.threshold else 0
         if self.streak >= self.patience:
-            self.value, self.streak = min(self.value + 1, self.maximum), 0
+            self.value = min(self.value + 1, self.maximum)
+            self.streak = 0
         return self.value
 
 
@@ -330,7 +369,9 @@ class GridEmbedding(nn.Module):
 
     def __init__(self):
         super().__init__()
-        self.object, self.color, self.state = nn.Embedding(N_OBJECTS, 5), nn.Embedding(N_COLORS, 3), nn.Embedding(N_STATES, 2)
+        self.object = nn.Embedding(N_OBJECTS, 5)
+        self.color = nn.Embedding(N_COLORS, 3)
+        self.state = nn.Embedding(N_STATES, 2)
 
     def forward(self, grids: torch.Tensor, goals: torch.Tensor | None = None) -> torch.Tensor:
         grids = grids.long()
@@ -363,12 +404,15 @@ class Student(nn.Module):
 
     def __init__(self, width: int, height: int, n_actions: int, goal_channel: bool, embed_dim: int):
         super().__init__()
-        self.goal_channel, self.embed_dim = goal_channel, embed_dim
+        self.goal_channel = goal_channel
+        self.embed_dim = embed_dim
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(10 + goal_channel, width, height)
-        self.carried_object, self.carried_color = nn.Embedding(N_OBJECTS, 5), nn.Embedding(N_COLORS, 3)
+        self.carried_object = nn.Embedding(N_OBJECTS, 5)
+        self.carried_color = nn.Embedding(N_COLORS, 3)
         self.fc = nn.Sequential(nn.Linear(trunk_out + 8 + embed_dim, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU())
-        self.policy, self.baseline = nn.Linear(256, n_actions), nn.Linear(256, 1)
+        self.policy = nn.Linear(256, n_actions)
+        self.baseline = nn.Linear(256, 1)
 
     def forward(self, grids, carried, goals, goal_embedding) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.trunk(self.embedding(grids, goals if self.goal_channel else None))
@@ -382,22 +426,30 @@ class GoalEncoder(nn.Module):
     through the same trunk design as the student's, to an `embed_dim` vector. Under DGRL the vector is split into G
     factors, each snapped to the nearest code of one shared EMA codebook; for AMIGo (G = 0) it stays continuous."""
 
-    def __init__(self, width: int, height: int, embed_dim: int, args: "Args"):
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        embed_dim: int,
+        groups: int,  # DGRL: 0 for AMIGo
+        n_embed: int,  # DGRL
+        beta: float,  # DGRL
+        decay: float,  # DGRL
+        dead_code_steps: int,  # DGRL
+    ):
         super().__init__()
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(11, width, height)
         self.head = nn.Linear(trunk_out, embed_dim)
-        self.vq = None
-        if args.groups > 0:  # DGRL
-            self.vq = VectorQuantizerEMA(
-                embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
-            )  # DGRL
+        self.vq = None  # DGRL
+        if groups > 0:  # DGRL
+            self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
 
     def forward(self, frames, goals, update: bool = False):
         """(goal embedding, commitment loss, code indices or None); `update=True` only in learner batches."""
         z = self.head(self.trunk(self.embedding(frames, goals)))
-        if self.vq is None:
-            return z, z.new_zeros(()), None
+        if self.vq is None:  # DGRL
+            return z, z.new_zeros(()), None  # DGRL: AMIGo's embedding stays continuous, with no commitment loss
         return self.vq(z, update=update)  # DGRL: (z_q straight-through, commitment loss, (B, G) indices)
 
 
@@ -422,7 +474,73 @@ class Teacher(nn.Module):
         return logits, self.baseline(logits).squeeze(-1)
 
 
-# --- Losses -----------------------------------------------------------------------------------------------------------
+@dataclass
+class Agent:
+    """AMIGo's two learners. The student and the goal encoder share one optimizer (the encoder learns from the student's
+    loss); the teacher has its own. Under DGRL the goal encoder holds the codebook (`goal_encoder.vq`), which moves by
+    EMA in learner batches and is in no optimizer; for AMIGo (G = 0) the same encoder stays continuous (`vq` is None)."""
+
+    student: Student
+    goal_encoder: GoalEncoder
+    teacher: Teacher
+    student_optimizer: torch.optim.Optimizer  # the student's and the goal encoder's parameters
+    teacher_optimizer: torch.optim.Optimizer
+
+    def state_dicts(self) -> dict[str, dict]:
+        """Every network's state dict, the goal encoder's with its codebook buffers: what evaluation needs."""
+        return {
+            "student": self.student.state_dict(),
+            "goal_encoder": self.goal_encoder.state_dict(),
+            "teacher": self.teacher.state_dict(),
+        }
+
+    def load_state_dicts(self, saved: dict) -> None:
+        self.student.load_state_dict(saved["student"])
+        self.goal_encoder.load_state_dict(saved["goal_encoder"])
+        self.teacher.load_state_dict(saved["teacher"])
+
+
+def make_agent(
+    width: int,
+    height: int,
+    n_actions: int,
+    device,
+    *,
+    goal_channel: bool,
+    embed_dim: int,
+    learning_rate: float,
+    teacher_learning_rate: float,
+    rmsprop_alpha: float,
+    rmsprop_eps: float,
+    groups: int,  # DGRL
+    n_embed: int,  # DGRL
+    vq_beta: float,  # DGRL
+    vq_decay: float,  # DGRL
+    vq_dead_code_steps: int,  # DGRL
+) -> Agent:
+    """The student, the goal encoder (continuous for --groups 0) and the teacher, built in this order (the seeded
+    initial weights depend on it), with their RMSProp optimizers."""
+    student = Student(width, height, n_actions, goal_channel, embed_dim).to(device)
+    goal_encoder = GoalEncoder(
+        width,
+        height,
+        embed_dim,
+        groups,  # DGRL
+        n_embed,  # DGRL
+        vq_beta,  # DGRL
+        vq_decay,  # DGRL
+        vq_dead_code_steps,  # DGRL
+    ).to(device)
+    teacher = Teacher(width, height).to(device)
+    student_params = [*student.parameters(), *goal_encoder.parameters()]  # the goal encoder learns from the student's loss
+    student_optimizer = torch.optim.RMSprop(student_params, lr=learning_rate, alpha=rmsprop_alpha, eps=rmsprop_eps)
+    teacher_optimizer = torch.optim.RMSprop(
+        teacher.parameters(), lr=teacher_learning_rate, alpha=rmsprop_alpha, eps=rmsprop_eps
+    )
+    return Agent(student, goal_encoder, teacher, student_optimizer, teacher_optimizer)
+
+
+# --- Losses and updates -----------------------------------------------------------------------------------------------
 
 
 def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts, rho_bar: float = 1.0, c_bar: float = 1.0):
@@ -433,7 +551,8 @@ def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts, r
     """
     with torch.no_grad():
         ratios = torch.exp(target_logp - behaviour_logp)
-        rhos, cs = ratios.clamp(max=rho_bar), ratios.clamp(max=c_bar)
+        rhos = ratios.clamp(max=rho_bar)
+        cs = ratios.clamp(max=c_bar)
         next_values = torch.cat([values[1:], bootstrap[None]], 0)
         deltas = rhos * (rewards + discounts * next_values - values)
         corrections = torch.zeros_like(values)
@@ -457,7 +576,7 @@ def actor_critic_loss(logits, values, actions, vs, advantages, baseline_coef: fl
     return policy_loss + baseline_coef * baseline_loss - entropy_coef * entropy, policy_loss, baseline_loss, entropy
 
 
-def teacher_loss(teacher: Teacher, batch: dict, rewards: np.ndarray, args: "Args", device) -> dict[str, torch.Tensor]:
+def teacher_loss(teacher: Teacher, batch: dict, rewards: np.ndarray, device, *, baseline_coef: float, entropy_coef: float):
     """The teacher's contextual-bandit update (discount 0): V-trace with one step reduces to an importance-weighted
     policy gradient, rho = min(1, pi/mu), with advantage rho * (r - b) and baseline target b + rho * (r - b)."""
     logits, baseline = teacher(torch.as_tensor(batch["frame"], device=device))
@@ -471,45 +590,62 @@ def teacher_loss(teacher: Teacher, batch: dict, rewards: np.ndarray, args: "Args
         behaviour[None], logp.detach()[None], rewards_t[None], baseline.detach()[None], no_discount, no_discount[None]
     )
     total, policy, base, entropy = actor_critic_loss(
-        logits[None], baseline[None], goals[None], vs, advantages, args.teacher_baseline_coef, args.teacher_entropy_coef
+        logits[None], baseline[None], goals[None], vs, advantages, baseline_coef, entropy_coef
     )
     return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy / len(goals)}
 
 
-def student_update(student, goal_encoder, optimizer, rollout: dict, last: dict, args: "Args", device) -> dict:
+def teacher_update(agent: Agent, batch: dict, rewards: np.ndarray, device, *, baseline_coef, entropy_coef, max_grad_norm):
+    """One teacher step on a batch of goal outcomes (frame, goal, logp of the proposing teacher) and their rewards."""
+    losses = teacher_loss(agent.teacher, batch, rewards, device, baseline_coef=baseline_coef, entropy_coef=entropy_coef)
+    agent.teacher_optimizer.zero_grad(set_to_none=True)
+    losses["loss"].backward()
+    nn.utils.clip_grad_norm_(agent.teacher.parameters(), max_grad_norm)
+    agent.teacher_optimizer.step()
+    return losses
+
+
+def student_update(
+    agent: Agent, rollout: dict, last: dict, device, *, gamma, baseline_coef, entropy_coef, max_grad_norm
+) -> dict:
     """One learner step on a batch of rollouts: `rollout` holds (T, B, ...) arrays (grids, carried, goal_frames, goals,
     actions, logps of the acting policy, rewards, dones), `last` the (B, ...) observation after the rollout, whose value
     bootstraps. The goal encoder trains through the student's loss, plus the commitment loss under DGRL."""
     T, B = rollout["actions"].shape
     obs = {key: np.concatenate([rollout[key].reshape(T * B, *rollout[key].shape[2:]), last[key]]) for key in last}
     grids, carry, frames, goals = tensors(device, obs["grids"], obs["carried"], obs["goal_frames"], obs["goals"])
-    embedding, vq_loss, codes = goal_encoder(frames, goals, update=True)  # DGRL: the codebook moves in learner batches only
-    logits, values = student(grids, carry, goals, embedding)
+    embedding, vq_loss, codes = agent.goal_encoder(frames, goals, update=True)  # DGRL: the codebook moves in learner batches
+    logits, values = agent.student(grids, carry, goals, embedding)
     values = values.view(T + 1, B)  # row T: the bootstrap values
     logits = logits[: T * B].view(T, B, -1)
     actions, behaviour, rewards, dones = tensors(
         device, rollout["actions"], rollout["logps"], rollout["rewards"], rollout["dones"]
     )
     target_logp = F.log_softmax(logits, -1).gather(-1, actions[..., None]).squeeze(-1).detach()
-    discounts = args.gamma * (1.0 - dones)
+    discounts = gamma * (1.0 - dones)
     vs, advantages = vtrace(behaviour, target_logp, rewards, values[:T].detach(), values[T].detach(), discounts)
     loss, policy_loss, baseline_loss, entropy = actor_critic_loss(
-        logits, values[:T], actions, vs, advantages, args.baseline_coef, args.entropy_coef
+        logits, values[:T], actions, vs, advantages, baseline_coef, entropy_coef
     )
-    optimizer.zero_grad(set_to_none=True)
-    (loss + vq_loss * len(goals)).backward()  # DGRL: summed over the batch like the RL losses (zero for AMIGo)
-    nn.utils.clip_grad_norm_([*student.parameters(), *goal_encoder.parameters()], args.max_grad_norm)
-    optimizer.step()
+    agent.student_optimizer.zero_grad(set_to_none=True)
+    (loss + vq_loss * len(goals)).backward()  # DGRL: summed over the batch's goals like the RL losses (zero for AMIGo)
+    nn.utils.clip_grad_norm_([*agent.student.parameters(), *agent.goal_encoder.parameters()], max_grad_norm)
+    agent.student_optimizer.step()
     return {
         "policy_loss": policy_loss,
         "baseline_loss": baseline_loss,
         "entropy": entropy / (T * B),
-        "vq_loss": vq_loss,
-        "codes": codes,
+        "vq_loss": vq_loss,  # DGRL
+        "codes": codes,  # DGRL
     }
 
 
-# --- Acting, evaluation, checkpoints ----------------------------------------------------------------------------------
+def linear_decay(frames: int, total: int) -> float:
+    """The learning-rate factor after `frames` of a `total`-frame run: 1 at the start, 0 at the end."""
+    return max(1.0 - frames / total, 0.0)
+
+
+# --- Acting, evaluation -----------------------------------------------------------------------------------------------
 
 
 def tensors(device, *arrays: np.ndarray) -> list[torch.Tensor]:
@@ -527,23 +663,24 @@ def propose_goals(teacher: Teacher, frames: np.ndarray, device) -> tuple[np.ndar
 
 @torch.no_grad()
 def embed_goals(goal_encoder: GoalEncoder, frames: np.ndarray, goals: np.ndarray, device) -> torch.Tensor:
-    """Goal embeddings for acting: the codebook does not move (update=False). Acting computes them once per goal."""
-    return goal_encoder(*tensors(device, frames, goals), update=False)[0]
+    """Goal embeddings for acting, computed once per goal."""
+    return goal_encoder(*tensors(device, frames, goals), update=False)[0]  # DGRL: acting never moves the codebook
 
 
 @torch.no_grad()
-def act(student: Student, grids, carry, book: GoalBook, goal_embedding: torch.Tensor, device):
+def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Tensor, device):
     """The student's sampled actions and their log-probabilities."""
-    grids_t, carry_t, goals_t = tensors(device, grids, carry, book.goal)
+    grids_t, carry_t, goals_t = tensors(device, obs["grid"], obs["carried"], goals)
     logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)
     actions = torch.distributions.Categorical(logits=logits).sample()
     return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
 
 
-def renew_goals(mask: np.ndarray, book: GoalBook, goal_embedding: torch.Tensor, grids, teacher, goal_encoder, device):
+def renew_goals(agent: Agent, book: GoalBook, mask: np.ndarray, grids: np.ndarray, goal_embedding: torch.Tensor, device):
     """New teacher goals for the envs in `mask`, issued on their current frames, and their embeddings."""
-    book.issue(mask, grids[mask], *propose_goals(teacher, grids[mask], device))
-    goal_embedding[torch.as_tensor(mask, device=device)] = embed_goals(goal_encoder, book.frame[mask], book.goal[mask], device)
+    book.issue(mask, grids[mask], *propose_goals(agent.teacher, grids[mask], device))
+    embeddings = embed_goals(agent.goal_encoder, book.frame[mask], book.goal[mask], device)
+    goal_embedding[torch.as_tensor(mask, device=device)] = embeddings
 
 
 def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.ndarray:
@@ -552,133 +689,115 @@ def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.
     frame = frame.copy()
     x, y = divmod(int(goal), height)
     cell = frame[y * tile : (y + 1) * tile, x * tile : (x + 1) * tile]
-    cell[:3], cell[-3:], cell[:, :3], cell[:, -3:] = 255, 255, 255, 255
-    cell[:3, :, 2], cell[-3:, :, 2], cell[:, :3, 2], cell[:, -3:, 2] = 0, 0, 0, 0
+    for edge in (cell[:3], cell[-3:], cell[:, :3], cell[:, -3:]):
+        edge[:] = 255
+        edge[..., 2] = 0
     return frame
 
 
-def evaluate(envs: MiniGridVecEnv, student, goal_encoder, teacher, device, episodes: int, seed: int) -> dict[str, float]:
-    """Run the student with its teacher's goals (as during training, actions sampled) until `episodes` episodes end;
-    mean extrinsic return, success rate, goals reached per episode."""
-    grids, carry = envs.reset(seed=seed)
+def evaluate(agent: Agent, envs: MiniGridVecEnv, episodes: int, seed: int, device, stop=()) -> dict[str, float]:
+    """Run the student with its teacher's goals (as during training, actions sampled) until `episodes` episodes end or
+    `stop` (the signals received) fills: episodes run, mean extrinsic return, success rate, goals reached per episode."""
+    obs, _ = envs.reset(seed=seed)
     book = GoalBook(envs.num_envs, envs.width, envs.height)
-    goal_embedding = torch.zeros(envs.num_envs, student.embed_dim, device=device)
-    renew_goals(np.ones(envs.num_envs, dtype=bool), book, goal_embedding, grids, teacher, goal_encoder, device)
-    returns, reached_total = [], 0
-    while len(returns) < episodes:
-        actions, _ = act(student, grids, carry, book, goal_embedding, device)
-        (grids, carry), after, _, terminated, truncated, (finished, _) = envs.step(actions)
-        reached = book.advance(after)
+    goal_embedding = torch.zeros(envs.num_envs, agent.student.embed_dim, device=device)
+    renew_goals(agent, book, np.ones(envs.num_envs, dtype=bool), obs["grid"], goal_embedding, device)
+    returns = []
+    reached_total = 0
+    while len(returns) < episodes and not stop:
+        actions, _ = act(agent.student, obs, book.goal, goal_embedding, device)
+        obs, _, terminated, truncated, info = envs.step(actions)
+        reached = book.advance(info["final_grid"])
         reached_total += int(reached.sum())
         renew = reached | terminated | truncated
         if renew.any():
-            renew_goals(renew, book, goal_embedding, grids, teacher, goal_encoder, device)
-        returns.extend(finished.tolist())
+            renew_goals(agent, book, renew, obs["grid"], goal_embedding, device)
+        returns.extend(info["episode"]["r"][info["_episode"]].tolist())
     returns = np.array(returns[:episodes])
-    return {"return": returns.mean(), "success": (returns > 0).mean(), "goals_per_episode": reached_total / len(returns)}
+    if not len(returns):
+        return {"episodes": 0, "return": math.nan, "success": math.nan, "goals_per_episode": math.nan}
+    return {
+        "episodes": len(returns),
+        "return": returns.mean(),
+        "success": (returns > 0).mean(),
+        "goals_per_episode": reached_total / len(returns),
+    }
 
 
-def save_checkpoint(path: str, modules: dict[str, nn.Module], extra: dict, args: Args) -> None:
-    """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
-    payload = {name: module.state_dict() for name, module in modules.items()} | extra | {"args": vars(args)}
-    torch.save(payload, path + ".tmp")
-    os.replace(path + ".tmp", path)
+def mean_text(values: list[float]) -> str:
+    return f"{np.mean(values):.2f}" if values else "-"
 
 
-def write_video(path: str, frames: list[np.ndarray], fps: int = 8) -> None:
-    from moviepy import ImageSequenceClip
-
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+def new_window() -> dict:
+    """What a progress line reports: episodes ended, goal outcomes and teacher rewards since the previous line."""
+    return {"return": [], "success": [], "reached": 0, "outcomes": 0, "goal_steps": [], "teacher_reward": []}
 
 
-def validate(args: Args) -> None:
-    """Reject bad flags before any work, naming the flag and the valid choices."""
+MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # a checkpoint's networks and what it is run on
+LOSS_LOG_UPDATES = 10  # student updates between two writes of the student's losses
+VIDEO_FPS = 8
+
+
+# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+
+CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+
+
+def flag_text(key: str, value) -> str:
+    """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
+    name = key.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
+
+
+def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
     errors = []
-    if args.env_id not in (ids := minigrid_ids()):
-        key = re.sub(r"[^a-z0-9]", "", args.env_id.lower().removeprefix("minigrid"))[:8]
-        close = [name for name in ids if key and key in re.sub(r"[^a-z0-9]", "", name.lower())]
-        hint = f"did you mean {', '.join(close[:6])}? " if close else ""
-        errors.append(f"--env-id {args.env_id!r} is not a MiniGrid id; {hint}choices: {', '.join(ids)}")
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
-    for flag in (
-        "total_timesteps", "num_envs", "num_steps", "batch_envs", "teacher_batch_size", "t_star_patience",
-        "progress_frequency", "video_frequency", "eval_episodes", "n_embed", "embed_dim", "threads",
-    ):  # fmt: skip
-        if getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
-    for flag in ("learning_rate", "teacher_learning_rate", "rmsprop_eps", "max_grad_norm"):
-        if getattr(args, flag) <= 0:
-            errors.append(f"--{flag.replace('_', '-')} must be > 0; got {getattr(args, flag)}")
-    for flag in (
-        "entropy_coef",
-        "baseline_coef",
-        "teacher_entropy_coef",
-        "teacher_baseline_coef",
-        "intrinsic_coef",
-        "vq_dead_code_steps",
-    ):
-        if getattr(args, flag) < 0:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
-    if not 0 <= args.gamma <= 1:
-        errors.append(f"--gamma must be in [0, 1]; got {args.gamma}")
-    if args.checkpoint is None and args.batch_envs >= 1 and args.num_envs % args.batch_envs:
-        errors.append(f"--batch-envs ({args.batch_envs}) must divide --num-envs ({args.num_envs})")
-    if not 0 <= args.t_star_start <= args.t_star_max:
-        errors.append(f"--t-star-start ({args.t_star_start}) must be in [0, --t-star-max ({args.t_star_max})]")
-    if args.num_envs >= 1 and args.num_steps >= 1 and args.total_timesteps < args.num_envs * args.num_steps:
-        frames = args.num_envs * args.num_steps
-        errors.append(
-            f"--total-timesteps ({args.total_timesteps}) must cover one collection: >= --num-envs x --num-steps ({frames})"
-        )
+    for key in flags.split():
+        value = getattr(args, key)
+        if value < low or (low_open and value == low) or value > high:
+            if high == math.inf:
+                wanted = f"{'>' if low_open else '>='} {low:g}"
+            else:
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+            errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
+    return errors
+
+
+def common_errors(args) -> list[str]:
+    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    errors = [
+        f"--{key.replace('_', '-')} must be a finite number; got {value}"
+        for key, value in vars(args).items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    errors += range_errors(args, "threads", 1)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    return errors
+
+
+def exit_on_errors(errors: list[str]) -> None:
+    """Print every error with the script's name and exit with status 2 (as for an unknown flag), before any work."""
     if errors:
-        raise SystemExit("dgrl_amigo.py: invalid arguments:\n  " + "\n  ".join(errors))
+        print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
+        raise SystemExit(2)
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    dgrl = args.groups > 0
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
     random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
-    width, height, n_envs, T = envs.width, envs.height, args.num_envs, args.num_steps
-    student = Student(width, height, envs.n_actions, args.goal_channel, args.embed_dim).to(device)
-    goal_encoder = GoalEncoder(width, height, args.embed_dim, args).to(device)
-    teacher = Teacher(width, height).to(device)
-    modules = {"student": student, "goal_encoder": goal_encoder, "teacher": teacher}
 
-    if args.checkpoint is not None:
-        saved = torch.load(args.checkpoint, map_location=device)
-        architecture = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")
-        differ = [
-            f"--{key.replace('_', '-')} {saved['args'][key]}"
-            for key in architecture
-            if saved["args"][key] != getattr(args, key)
-        ]
-        if differ:
-            raise SystemExit(f"--checkpoint {args.checkpoint} was saved with other settings: pass {' '.join(differ)}")
-        for name, module in modules.items():
-            module.load_state_dict(saved[name])
-        result = evaluate(envs, student, goal_encoder, teacher, device, args.eval_episodes, args.seed + 10_000)
-        print(
-            f"{args.eval_episodes} episodes (t* {saved['t_star']} at save): return {result['return']:.3f}, "
-            f"success {result['success']:.0%}, goals reached per episode {result['goals_per_episode']:.1f}"
-        )
-        raise SystemExit(0)
-
+def make_writer(args, run_name: str) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
     if args.track:
         import wandb
 
@@ -693,12 +812,196 @@ if __name__ == "__main__":
     writer = SummaryWriter(f"runs/{run_name}")
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
-    print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
+    return writer
 
-    rmsprop = {"alpha": args.rmsprop_alpha, "eps": args.rmsprop_eps}
-    student_params = [*student.parameters(), *goal_encoder.parameters()]  # the goal encoder learns from the student's loss
-    student_optimizer = torch.optim.RMSprop(student_params, lr=args.learning_rate, **rmsprop)
-    teacher_optimizer = torch.optim.RMSprop(teacher.parameters(), lr=args.teacher_learning_rate, **rmsprop)
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
+    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
+    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+
+    def __init__(self, total: int, unit: str = "step"):
+        self.total, self.unit = total, unit
+        self.start_time = self.line_time = self.print_time = time.time()
+        self.line_step = 0
+
+    def sps(self, step: int) -> int:
+        return int(step / max(time.time() - self.start_time, 1e-6))
+
+    def line(self, step: int, figures: str) -> None:
+        now = time.time()
+        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
+        self.line_time = self.print_time = now
+        self.line_step = step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
+            self.print_time = time.time()
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
+    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
+    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
+    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
+    script = os.path.basename(__file__)
+    try:
+        saved = torch.load(path, map_location=device, weights_only=True)
+    except Exception as error:
+        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
+              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
+              "with --save-model", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
+    if differ:
+        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it)."""
+    from moviepy import ImageSequenceClip
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+# --- end of run management ---------------------------------------------------------------------------------------------
+
+
+def env_error(env_id: str) -> str | None:
+    """Why `env_id` cannot run here (a MiniGrid id whose env fails to build or reset), or None."""
+    try:
+        env = gym.make(env_id).unwrapped
+        env.reset(seed=0)
+        env.close()
+    except Exception as error:
+        return f"--env-id {env_id} fails to build or reset here ({type(error).__name__}: {error}); pick another MiniGrid id"
+    return None
+
+
+def validate(args: Args) -> None:
+    """Refuse bad flags before any work, naming the flag and the valid choices; exit with status 2."""
+    errors = common_errors(args)
+    if args.env_id not in (ids := minigrid_ids()):
+        key = re.sub(r"[^a-z0-9]", "", args.env_id.lower().removeprefix("minigrid"))[:8]
+        close = [name for name in ids if key and key in re.sub(r"[^a-z0-9]", "", name.lower())]
+        hint = f"did you mean {', '.join(close[:6])}? " if close else ""
+        errors.append(f"--env-id {args.env_id!r} is not a MiniGrid id; {hint}choices: {', '.join(ids)}")
+    elif (error := env_error(args.env_id)) is not None:
+        errors.append(error)
+    errors += range_errors(args, "seed", 0)
+    positive_counts = "total_timesteps num_envs num_steps batch_envs teacher_batch_size t_star_patience progress_frequency"
+    errors += range_errors(args, f"{positive_counts} video_frequency eval_episodes embed_dim", 1)
+    errors += range_errors(args, "learning_rate teacher_learning_rate rmsprop_eps max_grad_norm", 0, low_open=True)
+    errors += range_errors(args, "entropy_coef baseline_coef teacher_entropy_coef teacher_baseline_coef intrinsic_coef", 0)
+    errors += range_errors(args, "gamma", 0, 1, low_open=True)
+    if not 0 <= args.rmsprop_alpha < 1:
+        errors.append(f"--rmsprop-alpha must be in [0, 1); got {args.rmsprop_alpha}")
+    if args.t_star_threshold > 1:
+        errors.append(
+            f"--t-star-threshold must be <= 1 (teacher rewards are at most 1: t* never rises); got {args.t_star_threshold}"
+        )
+    if not 0 <= args.t_star_start <= args.t_star_max:
+        errors.append(f"--t-star-start ({args.t_star_start}) must be in [0, --t-star-max ({args.t_star_max})]")
+    if args.num_envs >= 1 and args.num_steps >= 1 and args.total_timesteps < args.num_envs * args.num_steps:
+        frames = args.num_envs * args.num_steps
+        errors.append(
+            f"--total-timesteps ({args.total_timesteps}) must cover one collection: >= --num-envs x --num-steps ({frames})"
+        )
+    if args.checkpoint is None and args.batch_envs >= 1 and args.num_envs % args.batch_envs:
+        errors.append(f"--batch-envs ({args.batch_envs}) must divide --num-envs ({args.num_envs})")
+    if args.checkpoint is not None and (args.save_model or args.capture_video):
+        errors.append("--save-model and --capture-video apply to training; a --checkpoint evaluation records neither")
+    if args.groups < 0 or (args.groups and args.embed_dim >= 1 and args.embed_dim % args.groups):  # DGRL
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
+        errors.append(  # DGRL
+            f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"  # DGRL
+        )  # DGRL
+    errors += range_errors(args, "n_embed", 1)  # DGRL
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
+    if not 0 <= args.vq_decay < 1:  # DGRL
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
+    exit_on_errors(errors)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    device = seed_and_device(args)
+    envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
+    width = envs.width
+    height = envs.height
+    n_envs = args.num_envs
+    T = args.num_steps
+    agent = make_agent(
+        width,
+        height,
+        envs.n_actions,
+        device,
+        goal_channel=args.goal_channel,
+        embed_dim=args.embed_dim,
+        learning_rate=args.learning_rate,
+        teacher_learning_rate=args.teacher_learning_rate,
+        rmsprop_alpha=args.rmsprop_alpha,
+        rmsprop_eps=args.rmsprop_eps,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+    )
+    stop = stop_on_signals()
+
+    if args.checkpoint is not None:
+        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+        agent.load_state_dicts(saved)
+        result = evaluate(agent, envs, args.eval_episodes, args.seed + 10_000, device, stop)
+        print(
+            f"{result['episodes']} episodes (t* {saved['t_star']} at save): return {result['return']:.3f}, "
+            f"success {result['success']:.0%}, goals reached per episode {result['goals_per_episode']:.1f}"
+        )
+        envs.close()
+        raise SystemExit(0)
+
+    writer = make_writer(args, run_name)
+    print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
     t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
     outcomes = OutcomeBuffer()
 
@@ -713,92 +1016,113 @@ if __name__ == "__main__":
         "rewards": np.zeros((T, n_envs), dtype=np.float32),
         "dones": np.zeros((T, n_envs), dtype=np.float32),
     }
-
-    stop = []  # Ctrl-C or SIGTERM ends the run after the current collection, with the checkpoint saved and logs flushed
-
-    def request_stop(number, frame):
-        stop.append(number)
-        signal.signal(number, signal.SIG_DFL)  # a second Ctrl-C or SIGTERM stops at once
-
-    for signal_number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signal_number, request_stop)
-
-    grids, carry = envs.reset(seed=args.seed)
+    obs, _ = envs.reset(seed=args.seed)
     book = GoalBook(n_envs, width, height)
     goal_embedding = torch.zeros(n_envs, args.embed_dim, device=device)
-    renew_goals(np.ones(n_envs, dtype=bool), book, goal_embedding, grids, teacher, goal_encoder, device)
-    start_time = last_print = time.time()
-    step, student_updates, teacher_updates, next_progress = 0, 0, 0, args.progress_frequency
-    window = {"return": [], "success": [], "reached": 0, "outcomes": 0, "goal_steps": [], "teacher_reward": []}
-    envs.record, episodes_env0 = args.capture_video, 0  # record env 0's first episode, then every --video-frequency-th
-    video = [goal_frame(envs.render(), book.goal[0], height)] if envs.record else []
+    renew_goals(agent, book, np.ones(n_envs, dtype=bool), obs["grid"], goal_embedding, device)
+    envs.record = args.capture_video  # record env 0's first episode, then every --video-frequency-th
+    video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
+    episodes_env0 = 0
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    progress = Progress(args.total_timesteps, unit="frame")
+    step = 0  # frames: env steps x --num-envs
+    student_updates = 0
+    teacher_updates = 0
+    next_progress = args.progress_frequency
+    next_loss_log = LOSS_LOG_UPDATES
+    window = new_window()
     metrics = {}
     while step < args.total_timesteps and not stop:
         # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
-        goal_embedding = embed_goals(goal_encoder, book.frame, book.goal, device)  # once per goal (and per collection)
+        goal_embedding = embed_goals(agent.goal_encoder, book.frame, book.goal, device)  # the encoder changed since
         for t in range(T):
             goal0 = book.goal[0]
-            actions, logps = act(student, grids, carry, book, goal_embedding, device)
-            rollout["grids"][t], rollout["carried"][t], rollout["goal_frames"][t] = grids, carry, book.frame
-            rollout["goals"][t], rollout["actions"][t], rollout["logps"][t] = book.goal, actions, logps
-            (grids, carry), after, extrinsic, terminated, truncated, (returns, lengths) = envs.step(actions)
-            reached = book.advance(after)
+            actions, logps = act(agent.student, obs, book.goal, goal_embedding, device)
+            rollout["grids"][t] = obs["grid"]
+            rollout["carried"][t] = obs["carried"]
+            rollout["goal_frames"][t] = book.frame
+            rollout["goals"][t] = book.goal
+            rollout["actions"][t] = actions
+            rollout["logps"][t] = logps
+            obs, extrinsic, terminated, truncated, info = envs.step(actions)
+            reached = book.advance(info["final_grid"])
             done = terminated | truncated
             intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
-            rollout["rewards"][t], rollout["dones"][t] = student_reward(extrinsic, intrinsic), done
+            rollout["rewards"][t] = student_reward(extrinsic, intrinsic)
+            rollout["dones"][t] = done
             # One teacher outcome per reached goal, and one per episode end for a goal still pending.
             renew = reached | done
             outcomes.add(
-                frame=book.frame[renew], goal=book.goal[renew], logp=book.logp[renew], reached=reached[renew],
-                steps=book.steps[renew], extrinsic_success=extrinsic[renew] > 0,
-            )  # fmt: skip
+                frame=book.frame[renew],
+                goal=book.goal[renew],
+                logp=book.logp[renew],
+                reached=reached[renew],
+                steps=book.steps[renew],
+                extrinsic_success=extrinsic[renew] > 0,
+            )
             window["reached"] += int(reached.sum())
             window["outcomes"] += int(renew.sum())
             window["goal_steps"] += book.steps[reached].tolist()
             if renew.any():  # a new goal on the frame the student is in now (the reset frame after an episode end)
-                renew_goals(renew, book, goal_embedding, grids, teacher, goal_encoder, device)
-            for ret, length in zip(returns, lengths, strict=True):
+                renew_goals(agent, book, renew, obs["grid"], goal_embedding, device)
+            ended = info["_episode"]
+            for ret, length in zip(info["episode"]["r"][ended], info["episode"]["l"][ended], strict=True):
                 window["return"].append(ret)
                 window["success"].append(float(ret > 0))
                 writer.add_scalar("charts/episodic_return", ret, step)
                 writer.add_scalar("charts/episodic_length", length, step)
                 writer.add_scalar("charts/success_rate", float(ret > 0), step)
             step += n_envs
-            if envs.record:  # env 0's frame before any reset, its goal as it was when acting
+            # Video of env 0: its frame before any reset, its goal as it was when acting.
+            if envs.record:
                 video.append(goal_frame(envs.frame0, goal0, height))
             if done[0]:
                 if envs.record:
-                    write_video(f"videos/{run_name}/episode_{episodes_env0}.mp4", video)
+                    write_video(f"videos/{run_name}/episode_{episodes_env0}.mp4", video, VIDEO_FPS)
                 episodes_env0 += 1
                 envs.record = args.capture_video and episodes_env0 % args.video_frequency == 0
-                video = [goal_frame(envs.render(), book.goal[0], height)] if envs.record else []
+                video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
 
         # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
-        lr_scale = max(1.0 - (step - n_envs * T) / args.total_timesteps, 0.0)
-        student_optimizer.param_groups[0]["lr"] = args.learning_rate * lr_scale
-        last = {"grids": grids, "carried": carry, "goal_frames": book.frame, "goals": book.goal}
+        lr_scale = linear_decay(step - n_envs * T, args.total_timesteps)  # from the collection's first frame
+        agent.student_optimizer.param_groups[0]["lr"] = args.learning_rate * lr_scale
+        last = {"grids": obs["grid"], "carried": obs["carried"], "goal_frames": book.frame, "goals": book.goal}
         for first in range(0, n_envs, args.batch_envs):
             envs_slice = slice(first, first + args.batch_envs)
             metrics = student_update(
-                student, goal_encoder, student_optimizer, {key: value[:, envs_slice] for key, value in rollout.items()},
-                {key: value[envs_slice] for key, value in last.items()}, args, device,
-            )  # fmt: skip
+                agent,
+                {key: value[:, envs_slice] for key, value in rollout.items()},
+                {key: value[envs_slice] for key, value in last.items()},
+                device,
+                gamma=args.gamma,
+                baseline_coef=args.baseline_coef,
+                entropy_coef=args.entropy_coef,
+                max_grad_norm=args.max_grad_norm,
+            )
             student_updates += 1
 
         # Teacher: one update per --teacher-batch-size outcomes, rewards under the current t*; then the t* schedule.
         while outcomes.size >= args.teacher_batch_size:
             batch = outcomes.pop(args.teacher_batch_size)
             rewards = teacher_reward(
-                batch["reached"], batch["steps"], batch["extrinsic_success"], t_star.value,
-                args.teacher_reward_negative, args.teacher_reward_positive,
-            )  # fmt: skip
-            teacher_optimizer.param_groups[0]["lr"] = args.teacher_learning_rate * max(1.0 - step / args.total_timesteps, 0.0)
-            losses = teacher_loss(teacher, batch, rewards, args, device)
-            teacher_optimizer.zero_grad(set_to_none=True)
-            losses["loss"].backward()
-            nn.utils.clip_grad_norm_(teacher.parameters(), args.max_grad_norm)
-            teacher_optimizer.step()
+                batch["reached"],
+                batch["steps"],
+                batch["extrinsic_success"],
+                t_star.value,
+                args.teacher_reward_negative,
+                args.teacher_reward_positive,
+            )
+            teacher_lr = args.teacher_learning_rate * linear_decay(step, args.total_timesteps)
+            agent.teacher_optimizer.param_groups[0]["lr"] = teacher_lr
+            losses = teacher_update(
+                agent,
+                batch,
+                rewards,
+                device,
+                baseline_coef=args.teacher_baseline_coef,
+                entropy_coef=args.teacher_entropy_coef,
+                max_grad_norm=args.max_grad_norm,
+            )
             teacher_updates += 1
             t_star.update(float(rewards.mean()))
             window["teacher_reward"].append(float(rewards.mean()))
@@ -809,47 +1133,40 @@ if __name__ == "__main__":
             writer.add_scalar("teacher/entropy", losses["entropy"].item(), step)
             writer.add_scalar("teacher/reached_rate", batch["reached"].mean(), step)
 
-        # Log, print progress, checkpoint.
-        if student_updates % 10 < n_envs // args.batch_envs:
+        # The student's losses (of the collection's last update), every LOSS_LOG_UPDATES student updates.
+        if student_updates >= next_loss_log:
+            next_loss_log += LOSS_LOG_UPDATES
             for name in ("policy_loss", "baseline_loss", "entropy"):
                 writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
-            writer.add_scalar("charts/learning_rate", student_optimizer.param_groups[0]["lr"], step)
+            writer.add_scalar("charts/learning_rate", agent.student_optimizer.param_groups[0]["lr"], step)
             if dgrl:  # DGRL
                 writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
                 writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
                 writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
-        if step >= next_progress or step >= args.total_timesteps or time.time() - last_print > 60:
-            elapsed = time.time() - start_time
-            sps = int(step / elapsed)
-            writer.add_scalar("charts/SPS", sps, step)
+
+        # Progress line (and checkpoint), every --progress-frequency frames and at the end.
+        if step >= next_progress or step >= args.total_timesteps:
+            next_progress += args.progress_frequency
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
             if window["outcomes"]:
                 writer.add_scalar("charts/goal_reach_rate", window["reached"] / window["outcomes"], step)
             if window["goal_steps"]:
                 writer.add_scalar("charts/steps_per_goal", np.mean(window["goal_steps"]), step)
-            if step >= next_progress or step >= args.total_timesteps:
-                next_progress += args.progress_frequency
-                mean = lambda values: f"{np.mean(values):.2f}" if values else "-"  # noqa: E731
-                print(
-                    f"step {step:>9}/{args.total_timesteps}  return {mean(window['return'])}  "
-                    f"success {mean(window['success'])}  t* {t_star.value}  teacher reward {mean(window['teacher_reward'])}  "
-                    f"goals reached {window['reached'] / max(window['outcomes'], 1):.0%}  SPS {sps}  "
-                    f"{elapsed:.0f}s elapsed, {(args.total_timesteps - step) / max(sps, 1):.0f}s left"
-                )
-                window = {key: [] if isinstance(value, list) else 0 for key, value in window.items()}
-                if args.save_model:
-                    save_checkpoint(checkpoint_path, modules, {"t_star": t_star.value, "step": step}, args)
-            else:
-                print(
-                    f"step {step:>9}/{args.total_timesteps}  {student_updates} student updates  t* {t_star.value}  SPS {sps}"
-                )
-            last_print = time.time()
+            progress.line(
+                step,
+                f"return {mean_text(window['return'])}  success {mean_text(window['success'])}  t* {t_star.value}  "
+                f"teacher reward {mean_text(window['teacher_reward'])}  "
+                f"goals reached {window['reached'] / max(window['outcomes'], 1):.0%}",
+            )
+            window = new_window()
+            if args.save_model:
+                save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
+        progress.heartbeat(step, f"{student_updates} student updates  t* {t_star.value}")
 
     if args.save_model:
-        save_checkpoint(checkpoint_path, modules, {"t_star": t_star.value, "step": step}, args)
+        save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
         print(f"checkpoint: {checkpoint_path}")
-    print(
-        f"{'stopped' if stop else 'done'}: {step} frames, {student_updates} student and {teacher_updates} teacher updates, "
-        f"t* {t_star.value}, {time.time() - start_time:.0f} s"
-    )
+    updates = f"{student_updates} student and {teacher_updates} teacher updates"
+    progress.finish(bool(stop), run_name, f"{step} frames, {updates}, t* {t_star.value}")
     envs.close()
     writer.close()

@@ -9,9 +9,9 @@ manager's subgoals through an extra actor loss. DGRL (`--groups G`) passes the m
 encoder and the shared-codebook bottleneck of vq.py; the controller's actor and critic see the discrete subgoal
 embedding z_q instead of the raw subgoal. `--groups 0` is plain HRAC from the same file.
 
-The environments are the HIRO Ant suite as HRAC uses it (reference hrac-keychest.md): gymnasium's Ant model edited in
-code (ctrl +-30, gear 1, timestep 0.02 with RK4, frame_skip 5) inside structures of fixed, sliding and elevated blocks
-generated into MJCF at run time; AntGather adds apples, bombs and range sensors.
+The environments are the HIRO Ant suite as HRAC's authors use it: gymnasium's Ant model edited in code (ctrl +-30, gear
+1, timestep 0.02 with RK4, frame_skip 5) inside structures of fixed, sliding and elevated blocks generated into MJCF at
+run time (rllab's and HIRO's maze generator, rewritten here); AntGather adds apples, bombs and range sensors.
 
     python dgrl_hrac.py --env-id AntPush --groups 16      # DGRL G=16 on AntPush, the paper's 5M steps (a GPU job)
     python dgrl_hrac.py --env-id AntMaze --groups 0       # HRAC on AntMaze
@@ -21,13 +21,19 @@ generated into MJCF at run time; AntGather adds apples, bombs and range sensors.
 The study: benchmark/hrac.sh; env speed and renders: benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """
 
+import importlib.util
+import math
 import os
 import random
 import signal
+import sys
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import ClassVar
+
+if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos, pixels) without a display; set it to override
 
 import gymnasium as gym
 import mujoco
@@ -51,30 +57,29 @@ class Args:
     cuda: bool = True
     """if toggled, cuda will be enabled when available"""
     track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "dgrl"
     """the wandb's project name"""
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to record the first episode of every 10th evaluation (saved in `videos/`; set MUJOCO_GL=egl headless)"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
     save_model: bool = False
-    """whether to save a checkpoint (both levels, targets excluded, the adjacency network and the subgoal encoder with
-    its codebook) at every evaluation"""
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
-    """path of a saved checkpoint: evaluate it over --eval-episodes episodes, then exit"""
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
-    """torch CPU threads"""
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
 
     # Environment
     env_id: str = "AntMaze"
     """AntMaze, AntMazeSparse, AntPush, AntFall or AntGather"""
 
-    # Algorithm: HRAC (reference hrac-keychest.md, "HRAC on the Ant tasks")
+    # Algorithm: HRAC with the hyper-parameters of its authors' Ant configuration
     total_timesteps: int = 5_000_000
     """total environment steps"""
     k: int = 10
-    """controller steps per subgoal (the manager acts every k steps)"""
+    """controller steps per subgoal (the manager acts every k steps); must divide the 500-step episode"""
     buffer_size: int = 200_000
     """capacity of each level's replay (controller steps; manager k-step segments)"""
     batch_size: int = 128
@@ -84,9 +89,9 @@ class Args:
     man_updates: int = 0
     """manager updates at each episode end (0 = the episode's length / k, 50)"""
     ctrl_gamma: float = 0.95
-    """controller discount"""
+    """controller discount per env step"""
     man_gamma: float = 0.99
-    """manager discount (per k-step segment)"""
+    """manager discount per k-step segment"""
     tau: float = 0.005
     """Polyak rate of the target networks at both levels"""
     actor_lr: float = 1e-4
@@ -96,17 +101,17 @@ class Args:
     critic_weight_decay: float = 1e-4
     """weight decay of both critic optimizers"""
     policy_noise: float = 0.2
-    """std of the target-action noise (absolute units at both levels)"""
+    """std of the target-action noise (absolute units at both levels: torques, metres)"""
     noise_clip: float = 0.5
-    """clip of the target-action noise"""
+    """clip of the target-action noise (absolute units)"""
     ctrl_noise: float = 1.0
-    """std of the Gaussian exploration noise on the controller's torques (max 30)"""
+    """std of the Gaussian exploration noise on the controller's torques (which range over +-30)"""
     man_noise: float = 1.0
-    """std of the Gaussian exploration noise on the manager's subgoals"""
+    """std of the Gaussian exploration noise on the manager's subgoals, in metres (the subgoal's own units)"""
     man_reward_scale: float = 0.0
     """scale of the summed env reward the manager learns from (0 = 0.1, or 1.0 for AntMazeSparse and AntGather)"""
     subgoal_scale: float = 10.0
-    """the manager proposes xy offsets in [-scale, scale] (AntFall's third, z, dimension: +-0.5)"""
+    """the manager proposes xy offsets in [-scale, scale] metres (AntFall's third, z, dimension: +-0.5)"""
     correction_samples: int = 10
     """Gaussian candidates of the off-policy correction (plus the stored subgoal and the achieved offset)"""
     hidden_dim: int = 300
@@ -114,23 +119,23 @@ class Args:
 
     # Adjacency network
     adj_frequency: int = 50_000
-    """environment steps between adjacency-network trainings (the labels persist over the run)"""
+    """env steps between adjacency-network trainings, each at an episode end (the labels persist over the run)"""
     adj_epochs: int = 25
     """epochs over all pairs of visited cells at each training"""
     adj_batch_size: int = 64
-    """pairs per adjacency step"""
+    """cell pairs per adjacency step"""
     adj_lr: float = 2e-4
     """Adam learning rate of the adjacency network"""
     adj_weight: float = 20.0
     """weight of the adjacency loss in the manager's actor loss"""
-    margin_pos: float = 1.0
-    """contrastive margin of adjacent pairs (the manager's adjacency threshold is the mean of the two margins)"""
-    margin_neg: float = 1.2
-    """contrastive margin of non-adjacent pairs"""
+    adj_margin_pos: float = 1.0
+    """contrastive margin of adjacent cell pairs (the manager's adjacency threshold is the mean of the two margins)"""
+    adj_margin_neg: float = 1.2
+    """contrastive margin of non-adjacent cell pairs"""
 
     # Evaluation
     eval_frequency: int = 5000
-    """environment steps between evaluations (each at the end of an episode)"""
+    """env steps between evaluations (each at the end of an episode)"""
     eval_episodes: int = 5
     """deterministic evaluation episodes (AntMaze: on the fixed evaluation goal)"""
 
@@ -212,10 +217,13 @@ def structure_blocks(env_id: str) -> list[dict]:
                 mass = 0.001 if "Z" in cell else 0.0002
                 blocks.append(
                     dict(
-                        name=f"movable_{i}_{j}", pos=(x, y, offset + wall_half_height),
-                        size=(half * shrink, half * shrink, wall_half_height), axes=cell.lower(), mass=mass,
+                        name=f"movable_{i}_{j}",
+                        pos=(x, y, offset + wall_half_height),
+                        size=(half * shrink, half * shrink, wall_half_height),
+                        axes=cell.lower(),
+                        mass=mass,
                     )
-                )  # fmt: skip
+                )
     return blocks
 
 
@@ -237,15 +245,30 @@ def hiro_ant_xml(env_id: str) -> str:
         pos, size = " ".join(map(str, block["pos"])), " ".join(map(str, block["size"]))
         if not block["axes"]:
             ET.SubElement(
-                world, "geom", name=block["name"], type="box", pos=pos, size=size, conaffinity="1", contype="1",
+                world,
+                "geom",
+                name=block["name"],
+                type="box",
+                pos=pos,
+                size=size,
+                conaffinity="1",
+                contype="1",
                 rgba="0.4 0.4 0.4 1",
-            )  # fmt: skip
+            )
             continue
         body = ET.SubElement(world, "body", name=block["name"], pos=pos)
         ET.SubElement(
-            body, "geom", name=block["name"] + "_geom", type="box", size=size, mass=str(block["mass"]), conaffinity="1",
-            contype="1", rgba="0.9 0.1 0.1 1", solimp="0.995 0.995 0.01",
-        )  # fmt: skip
+            body,
+            "geom",
+            name=block["name"] + "_geom",
+            type="box",
+            size=size,
+            mass=str(block["mass"]),
+            conaffinity="1",
+            contype="1",
+            rgba="0.9 0.1 0.1 1",
+            solimp="0.995 0.995 0.01",
+        )
         for axis in block["axes"]:
             direction = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}[axis]
             joint = dict(
@@ -271,9 +294,16 @@ def hiro_ant_xml(env_id: str) -> str:
         walls = {"north": (0, w, w, 0.5), "south": (0, -w, w, 0.5), "east": (w, 0, 0.5, w), "west": (-w, 0, 0.5, w)}
         for name, (x, y, hx, hy) in walls.items():
             ET.SubElement(
-                world, "geom", name=f"wall_{name}", type="box", pos=f"{x} {y} 0.5", size=f"{hx} {hy} 0.5", conaffinity="1",
-                contype="1", rgba="0.4 0.4 0.4 1",
-            )  # fmt: skip
+                world,
+                "geom",
+                name=f"wall_{name}",
+                type="box",
+                pos=f"{x} {y} 0.5",
+                size=f"{hx} {hy} 0.5",
+                conaffinity="1",
+                contype="1",
+                rgba="0.4 0.4 0.4 1",
+            )
     return ET.tostring(root, encoding="unicode")
 
 
@@ -326,15 +356,19 @@ class HiroAntEnv(gym.Env):
     def _observe(self) -> np.ndarray:
         obs = np.concatenate([self.data.qpos[:15], self.data.qvel[:14], [self.steps * 0.001]])
         if self.env_id == "AntGather":
-            yaw = np.arctan2(2 * (self.data.qpos[3] * self.data.qpos[6] + self.data.qpos[4] * self.data.qpos[5]),
-                             1 - 2 * (self.data.qpos[5] ** 2 + self.data.qpos[6] ** 2))  # fmt: skip
+            yaw = np.arctan2(
+                2 * (self.data.qpos[3] * self.data.qpos[6] + self.data.qpos[4] * self.data.qpos[5]),
+                1 - 2 * (self.data.qpos[5] ** 2 + self.data.qpos[6] ** 2),
+            )
             xy = self.data.qpos[:2]
-            obs = np.concatenate([
-                obs[:29],
-                gather_readings(xy, yaw, self.objects[self.kinds > 0]),
-                gather_readings(xy, yaw, self.objects[self.kinds < 0]),
-                [self.steps * 0.01],
-            ])  # fmt: skip
+            obs = np.concatenate(
+                [
+                    obs[:29],
+                    gather_readings(xy, yaw, self.objects[self.kinds > 0]),
+                    gather_readings(xy, yaw, self.objects[self.kinds < 0]),
+                    [self.steps * 0.01],
+                ]
+            )
         return obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -388,8 +422,10 @@ class HiroAntEnv(gym.Env):
         # Markers drawn into the scene only (no bodies, so no physics): AntGather's apples (green) and bombs (red); the
         # goal of the other envs (a translucent green disc of the success radius, at the goal's height for AntFall).
         if self.env_id == "AntGather":
-            markers = [((x, y, 0.5), 0.5, (0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1))
-                       for (x, y), kind in zip(self.objects, self.kinds, strict=True)]  # fmt: skip
+            markers = [
+                ((x, y, 0.5), 0.5, (0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1))
+                for (x, y), kind in zip(self.objects, self.kinds, strict=True)
+            ]
         else:
             z = self.goal[2] if len(self.goal) == 3 else 0.05
             markers = [((*self.goal[:2], z), SUCCESS_DISTANCE[self.env_id], (0.1, 0.8, 0.1, 0.35))]
@@ -397,8 +433,14 @@ class HiroAntEnv(gym.Env):
         for pos, radius, rgba in markers[: scene.maxgeom - scene.ngeom]:
             shape = mujoco.mjtGeom.mjGEOM_SPHERE if self.env_id == "AntGather" else mujoco.mjtGeom.mjGEOM_CYLINDER
             size = np.array([radius, radius, radius]) if self.env_id == "AntGather" else np.array([radius, 0.05, 0])
-            mujoco.mjv_initGeom(scene.geoms[scene.ngeom], shape, size, np.array(pos, dtype=np.float64), np.eye(3).ravel(),
-                                np.array(rgba, dtype=np.float32))  # fmt: skip
+            mujoco.mjv_initGeom(
+                scene.geoms[scene.ngeom],
+                shape,
+                size,
+                np.array(pos, dtype=np.float64),
+                np.eye(3).ravel(),
+                np.array(rgba, dtype=np.float32),
+            )
             scene.ngeom += 1
         return self._renderer.render()
 
@@ -456,23 +498,159 @@ class AdjacencyNet(nn.Module):
 
 
 class SubgoalEncoder(nn.Module):  # DGRL
-    """DGRL's bottleneck on the manager's output: a relative subgoal (divided by the subgoal scale) -> MLP encoder ->
-    the shared-codebook quantizer of vq.py -> z_q, the discrete subgoal embedding that the controller's actor and critic
-    see instead of the raw subgoal. The decoder maps z_q back to the subgoal; its reconstruction loss keeps the codes
-    informative about where the subgoal points."""
+    """DGRL's bottleneck on the manager's output: a relative subgoal (divided by the subgoal bounds `scale`) -> MLP
+    encoder -> the shared-codebook quantizer of vq.py -> z_q, the discrete subgoal embedding that the controller's actor
+    and critic see instead of the raw subgoal. The decoder maps z_q back to the subgoal; its reconstruction loss keeps
+    the codes informative about where the subgoal points."""
 
-    def __init__(self, goal_dim: int, scale: np.ndarray, args: "Args"):
-        super().__init__()
-        self.encoder = mlp(goal_dim, args.encoder_hidden_dim, args.embed_dim)
-        self.decoder = mlp(args.embed_dim, args.encoder_hidden_dim, goal_dim)
-        self.vq = VectorQuantizerEMA(
-            args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
-        )
-        self.register_buffer("scale", torch.as_tensor(scale, dtype=torch.float32))
+    def __init__(  # DGRL
+        self,  # DGRL
+        goal_dim: int,  # DGRL
+        scale: np.ndarray,  # DGRL
+        embed_dim: int,  # DGRL
+        hidden_dim: int,  # DGRL
+        groups: int,  # DGRL
+        n_embed: int,  # DGRL
+        beta: float,  # DGRL
+        decay: float,  # DGRL
+        dead_code_steps: int,  # DGRL
+    ):  # DGRL
+        super().__init__()  # DGRL
+        self.encoder = mlp(goal_dim, hidden_dim, embed_dim)  # DGRL
+        self.decoder = mlp(embed_dim, hidden_dim, goal_dim)  # DGRL
+        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
+        self.register_buffer("scale", torch.as_tensor(scale, dtype=torch.float32))  # DGRL
 
-    def forward(self, subgoals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, subgoals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # DGRL
         """(z_q, commitment loss, code indices); the codebook moves only with update=True."""
-        return self.vq(self.encoder(subgoals / self.scale), update=update)
+        return self.vq(self.encoder(subgoals / self.scale), update=update)  # DGRL
+
+
+@dataclass
+class Level:
+    """One of HRAC's two TD3 levels: the actor, the twin critics, their target copies and their optimizers."""
+
+    actor: Actor
+    critic: TwinCritic
+    actor_target: Actor
+    critic_target: TwinCritic
+    actor_optimizer: torch.optim.Optimizer
+    critic_optimizer: torch.optim.Optimizer
+
+
+@dataclass
+class Agent:
+    """HRAC's manager and controller, the adjacency network with its optimizer and, under DGRL, the subgoal encoder with
+    its codebook (None for HRAC; its parameters are a group of the controller's critic optimizer)."""
+
+    manager: Level
+    controller: Level
+    adjacency: AdjacencyNet
+    adjacency_optimizer: torch.optim.Optimizer
+    encoder: SubgoalEncoder | None  # DGRL
+
+    def state_dicts(self) -> dict[str, dict]:
+        """A checkpoint's entries, what evaluation needs: both levels' actors and critics (targets excluded), the
+        adjacency network and (DGRL) the subgoal encoder with its codebook buffers."""
+        entries = {
+            "manager_actor": self.manager.actor.state_dict(),
+            "manager_critic": self.manager.critic.state_dict(),
+            "controller_actor": self.controller.actor.state_dict(),
+            "controller_critic": self.controller.critic.state_dict(),
+            "adjacency": self.adjacency.state_dict(),
+        }
+        if self.encoder is not None:  # DGRL
+            entries["subgoal_encoder"] = self.encoder.state_dict()  # DGRL
+        return entries
+
+    def load_state_dicts(self, entries: dict[str, dict]) -> None:
+        """Load a checkpoint's entries (as `state_dicts` wrote them) into the networks."""
+        self.manager.actor.load_state_dict(entries["manager_actor"])
+        self.manager.critic.load_state_dict(entries["manager_critic"])
+        self.controller.actor.load_state_dict(entries["controller_actor"])
+        self.controller.critic.load_state_dict(entries["controller_critic"])
+        self.adjacency.load_state_dict(entries["adjacency"])
+        if self.encoder is not None:  # DGRL
+            self.encoder.load_state_dict(entries["subgoal_encoder"])  # DGRL
+
+
+def make_level(
+    actor: Actor,
+    critic: TwinCritic,
+    actor_lr: float,
+    critic_lr: float,
+    critic_weight_decay: float,
+    extra_critic_groups: tuple[dict, ...] = (),
+) -> Level:
+    """A level from its networks: target copies, Adam for the actor, Adam with weight decay for the critics (plus any
+    extra parameter groups, which keep their own settings). Fused Adam: one kernel per step on CPU and GPU."""
+    fused = next(actor.parameters()).device.type in ("cpu", "cuda")
+    critic_groups = [{"params": critic.parameters(), "weight_decay": critic_weight_decay}, *extra_critic_groups]
+    return Level(
+        actor=actor,
+        critic=critic,
+        actor_target=make_target(actor),
+        critic_target=make_target(critic),
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=actor_lr, fused=fused),
+        critic_optimizer=torch.optim.Adam(critic_groups, lr=critic_lr, fused=fused),
+    )
+
+
+def make_agent(
+    state_dim: int,
+    action_dim: int,
+    bounds: np.ndarray,
+    manager_goal_dim: int,
+    *,
+    hidden_dim: int,
+    actor_lr: float,
+    critic_lr: float,
+    critic_weight_decay: float,
+    adj_lr: float,
+    groups: int,  # DGRL: 0 builds HRAC, without the subgoal encoder
+    n_embed: int,  # DGRL
+    embed_dim: int,  # DGRL
+    encoder_hidden_dim: int,  # DGRL
+    encoder_lr: float,  # DGRL
+    vq_beta: float,  # DGRL
+    vq_decay: float,  # DGRL
+    vq_dead_code_steps: int,  # DGRL
+    device: torch.device,
+) -> Agent:
+    """The agent for a state of `state_dim`, `action_dim` torques of at most 30, subgoals within +-`bounds` and a
+    manager goal of `manager_goal_dim` (0: none). The manager sees (state, goal); the controller (state, subgoal), or
+    under DGRL (state, z_q(subgoal)). The encoder trains with the controller's critic (lr `encoder_lr`, no weight decay);
+    its codebook moves by EMA, in no optimizer. The networks are built in a fixed order, so a seed gives the same agent."""
+    goal_dim = len(bounds)
+    ctrl_goal_dim = embed_dim if groups else goal_dim  # DGRL: the controller takes z_q(g) instead of g
+    manager_actor = Actor(state_dim, manager_goal_dim, goal_dim, bounds, hidden_dim).to(device)
+    manager_critic = TwinCritic(state_dim, manager_goal_dim, goal_dim, hidden_dim).to(device)
+    controller_actor = Actor(state_dim, ctrl_goal_dim, action_dim, 30.0, hidden_dim).to(device)
+    controller_critic = TwinCritic(state_dim, ctrl_goal_dim, action_dim, hidden_dim).to(device)
+    adjacency = AdjacencyNet(2).to(device)  # over xy cells at every env (AntFall's z is not part of the grid)
+    encoder = None  # DGRL
+    encoder_groups = ()  # DGRL
+    if groups:  # DGRL
+        encoder = SubgoalEncoder(  # DGRL
+            goal_dim,  # DGRL
+            bounds,  # DGRL
+            embed_dim,  # DGRL
+            encoder_hidden_dim,  # DGRL
+            groups,  # DGRL
+            n_embed,  # DGRL
+            vq_beta,  # DGRL
+            vq_decay,  # DGRL
+            vq_dead_code_steps,  # DGRL
+        ).to(device)  # DGRL
+        encoder_groups = ({"params": encoder.parameters(), "lr": encoder_lr, "weight_decay": 0.0},)  # DGRL
+    fused = device.type in ("cpu", "cuda")
+    return Agent(
+        manager=make_level(manager_actor, manager_critic, actor_lr, critic_lr, critic_weight_decay),
+        controller=make_level(controller_actor, controller_critic, actor_lr, critic_lr, critic_weight_decay, encoder_groups),
+        adjacency=adjacency,
+        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=adj_lr, fused=fused),
+        encoder=encoder,  # DGRL
+    )
 
 
 # --- HRAC's computations ----------------------------------------------------------------------------------------------
@@ -501,9 +679,16 @@ def controller_reward(states, subgoals, next_states):
 
 
 @torch.no_grad()
-def off_policy_correction(controller: Actor, states: np.ndarray, actions: np.ndarray, subgoals: np.ndarray,
-                          scale: np.ndarray, rng: np.random.Generator, n_samples: int = 10,
-                          goal_encoder=None) -> np.ndarray:  # fmt: skip
+def off_policy_correction(
+    controller: Actor,
+    states: np.ndarray,
+    actions: np.ndarray,
+    subgoals: np.ndarray,
+    scale: np.ndarray,
+    rng: np.random.Generator,
+    n_samples: int = 10,
+    goal_encoder: SubgoalEncoder | None = None,  # DGRL
+) -> np.ndarray:
     """HIRO's relabelling of stored manager transitions. `states` (B, k + 1, S), `actions` (B, k, A), `subgoals` (B, d):
     the candidates are the stored subgoal, the achieved offset s_k - s_0 and `n_samples` draws from
     N(s_k - s_0, (0.5 scale)^2) clipped to +-scale; each is rolled through the k stored states with the subgoal
@@ -524,17 +709,17 @@ def off_policy_correction(controller: Actor, states: np.ndarray, actions: np.nda
         goals[:, :, t] = subgoal_transition(states[:, None, t - 1], goals[:, :, t - 1], states[:, None, t])
     observed = np.broadcast_to(states[:, None, :k], (batch, n, k, states.shape[-1]))
     device = next(controller.parameters()).device
+    observed_in = torch.as_tensor(controller_input(observed), dtype=torch.float32, device=device)
     goals_in = torch.as_tensor(goals, dtype=torch.float32, device=device)
-    predicted = controller(
-        torch.as_tensor(controller_input(observed), dtype=torch.float32, device=device),
-        goals_in if goal_encoder is None else goal_encoder(goals_in)[0],  # DGRL: the candidates' discrete embeddings
-    ).cpu().numpy()  # fmt: skip
+    goals_in = controller_goal_input(goal_encoder, goals_in)  # DGRL: the candidates' discrete embeddings
+    predicted = controller(observed_in, goals_in).cpu().numpy()
     log_likelihood = -0.5 * ((predicted - actions[:, None]) ** 2).sum(-1).sum(-1)  # (B, n)
     return candidates[np.arange(batch), log_likelihood.argmax(1)]
 
 
-def contrastive_loss(emb_a: torch.Tensor, emb_b: torch.Tensor, labels: torch.Tensor, margin_pos: float = 1.0,
-                     margin_neg: float = 1.2) -> torch.Tensor:  # fmt: skip
+def contrastive_loss(
+    emb_a: torch.Tensor, emb_b: torch.Tensor, labels: torch.Tensor, margin_pos: float = 1.0, margin_neg: float = 1.2
+) -> torch.Tensor:
     """HRAC's adjacency loss: mean(l * max(0, d - m+)) + mean((1 - l) * max(0, m- - d)), d = ||phi_a - phi_b||."""
     distances = torch.sqrt((emb_a - emb_b).pow(2).sum(-1) + 1e-12)
     positive = (labels * (distances - margin_pos).clamp(min=0)).mean()
@@ -594,35 +779,44 @@ class Replay:
         return {name: array[index] for name, array in self.fields.items()}
 
 
-def td3_update(nets: dict, optimizers: dict, batch: dict[str, torch.Tensor], gamma: float, max_action: float,
-               tau: float = 0.005, policy_noise: float = 0.2, noise_clip: float = 0.5,
-               actor_extra=None, critic_extra: torch.Tensor | float = 0.0) -> dict[str, torch.Tensor]:  # fmt: skip
+def td3_update(
+    level: Level,
+    batch: dict[str, torch.Tensor],
+    *,
+    gamma: float,
+    tau: float,
+    policy_noise: float,
+    noise_clip: float,
+    actor_extra=None,
+    critic_extra: torch.Tensor | float = 0.0,
+) -> dict[str, torch.Tensor]:
     """One TD3 step as HRAC runs it at both levels: target actions with clipped Gaussian noise, the min of the target
     critics, a Huber critic loss (the critic optimizer carries the weight decay), the actor updated at every step (no
     policy delay) to maximise Q1, plus `actor_extra(actions)` if given (the manager's adjacency term), then Polyak
     targets. `batch`: states, goals, actions, rewards, next_states, next_goals, dones. `critic_extra` is added to the
     critic loss before its backward pass (DGRL: the subgoal encoder's losses, its parameters in the critic optimizer,
     with `goals` carrying the encoder's graph); the actor sees the goals detached."""
+    max_action = level.actor.max_action
     with torch.no_grad():
         noise = (torch.randn_like(batch["actions"]) * policy_noise).clamp(-noise_clip, noise_clip)
-        next_actions = (nets["actor_target"](batch["next_states"], batch["next_goals"]) + noise).clamp(-max_action, max_action)
-        target_q = torch.min(*nets["critic_target"](batch["next_states"], batch["next_goals"], next_actions))
+        next_actions = (level.actor_target(batch["next_states"], batch["next_goals"]) + noise).clamp(-max_action, max_action)
+        target_q = torch.min(*level.critic_target(batch["next_states"], batch["next_goals"], next_actions))
         target = batch["rewards"] + gamma * (1.0 - batch["dones"]) * target_q
-    q1, q2 = nets["critic"](batch["states"], batch["goals"], batch["actions"])
+    q1, q2 = level.critic(batch["states"], batch["goals"], batch["actions"])
     critic_loss = nn.functional.smooth_l1_loss(q1, target) + nn.functional.smooth_l1_loss(q2, target)
-    optimizers["critic"].zero_grad(set_to_none=True)
+    level.critic_optimizer.zero_grad(set_to_none=True)
     (critic_loss + critic_extra).backward()
-    optimizers["critic"].step()
+    level.critic_optimizer.step()
     goals = batch["goals"].detach()
-    actions = nets["actor"](batch["states"], goals)
-    actor_loss = -nets["critic"](batch["states"], goals, actions)[0].mean()
+    actions = level.actor(batch["states"], goals)
+    actor_loss = -level.critic(batch["states"], goals, actions)[0].mean()
     if actor_extra is not None:
         actor_loss = actor_loss + actor_extra(actions)
-    optimizers["actor"].zero_grad(set_to_none=True)
+    level.actor_optimizer.zero_grad(set_to_none=True)
     actor_loss.backward()
-    optimizers["actor"].step()
-    update_target(nets["actor_target"], nets["actor"], tau)
-    update_target(nets["critic_target"], nets["critic"], tau)
+    level.actor_optimizer.step()
+    update_target(level.actor_target, level.actor, tau)
+    update_target(level.critic_target, level.critic, tau)
     metrics = {"critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(), "q": q1.detach().mean()}
     return metrics | {"target_q": target_q.mean()}
 
@@ -643,126 +837,204 @@ def manager_goal(env: HiroAntEnv) -> np.ndarray:
     return np.zeros(0) if MANAGER_GOAL_DIMS[env.env_id] == 0 else env.goal.astype(np.float32)
 
 
-def controller_goal_input(goal_encoder: SubgoalEncoder | None, subgoals: torch.Tensor) -> torch.Tensor:
+def controller_goal_input(goal_encoder: SubgoalEncoder | None, subgoals: torch.Tensor) -> torch.Tensor:  # DGRL
     """What the controller sees of its subgoal: the relative subgoal (HRAC) or its discrete embedding z_q (DGRL),
     codebook untouched."""
     return subgoals if goal_encoder is None else goal_encoder(subgoals)[0]  # DGRL
 
 
+def as_tensors(sample: dict[str, np.ndarray], device: torch.device | str) -> dict[str, torch.Tensor]:
+    return {name: torch.as_tensor(value, device=device) for name, value in sample.items()}
+
+
 @torch.no_grad()
-def propose_subgoal(nets: dict, state: np.ndarray, goal: np.ndarray, bounds: np.ndarray, noise: float,
-                    rng: np.random.Generator) -> np.ndarray:  # fmt: skip
-    """The manager's relative subgoal, with Gaussian exploration noise (std `noise`) clipped to the bounds."""
-    device = nets["manager"]["actor"].max_action.device
-    to = lambda x: torch.as_tensor(x, dtype=torch.float32, device=device)[None]  # noqa: E731
-    subgoal = nets["manager"]["actor"](to(state), to(goal))[0].cpu().numpy().astype(np.float64)
+def propose_subgoal(
+    agent: Agent, state: np.ndarray, goal: np.ndarray, *, bounds: np.ndarray, noise: float, rng: np.random.Generator
+) -> np.ndarray:
+    """The manager's relative subgoal, with Gaussian exploration noise (std `noise`, metres) clipped to the bounds."""
+    actor = agent.manager.actor
+    device = actor.max_action.device
+    inputs = [torch.as_tensor(x, dtype=torch.float32, device=device)[None] for x in (state, goal)]
+    subgoal = actor(*inputs)[0].cpu().numpy().astype(np.float64)
     if noise > 0:
         subgoal = np.clip(subgoal + rng.normal(0.0, noise, subgoal.shape), -bounds, bounds)
     return subgoal
 
 
 @torch.no_grad()
-def controller_action(nets: dict, state: np.ndarray, subgoal: np.ndarray, noise: float,
-                      rng: np.random.Generator) -> np.ndarray:  # fmt: skip
+def controller_action(
+    agent: Agent, state: np.ndarray, subgoal: np.ndarray, *, noise: float, rng: np.random.Generator
+) -> np.ndarray:
     """The controller's torques for the xy-masked state and its subgoal, with Gaussian noise (std `noise`) clipped to
     +-30."""
-    actor = nets["controller"]["actor"]
+    actor = agent.controller.actor
     device = actor.max_action.device
-    to = lambda x: torch.as_tensor(x, dtype=torch.float32, device=device)[None]  # noqa: E731
-    action = actor(to(controller_input(state)), controller_goal_input(nets["encoder"], to(subgoal)))[0].cpu().numpy()
+    masked_state, subgoal = (
+        torch.as_tensor(x, dtype=torch.float32, device=device)[None] for x in (controller_input(state), subgoal)
+    )
+    action = actor(masked_state, controller_goal_input(agent.encoder, subgoal))[0].cpu().numpy()  # DGRL: z_q under DGRL
     if noise > 0:
         action = np.clip(action + rng.normal(0.0, noise, action.shape), -actor.max_action.item(), actor.max_action.item())
     return action
 
 
-def controller_update(nets: dict, optimizer: dict, replay: Replay, args: "Args", rng: np.random.Generator, device):
-    """One controller TD3 step on a replay batch. DGRL: the batch's subgoals and re-targeted next subgoals go through
+def controller_update(
+    agent: Agent,
+    sample: dict[str, np.ndarray],
+    *,
+    device: torch.device | str,
+    gamma: float,
+    tau: float,
+    policy_noise: float,
+    noise_clip: float,
+) -> dict[str, torch.Tensor]:
+    """One controller TD3 step on a replay sample. DGRL: the batch's subgoals and re-targeted next subgoals go through
     the encoder and the quantizer in one call (one EMA step of the codebook); the controller's critic and actor see z_q;
-    the critic loss reaches the encoder through the straight-through estimator, with the reconstruction and commitment
-    losses added."""
-    batch = {name: torch.as_tensor(value, device=device) for name, value in replay.sample(args.batch_size, rng).items()}
-    encoder, extra, metrics = nets["encoder"], 0.0, {}
+    the critic loss reaches the encoder through the straight-through estimator, with the reconstruction loss and the
+    commitment loss (the mean over the subgoals and the next subgoals) added."""
+    batch = as_tensors(sample, device)
+    encoder = agent.encoder  # DGRL
+    extra = 0.0  # DGRL: the encoder's losses, added to the critic loss
+    metrics = {}  # DGRL: the encoder's losses and codes, for the logs
     if encoder is not None:  # DGRL
-        n = args.batch_size  # DGRL
+        n = len(batch["goals"])  # DGRL
         z_q, vq_loss, codes = encoder(torch.cat([batch["goals"], batch["next_goals"]]), update=True)  # DGRL
         reconstruction = nn.functional.mse_loss(encoder.decoder(z_q[:n]), batch["goals"] / encoder.scale)  # DGRL
         batch = batch | {"goals": z_q[:n], "next_goals": z_q[n:].detach()}  # DGRL
-        extra = reconstruction + vq_loss  # DGRL: the mean commitment loss of the two embeddings
+        extra = reconstruction + vq_loss  # DGRL
         metrics = {"reconstruction_loss": reconstruction.detach(), "vq_loss": vq_loss.detach(), "codes": codes}  # DGRL
     metrics |= td3_update(
-        nets["controller"], optimizer, batch, args.ctrl_gamma, nets["controller"]["actor"].max_action, args.tau,
-        args.policy_noise, args.noise_clip, critic_extra=extra,
-    )  # fmt: skip
+        agent.controller,
+        batch,
+        gamma=gamma,
+        tau=tau,
+        policy_noise=policy_noise,
+        noise_clip=noise_clip,
+        critic_extra=extra,  # DGRL
+    )
     return metrics
 
 
-def manager_update(nets: dict, optimizer: dict, replay: Replay, args: "Args", bounds: np.ndarray,
-                   rng: np.random.Generator, device) -> dict:  # fmt: skip
-    """One manager TD3 step: the sampled subgoals are relabelled by HIRO's off-policy correction under the current
+def manager_update(
+    agent: Agent,
+    sample: dict[str, np.ndarray],
+    *,
+    rng: np.random.Generator,
+    device: torch.device | str,
+    bounds: np.ndarray,
+    correction_samples: int,
+    gamma: float,
+    tau: float,
+    policy_noise: float,
+    noise_clip: float,
+    adj_weight: float,
+    adj_threshold: float,
+) -> dict[str, torch.Tensor]:
+    """One manager TD3 step: the sample's subgoals are relabelled by HIRO's off-policy correction under the current
     controller, and the actor loss adds adj_weight x the adjacency loss of its subgoals (on their xy part)."""
-    sample = replay.sample(args.batch_size, rng)
-    sample["actions"] = off_policy_correction(
-        nets["controller"]["actor"], sample["state_seq"], sample["action_seq"], sample["actions"], bounds, rng,
-        args.correction_samples, nets["encoder"],
-    ).astype(np.float32)  # fmt: skip
-    names = ("states", "goals", "actions", "rewards", "next_states", "dones")
-    batch = {name: torch.as_tensor(sample[name], device=device) for name in names}
+    actions = off_policy_correction(
+        agent.controller.actor,
+        sample["state_seq"],
+        sample["action_seq"],
+        sample["actions"],
+        bounds,
+        rng,
+        correction_samples,
+        goal_encoder=agent.encoder,  # DGRL: the controller sees the candidates as it does when acting
+    )
+    names = ("states", "goals", "rewards", "next_states", "dones")
+    batch = as_tensors({name: sample[name] for name in names} | {"actions": actions.astype(np.float32)}, device)
     batch["next_goals"] = batch["goals"]
-    threshold = (args.margin_pos + args.margin_neg) / 2
 
     def adjacency_term(subgoals: torch.Tensor) -> torch.Tensor:
-        return args.adj_weight * adjacency_loss(nets["anet"], batch["states"][:, :2], subgoals[:, :2], threshold)
+        return adj_weight * adjacency_loss(agent.adjacency, batch["states"][:, :2], subgoals[:, :2], adj_threshold)
 
     metrics = td3_update(
-        nets["manager"], optimizer, batch, args.man_gamma, nets["manager"]["actor"].max_action, args.tau,
-        args.policy_noise, args.noise_clip, actor_extra=adjacency_term,
-    )  # fmt: skip
+        agent.manager,
+        batch,
+        gamma=gamma,
+        tau=tau,
+        policy_noise=policy_noise,
+        noise_clip=noise_clip,
+        actor_extra=adjacency_term,
+    )
     with torch.no_grad():
-        metrics["adjacency_loss"] = adjacency_loss(nets["anet"], batch["states"][:, :2], batch["actions"][:, :2], threshold)
+        positions, corrected = batch["states"][:, :2], batch["actions"][:, :2]
+        metrics["adjacency_loss"] = adjacency_loss(agent.adjacency, positions, corrected, adj_threshold)
     return metrics
 
 
-def train_adjacency(anet: AdjacencyNet, optimizer, memory: AdjacencyMemory, args: "Args", rng: np.random.Generator,
-                    device) -> tuple[float, float]:  # fmt: skip
-    """Train the adjacency network `adj_epochs` epochs over every pair of visited cells with the contrastive loss.
-    Returns (mean loss of the last epoch, accuracy of the last epoch's embedding distances against the labels)."""
+def train_adjacency(
+    anet: AdjacencyNet,
+    optimizer: torch.optim.Optimizer,
+    memory: AdjacencyMemory,
+    rng: np.random.Generator,
+    *,
+    epochs: int,
+    batch_size: int,
+    margin_pos: float,
+    margin_neg: float,
+    device: torch.device | str,
+    stop: list[int] | tuple = (),
+) -> tuple[float, float]:
+    """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss (polling
+    `stop` before each epoch). Returns (mean loss of the last epoch, accuracy of the embedding distances against the labels
+    with the threshold halfway between the margins); NaN for both without any pair."""
     cells_a, cells_b, labels = (torch.as_tensor(x, device=device) for x in memory.labelled_pairs())
     if len(labels) == 0:
         return float("nan"), float("nan")
-    for _ in range(args.adj_epochs):
+    losses = []
+    for _ in range(epochs):
+        if stop:  # Ctrl-C: the run is stopping; the network keeps the epochs done
+            break
         order = torch.as_tensor(rng.permutation(len(labels)), device=device)
         losses = []
-        for start in range(0, len(labels), args.adj_batch_size):
-            index = order[start : start + args.adj_batch_size]
-            loss = contrastive_loss(
-                anet(cells_a[index]), anet(cells_b[index]), labels[index], args.margin_pos, args.margin_neg
-            )
+        for start in range(0, len(labels), batch_size):
+            index = order[start : start + batch_size]
+            loss = contrastive_loss(anet(cells_a[index]), anet(cells_b[index]), labels[index], margin_pos, margin_neg)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             losses.append(loss.detach())
+    if not losses:
+        return float("nan"), float("nan")
     with torch.no_grad():
-        predicted = (anet(cells_a) - anet(cells_b)).norm(dim=-1) < (args.margin_pos + args.margin_neg) / 2
+        predicted = (anet(cells_a) - anet(cells_b)).norm(dim=-1) < (margin_pos + margin_neg) / 2
         accuracy = (predicted.float() == labels).float().mean().item()
     return torch.stack(losses).mean().item(), accuracy
 
 
 @torch.no_grad()
-def evaluate(env: HiroAntEnv, nets: dict, args: "Args", bounds: np.ndarray, rng: np.random.Generator, episodes: int,
-             frames: list | None = None) -> dict[str, float]:  # fmt: skip
+def evaluate(
+    env: HiroAntEnv,
+    agent: Agent,
+    *,
+    k: int,
+    bounds: np.ndarray,
+    rng: np.random.Generator,
+    episodes: int,
+    frames: list | None = None,
+    stop: list[int] | tuple = (),
+) -> dict[str, float]:
     """HRAC's evaluation: deterministic actions at both levels; an episode ends at the first step that passes the env's
     success test (distance < 5, AntMazeSparse reward > 0) or after 500 steps. Returns the success rate, the mean
-    distance to the goal when the episodes ended and the mean return (AntGather's metric)."""
+    distance to the goal when the episodes ended, the mean return (AntGather's metric) and the number of episodes
+    (fewer than `episodes` if `stop` was set: at least one runs). `frames` collects the first episode's renders."""
     successes, distances, returns = [], [], []
     for episode in range(episodes):
+        if stop and successes:
+            break
         state, _ = env.reset()
-        goal, total, reached, info = manager_goal(env), 0.0, False, {}
+        goal = manager_goal(env)
+        total = 0.0
         for t in range(EPISODE_STEPS):
-            if t % args.k == 0:
-                subgoal = propose_subgoal(nets, state, goal, bounds, 0.0, rng)
-            next_state, reward, terminated, truncated, info = env.step(controller_action(nets, state, subgoal, 0.0, rng))
+            if t % k == 0:
+                subgoal = propose_subgoal(agent, state, goal, bounds=bounds, noise=0.0, rng=rng)
+            action = controller_action(agent, state, subgoal, noise=0.0, rng=rng)
+            next_state, reward, terminated, truncated, info = env.step(action)
             subgoal = subgoal_transition(state, subgoal, next_state)
-            state, total = next_state, total + reward
+            state = next_state
+            total += reward
             if frames is not None and episode == 0:
                 frames.append(env.render())
             reached = reward > 0 if env.env_id == "AntMazeSparse" else info["success"]
@@ -771,152 +1043,74 @@ def evaluate(env: HiroAntEnv, nets: dict, args: "Args", bounds: np.ndarray, rng:
         successes.append(float(reached))
         distances.append(info.get("distance", float("nan")))
         returns.append(total)
-    return {"success": float(np.mean(successes)), "distance": float(np.mean(distances)), "return": float(np.mean(returns))}
-
-
-def make_agent(args: "Args", state_dim: int, action_dim: int, device) -> tuple[dict, dict]:
-    """Both levels (actor, twin critics and their targets), the adjacency network and, under DGRL, the subgoal encoder
-    with its codebook; and their optimizers (critics with weight decay; the encoder a parameter group of the controller's
-    critic optimizer, no weight decay; the codebook moves by EMA, in no optimizer)."""
-    bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
-    goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
-    ctrl_goal_input_dim = args.embed_dim if args.groups else goal_dim  # DGRL: the controller takes z_q(g) instead of g
-    manager = {
-        "actor": Actor(state_dim, man_goal_dim, goal_dim, bounds, args.hidden_dim).to(device),
-        "critic": TwinCritic(state_dim, man_goal_dim, goal_dim, args.hidden_dim).to(device),
+    return {
+        "success": float(np.mean(successes)),
+        "distance": float(np.mean(distances)),
+        "return": float(np.mean(returns)),
+        "episodes": len(successes),
     }
-    controller = {
-        "actor": Actor(state_dim, ctrl_goal_input_dim, action_dim, 30.0, args.hidden_dim).to(device),
-        "critic": TwinCritic(state_dim, ctrl_goal_input_dim, action_dim, args.hidden_dim).to(device),
-    }
-    anet = AdjacencyNet(2).to(device)  # over xy cells at every env (AntFall's z is not part of the grid)
-    encoder = SubgoalEncoder(goal_dim, bounds, args).to(device) if args.groups else None  # DGRL
-    for level in (manager, controller):
-        level["actor_target"], level["critic_target"] = make_target(level["actor"]), make_target(level["critic"])
-    fused = device.type in ("cpu", "cuda")
-
-    def level_optimizers(level: dict, extra_groups: tuple = ()) -> dict:
-        critic_groups = [{"params": level["critic"].parameters(), "weight_decay": args.critic_weight_decay}, *extra_groups]
-        return {
-            "actor": torch.optim.Adam(level["actor"].parameters(), lr=args.actor_lr, fused=fused),
-            "critic": torch.optim.Adam(critic_groups, lr=args.critic_lr, fused=fused),
-        }
-
-    encoder_group = ({"params": encoder.parameters(), "lr": args.encoder_lr, "weight_decay": 0.0},) if encoder else ()  # DGRL
-    optimizers = {
-        "manager": level_optimizers(manager),
-        "controller": level_optimizers(controller, encoder_group),
-        "adjacency": torch.optim.Adam(anet.parameters(), lr=args.adj_lr, fused=fused),
-    }
-    return {"manager": manager, "controller": controller, "anet": anet, "encoder": encoder}, optimizers
 
 
-# --- Checkpoints, videos, flags ---------------------------------------------------------------------------------------
+# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+
+CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
 
 
-def save_checkpoint(path: str, modules: dict[str, nn.Module | None], args: "Args") -> None:
-    """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
-    payload = {name: None if module is None else module.state_dict() for name, module in modules.items()}
-    payload["args"] = vars(args)
-    torch.save(payload, path + ".tmp")
-    os.replace(path + ".tmp", path)
+def flag_text(key: str, value) -> str:
+    """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
+    name = key.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
 
 
-def write_video(path: str, frames: list[np.ndarray], fps: int = 10) -> None:
-    from moviepy import ImageSequenceClip
-
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
-
-
-def validate(args: "Args") -> None:
-    """Reject bad flags before any work, naming the flag and the valid choices."""
+def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
     errors = []
-    if args.env_id not in ENV_IDS:
-        errors.append(f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ENV_IDS)}")
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
-    for flag in (
-        "total_timesteps", "k", "buffer_size", "batch_size", "hidden_dim", "adj_frequency", "adj_epochs", "adj_batch_size",
-        "eval_frequency", "eval_episodes", "n_embed", "embed_dim", "encoder_hidden_dim", "threads",
-    ):  # fmt: skip
-        if getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
-    for flag in (
-        "ctrl_updates", "man_updates", "man_reward_scale", "correction_samples", "policy_noise", "noise_clip", "ctrl_noise",
-        "man_noise", "critic_weight_decay", "adj_weight", "vq_dead_code_steps",
-    ):  # fmt: skip
-        if getattr(args, flag) < 0:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
-    for flag in ("tau", "actor_lr", "critic_lr", "adj_lr", "encoder_lr", "subgoal_scale", "margin_pos", "margin_neg"):
-        if getattr(args, flag) <= 0:
-            errors.append(f"--{flag.replace('_', '-')} must be > 0; got {getattr(args, flag)}")
-    for flag in ("ctrl_gamma", "man_gamma"):
-        if not 0 <= getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be in [0, 1); got {getattr(args, flag)}")
-    if EPISODE_STEPS % args.k:
-        divisors = [k for k in range(1, EPISODE_STEPS + 1) if EPISODE_STEPS % k == 0]
-        errors.append(f"--k must divide the episode length {EPISODE_STEPS} (whole segments): one of {divisors}; got {args.k}")
-    if args.margin_neg < args.margin_pos:
-        errors.append(f"--margin-neg ({args.margin_neg}) must be >= --margin-pos ({args.margin_pos})")
+    for key in flags.split():
+        value = getattr(args, key)
+        if value < low or (low_open and value == low) or value > high:
+            if high == math.inf:
+                wanted = f"{'>' if low_open else '>='} {low:g}"
+            else:
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+            errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
+    return errors
+
+
+def common_errors(args) -> list[str]:
+    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    errors = [
+        f"--{key.replace('_', '-')} must be a finite number; got {value}"
+        for key, value in vars(args).items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    errors += range_errors(args, "threads", 1)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    return errors
+
+
+def exit_on_errors(errors: list[str]) -> None:
+    """Print every error with the script's name and exit with status 2 (as for an unknown flag), before any work."""
     if errors:
-        raise SystemExit("dgrl_hrac.py: invalid arguments:\n  " + "\n  ".join(errors))
+        print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
+        raise SystemExit(2)
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    dgrl = args.groups > 0
-    man_reward_scale = args.man_reward_scale or (1.0 if args.env_id in ("AntMazeSparse", "AntGather") else 0.1)
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
     random.seed(args.seed)
-    rng = np.random.default_rng(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.set_num_threads(args.threads)
-    # The critics' weight decay drives the weights of dead ReLU units into subnormal floats, which slow a CPU's matrix
-    # multiplies 20x (measured: 27 ms instead of 1.2 ms per batch after 5k steps); flush them to zero.
-    torch.set_flush_denormal(True)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    env = HiroAntEnv(args.env_id)
-    eval_env = HiroAntEnv(args.env_id, evaluate=True, render_mode="rgb_array" if args.capture_video else None)
-    eval_env.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
-    goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
 
-    nets, optimizers = make_agent(args, state_dim, action_dim, device)
-    modules = {
-        "manager_actor": nets["manager"]["actor"], "manager_critic": nets["manager"]["critic"],
-        "controller_actor": nets["controller"]["actor"], "controller_critic": nets["controller"]["critic"],
-        "adjacency": nets["anet"], "subgoal_encoder": nets["encoder"],
-    }  # fmt: skip
-
-    if args.checkpoint is not None:
-        saved = torch.load(args.checkpoint, map_location=device)
-        architecture = ("env_id", "groups", "embed_dim", "n_embed", "hidden_dim", "encoder_hidden_dim", "subgoal_scale", "k")
-        differ = [
-            f"--{key.replace('_', '-')} {saved['args'][key]}" for key in architecture if saved["args"][key] != vars(args)[key]
-        ]
-        if differ:
-            raise SystemExit(f"--checkpoint {args.checkpoint} was saved with other settings: pass {' '.join(differ)}")
-        for name, module in modules.items():
-            if module is not None:
-                module.load_state_dict(saved[name])
-        result = evaluate(eval_env, nets, args, bounds, rng, args.eval_episodes)
-        print(
-            f"{args.eval_episodes} evaluation episodes: success {result['success']:.0%}, distance {result['distance']:.2f}, "
-            f"return {result['return']:.2f}"
-        )
-        raise SystemExit(0)
-
+def make_writer(args, run_name: str) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
     if args.track:
         import wandb
 
@@ -931,11 +1125,211 @@ if __name__ == "__main__":
     writer = SummaryWriter(f"runs/{run_name}")
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
+    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
+    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+
+    def __init__(self, total: int, unit: str = "step"):
+        self.total, self.unit = total, unit
+        self.start_time = self.line_time = self.print_time = time.time()
+        self.line_step = 0
+
+    def sps(self, step: int) -> int:
+        return int(step / max(time.time() - self.start_time, 1e-6))
+
+    def line(self, step: int, figures: str) -> None:
+        now = time.time()
+        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
+        self.line_time = self.print_time = now
+        self.line_step = step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
+            self.print_time = time.time()
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
+    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
+    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
+    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
+    script = os.path.basename(__file__)
+    try:
+        saved = torch.load(path, map_location=device, weights_only=True)
+    except Exception as error:
+        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
+              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
+              "with --save-model", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
+    if differ:
+        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it)."""
+    from moviepy import ImageSequenceClip
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+# --- end of run management ---------------------------------------------------------------------------------------------
+
+
+# The flags a checkpoint must have been saved with to be evaluated: the networks' shapes, the env, the subgoal range
+# and the manager's period (what evaluation measures).
+MUST_MATCH = ("env_id", "groups", "n_embed", "embed_dim", "hidden_dim", "encoder_hidden_dim", "subgoal_scale", "k")
+
+
+def validate(args: Args) -> None:
+    """Reject bad flags before any work (exit status 2), naming the flag and the valid choices."""
+    errors = common_errors(args)
+    if args.env_id not in ENV_IDS:
+        errors.append(f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ENV_IDS)}")
+    if args.groups < 0 or (args.groups and args.embed_dim >= 1 and args.embed_dim % args.groups):  # DGRL
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
+        wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
+        errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
+    errors += range_errors(args, "seed ctrl_updates man_updates correction_samples adj_weight critic_weight_decay", 0)
+    errors += range_errors(args, "man_reward_scale policy_noise noise_clip ctrl_noise man_noise", 0)
+    errors += range_errors(args, "total_timesteps buffer_size batch_size hidden_dim adj_frequency adj_epochs", 1)
+    errors += range_errors(args, "adj_batch_size eval_frequency eval_episodes", 1)
+    errors += range_errors(args, "k", 2)  # a segment of one step has no pair of cells k - 1 steps apart to label adjacent
+    errors += range_errors(args, "actor_lr critic_lr adj_lr subgoal_scale adj_margin_pos adj_margin_neg", 0, low_open=True)
+    errors += range_errors(args, "tau", 0, 1, low_open=True)
+    errors += range_errors(args, "n_embed embed_dim encoder_hidden_dim", 1)  # DGRL
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
+    errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
+    if not 0 <= args.vq_decay < 1:  # DGRL: at 1 the codebook would never move
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
+    for flag in ("ctrl_gamma", "man_gamma"):
+        if not 0 < getattr(args, flag) < 1:  # the envs never terminate: at 1 the values would grow without bound
+            value = getattr(args, flag)
+            errors.append(f"--{flag.replace('_', '-')} must be in (0, 1) (episodes end by time limit only); got {value}")
+    if args.k >= 1 and EPISODE_STEPS % args.k:
+        divisors = [k for k in range(2, EPISODE_STEPS + 1) if EPISODE_STEPS % k == 0]
+        errors.append(f"--k must divide the episode length {EPISODE_STEPS} (whole segments): one of {divisors}; got {args.k}")
+    if args.adj_margin_neg < args.adj_margin_pos:
+        errors.append(f"--adj-margin-neg ({args.adj_margin_neg}) must be >= --adj-margin-pos ({args.adj_margin_pos})")
+    if args.batch_size > args.buffer_size:
+        errors.append(f"--batch-size ({args.batch_size}) must be <= --buffer-size ({args.buffer_size})")
+    if args.checkpoint is not None and args.save_model:
+        errors.append("--save-model does nothing with --checkpoint (which evaluates a saved agent, without training)")
+    exit_on_errors(errors)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    dgrl = args.groups > 0  # DGRL
+    man_reward_scale = args.man_reward_scale or (1.0 if args.env_id in ("AntMazeSparse", "AntGather") else 0.1)
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    device = seed_and_device(args)
+    rng = np.random.default_rng(args.seed)
+    # The critics' weight decay drives the weights of dead ReLU units into subnormal floats, which slow a CPU's matrix
+    # multiplies 20x (measured: 27 ms instead of 1.2 ms per batch after 5k steps); flush them to zero.
+    torch.set_flush_denormal(True)
+
+    env = HiroAntEnv(args.env_id)
+    eval_env = HiroAntEnv(args.env_id, evaluate=True, render_mode="rgb_array" if args.capture_video else None)
+    eval_env.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    if args.capture_video:  # a renderer that cannot start fails here, before any work, not at the first evaluation
+        try:
+            eval_env.render()
+        except Exception as error:
+            exit_on_errors(
+                [
+                    f"--capture-video cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')} ({error}); set "
+                    "MUJOCO_GL=egl or osmesa, or run without --capture-video"
+                ]
+            )
+    state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
+    goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
+    agent = make_agent(
+        state_dim,
+        action_dim,
+        bounds,
+        man_goal_dim,
+        hidden_dim=args.hidden_dim,
+        actor_lr=args.actor_lr,
+        critic_lr=args.critic_lr,
+        critic_weight_decay=args.critic_weight_decay,
+        adj_lr=args.adj_lr,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        embed_dim=args.embed_dim,  # DGRL
+        encoder_hidden_dim=args.encoder_hidden_dim,  # DGRL
+        encoder_lr=args.encoder_lr,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        device=device,
+    )
+    stop = stop_on_signals()
+
+    if args.checkpoint is not None:
+        agent.load_state_dicts(load_checkpoint(args.checkpoint, args, MUST_MATCH, device))
+        video = [] if args.capture_video else None
+        result = evaluate(
+            eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop
+        )
+        print(
+            f"{result['episodes']} evaluation episodes: success {result['success']:.0%}, distance {result['distance']:.2f}, "
+            f"return {result['return']:.2f}"
+        )
+        if video:
+            write_video(f"videos/{run_name}/checkpoint.mp4", video, HiroAntEnv.metadata["render_fps"])
+            print(f"video: videos/{run_name}/checkpoint.mp4")
+        raise SystemExit(0)
+
+    writer = make_writer(args, run_name)
     print(
         f"{run_name}: state {state_dim}-d, subgoal {goal_dim}-d (bounds {bounds.tolist()}), manager goal {man_goal_dim}-d, "
         f"{args.total_timesteps} steps, device {device}"
     )
-
+    if args.adj_frequency > args.total_timesteps:
+        print(f"note: the adjacency network is never trained (--adj-frequency {args.adj_frequency} > --total-timesteps)")
     ctrl_replay = Replay(
         args.buffer_size, states=(state_dim,), goals=(goal_dim,), actions=(action_dim,), rewards=(), next_states=(state_dim,),
         next_goals=(goal_dim,), dones=(),
@@ -945,143 +1339,202 @@ if __name__ == "__main__":
         next_states=(state_dim,), dones=(), state_seq=(args.k + 1, state_dim), action_seq=(args.k, action_dim),
     )  # fmt: skip
     memory = AdjacencyMemory(args.k)
-    stop = []  # Ctrl-C or SIGTERM ends the run after the current step, with the checkpoint saved and the logs flushed
-
-    def request_stop(number, frame):
-        stop.append(number)
-        signal.signal(number, signal.SIG_DFL)  # a second Ctrl-C or SIGTERM stops at once
-
-    for signal_number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signal_number, request_stop)
-
+    adj_threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    start_time, step, episodes, evaluations = time.time(), 0, 0, 0
-    next_eval, next_adjacency = args.eval_frequency, args.adj_frequency
-    last_print = start_time  # a heartbeat line at least every 60 s, so that a slow run never looks hung
+    progress = Progress(args.total_timesteps)
+    step = 0
+    episodes = 0
+    evaluations = 0
+    next_eval = args.eval_frequency
+    next_adjacency = args.adj_frequency
     result = {"success": float("nan"), "distance": float("nan"), "return": float("nan")}
-    recent = {"final_distance": [], "subgoal_distance": [], "return": []}
-    seg_states, seg_actions = np.zeros((args.k + 1, state_dim)), np.zeros((args.k, action_dim))
+    recent = {"final_distance": [], "subgoal_distance": [], "return": []}  # training episodes since the last progress line
+    seg_states = np.zeros((args.k + 1, state_dim))
+    seg_actions = np.zeros((args.k, action_dim))
     state, _ = env.reset(seed=args.seed)
+    episode_steps = 0
     while step < args.total_timesteps and not stop:
-        # One episode: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted.
-        goal, positions = manager_goal(env), [state[:2]]
-        episode_return, episode_steps, seg_reward, remaining, proposals, ctrl_rewards = 0.0, 0, 0.0, [], [], 0.0
-        while True:
-            t = episode_steps % args.k
-            if t == 0:
-                subgoal = propose_subgoal(nets, state, goal, bounds, args.man_noise, rng)
-                proposed, seg_states[0], seg_reward = subgoal, state, 0.0
-            action = controller_action(nets, state, subgoal, args.ctrl_noise, rng)
-            next_state, reward, terminated, truncated, info = env.step(action)
-            step, episode_steps, episode_return = step + 1, episode_steps + 1, episode_return + reward
-            seg_reward += man_reward_scale * reward
-            next_subgoal = subgoal_transition(state, subgoal, next_state)
-            ctrl_reward = controller_reward(state, subgoal, next_state)
-            ctrl_rewards += ctrl_reward
-            ctrl_replay.add(
-                states=controller_input(state), goals=subgoal, actions=action, rewards=ctrl_reward,
-                next_states=controller_input(next_state), next_goals=next_subgoal, dones=0.0,
-            )  # fmt: skip
-            seg_states[t + 1], seg_actions[t] = next_state, action
-            positions.append(next_state[:2])
-            state, subgoal = next_state, next_subgoal
-            if t == args.k - 1:  # a whole segment: the manager's transition (the envs never terminate, so no done)
-                man_replay.add(
-                    states=seg_states[0], goals=goal, actions=proposed, rewards=seg_reward, next_states=state, dones=0.0,
-                    state_seq=seg_states, action_seq=seg_actions,
-                )  # fmt: skip
-                remaining.append(np.linalg.norm(subgoal[:2]))
-                proposals.append(np.linalg.norm(proposed[:2]))
-            if terminated or truncated or stop or step >= args.total_timesteps:
-                break
-        episodes += 1
-        memory.add_trajectory(np.array(positions))
-        recent["return"].append(episode_return)
-        recent["subgoal_distance"].extend(remaining)
-        writer.add_scalar("charts/episodic_return", episode_return, step)
-        writer.add_scalar("charts/episodic_length", episode_steps, step)
-        writer.add_scalar("charts/controller_reward", ctrl_rewards / episode_steps, step)
-        if remaining:
-            writer.add_scalar("charts/subgoal_distance", float(np.mean(remaining)), step)
-            writer.add_scalar("charts/subgoal_norm", float(np.mean(proposals)), step)
-        if "distance" in info:
-            recent["final_distance"].append(info["distance"])
-            writer.add_scalar("charts/final_distance", info["distance"], step)
-            writer.add_scalar("charts/success_rate", float(info["success"]), step)
+        # Act: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted every step.
+        if episode_steps == 0:
+            goal = manager_goal(env)
+            positions = [state[:2]]
+            remaining = []  # per segment: the distance left to the subgoal's target after k steps
+            proposals = []  # per segment: the length of the proposed subgoal
+            episode_return = 0.0
+            ctrl_rewards = 0.0
+        t = episode_steps % args.k
+        if t == 0:
+            subgoal = propose_subgoal(agent, state, goal, bounds=bounds, noise=args.man_noise, rng=rng)
+            proposed = subgoal
+            seg_states[0] = state
+            seg_reward = 0.0
+        action = controller_action(agent, state, subgoal, noise=args.ctrl_noise, rng=rng)
+        next_state, reward, terminated, truncated, info = env.step(action)
+        step += 1
+        episode_steps += 1
+        episode_return += reward
+        seg_reward += man_reward_scale * reward
 
-        # Train at the episode's end: 500 controller updates, 50 manager updates (HRAC), no warm-up.
-        for _ in range(args.ctrl_updates or episode_steps):
-            ctrl_metrics = controller_update(nets, optimizers["controller"], ctrl_replay, args, rng, device)
-        man_metrics = {}
-        for _ in range(args.man_updates or -(-episode_steps // args.k)) if man_replay.size else ():
-            man_metrics = manager_update(nets, optimizers["manager"], man_replay, args, bounds, rng, device)
-        for name in ("critic_loss", "actor_loss", "q"):
-            writer.add_scalar(f"losses/controller_{name}", ctrl_metrics[name].item(), step)
+        # Store the controller's step and, when a segment is whole, the manager's transition (the envs never terminate).
+        next_subgoal = subgoal_transition(state, subgoal, next_state)
+        ctrl_reward = controller_reward(state, subgoal, next_state)
+        ctrl_rewards += ctrl_reward
+        ctrl_replay.add(
+            states=controller_input(state),
+            goals=subgoal,
+            actions=action,
+            rewards=ctrl_reward,
+            next_states=controller_input(next_state),
+            next_goals=next_subgoal,
+            dones=0.0,
+        )
+        seg_states[t + 1] = next_state
+        seg_actions[t] = action
+        positions.append(next_state[:2])
+        state = next_state
+        subgoal = next_subgoal
+        if t == args.k - 1:
+            man_replay.add(
+                states=seg_states[0],
+                goals=goal,
+                actions=proposed,
+                rewards=seg_reward,
+                next_states=state,
+                dones=0.0,
+                state_seq=seg_states,
+                action_seq=seg_actions,
+            )
+            remaining.append(np.linalg.norm(subgoal[:2]))
+            proposals.append(np.linalg.norm(proposed[:2]))
+        progress.heartbeat(step, f"{episodes} episodes")
+        episode_over = terminated or truncated or step >= args.total_timesteps
+
+        # Episode end: log it, then train both levels (HRAC: 500 controller and 50 manager updates, no warm-up).
+        if episode_over and not stop:
+            episodes += 1
+            memory.add_trajectory(np.array(positions))
+            recent["return"].append(episode_return)
+            recent["subgoal_distance"].extend(remaining)
+            writer.add_scalar("charts/episodic_return", episode_return, step)
+            writer.add_scalar("charts/episodic_length", episode_steps, step)
+            writer.add_scalar("charts/controller_reward", ctrl_rewards / episode_steps, step)
+            if remaining:
+                writer.add_scalar("charts/subgoal_distance", float(np.mean(remaining)), step)
+                writer.add_scalar("charts/subgoal_norm", float(np.mean(proposals)), step)
+            if "distance" in info:
+                recent["final_distance"].append(info["distance"])
+                writer.add_scalar("charts/final_distance", info["distance"], step)
+                writer.add_scalar("charts/success_rate", float(info["success"]), step)
+            ctrl_metrics = {}
+            for _ in range(args.ctrl_updates or episode_steps):
+                if stop:  # Ctrl-C: the updates made so far count
+                    break
+                ctrl_metrics = controller_update(
+                    agent,
+                    ctrl_replay.sample(args.batch_size, rng),
+                    device=device,
+                    gamma=args.ctrl_gamma,
+                    tau=args.tau,
+                    policy_noise=args.policy_noise,
+                    noise_clip=args.noise_clip,
+                )
+            man_metrics = {}
+            for _ in range((args.man_updates or -(-episode_steps // args.k)) if man_replay.size else 0):
+                if stop:
+                    break
+                man_metrics = manager_update(
+                    agent,
+                    man_replay.sample(args.batch_size, rng),
+                    rng=rng,
+                    device=device,
+                    bounds=bounds,
+                    correction_samples=args.correction_samples,
+                    gamma=args.man_gamma,
+                    tau=args.tau,
+                    policy_noise=args.policy_noise,
+                    noise_clip=args.noise_clip,
+                    adj_weight=args.adj_weight,
+                    adj_threshold=adj_threshold,
+                )
+            for name in ("critic_loss", "actor_loss", "q"):
+                if ctrl_metrics:
+                    writer.add_scalar(f"losses/controller_{name}", ctrl_metrics[name].item(), step)
+                if man_metrics:
+                    writer.add_scalar(f"losses/manager_{name}", man_metrics[name].item(), step)
             if man_metrics:
-                writer.add_scalar(f"losses/manager_{name}", man_metrics[name].item(), step)
-        if man_metrics:
-            writer.add_scalar("losses/manager_adjacency_loss", man_metrics["adjacency_loss"].item(), step)
-        if dgrl:  # DGRL
-            writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), step)  # DGRL
-            writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), step)  # DGRL
-            writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
-            writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
+                writer.add_scalar("losses/manager_adjacency_loss", man_metrics["adjacency_loss"].item(), step)
+            if dgrl and ctrl_metrics:  # DGRL
+                writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), step)  # DGRL
+                writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), step)  # DGRL
+                writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
+                writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
 
-        # Adjacency network: retrained every adj_frequency steps on the labels gathered so far.
-        if step >= next_adjacency:
+        # Adjacency network: retrained every adj_frequency steps (at an episode end) on the labels gathered so far.
+        if episode_over and not stop and step >= next_adjacency:
             next_adjacency += args.adj_frequency
             began = time.time()
-            adj_loss, adj_accuracy = train_adjacency(nets["anet"], optimizers["adjacency"], memory, args, rng, device)
+            adj_loss, adj_accuracy = train_adjacency(
+                agent.adjacency,
+                agent.adjacency_optimizer,
+                memory,
+                rng,
+                epochs=args.adj_epochs,
+                batch_size=args.adj_batch_size,
+                margin_pos=args.adj_margin_pos,
+                margin_neg=args.adj_margin_neg,
+                device=device,
+                stop=stop,
+            )
             writer.add_scalar("adjacency/loss", adj_loss, step)
             writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
             writer.add_scalar("adjacency/cells", len(memory.index), step)
             writer.add_scalar("adjacency/edges", len(memory.edges), step)
             print(
-                f"step {step:>8}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
-                f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)"
+                f"step {step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
+                f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)",
+                flush=True,
             )
 
-        if time.time() - last_print > 60:
-            last_print = time.time()
-            print(f"step {step:>8}/{args.total_timesteps}  {episodes} episodes  SPS {int(step / (last_print - start_time))}")
-
-        # Evaluate (deterministic, the fixed evaluation goal), log, print progress, checkpoint.
-        if step >= next_eval or step >= args.total_timesteps or stop:
-            last_print = time.time()
-            next_eval = step + args.eval_frequency
+        # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
+        if episode_over and not stop and (step >= next_eval or step >= args.total_timesteps):
+            next_eval += args.eval_frequency
             video = [] if args.capture_video and evaluations % 10 == 0 else None
-            result = evaluate(eval_env, nets, args, bounds, rng, args.eval_episodes, video)
+            result = evaluate(
+                eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop
+            )
             evaluations += 1
-            elapsed = time.time() - start_time
-            sps = int(step / elapsed)
             for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
                 writer.add_scalar(f"eval/{tag}", result[name], step)
-            writer.add_scalar("charts/SPS", sps, step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
             summary = {name: float(np.mean(values)) if values else float("nan") for name, values in recent.items()}
             recent = {name: [] for name in recent}
-            task = (
-                f"return {result['return']:6.2f}" if args.env_id == "AntGather"
-                else f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
-            )  # fmt: skip
-            print(
-                f"step {step:>8}/{args.total_timesteps}  eval {task}  train return {summary['return']:8.1f} "
-                f"final distance {summary['final_distance']:5.2f}  subgoal distance {summary['subgoal_distance']:5.2f}  "
-                f"SPS {sps}  {elapsed:.0f}s elapsed, {(args.total_timesteps - step) / max(sps, 1):.0f}s left"
+            if args.env_id == "AntGather":
+                task = f"return {result['return']:6.2f}"
+            else:
+                task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
+            progress.line(
+                step,
+                f"eval {task}  train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}  "
+                f"subgoal distance {summary['subgoal_distance']:5.2f}",
             )
             if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video)
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, HiroAntEnv.metadata["render_fps"])
             if args.save_model:
-                save_checkpoint(checkpoint_path, modules, args)
-        if not (terminated or truncated):
-            break  # stopped or out of steps mid-episode
-        state, _ = env.reset()
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+
+        # The next episode.
+        if episode_over:
+            state, _ = env.reset()
+            episode_steps = 0
 
     if args.save_model:
-        save_checkpoint(checkpoint_path, modules, args)
+        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
-    print(
-        f"{'stopped' if stop else 'done'}: {step} steps, {episodes} episodes, last eval success {result['success']:.0%} "
-        f"distance {result['distance']:.2f} return {result['return']:.2f}, {time.time() - start_time:.0f} s"
+    progress.finish(
+        bool(stop),
+        run_name,
+        f"{step} steps, {episodes} episodes, last eval success {result['success']:.0%} distance {result['distance']:.2f} "
+        f"return {result['return']:.2f}",
     )
     env.close()
     eval_env.close()

@@ -84,7 +84,7 @@ class Args:
 
     # Algorithm: RIS from pixels
     total_timesteps: int = 1_000_000
-    """total environment steps (the reference gives no Sawyer budget; 1M is this script's choice)"""
+    """total environment steps (RIS gives no Sawyer budget; 1M is this script's choice)"""
     buffer_size: int = 100_000
     """replay capacity in rows: the transitions plus, per episode, its last observation and its goal image"""
     batch_size: int = 256
@@ -137,15 +137,15 @@ class Args:
     """act with the mean action during evaluation (RIS samples actions, as in training)"""
 
     # DGRL
-    groups: int = 16
+    groups: int = 16  # DGRL
     """G: factors of the 16-d embedding; 0 runs RIS"""
-    n_embed: int = 64
+    n_embed: int = 64  # DGRL
     """L: codes in the shared codebook"""
-    vq_beta: float = 0.25
+    vq_beta: float = 0.25  # DGRL
     """commitment-loss weight"""
-    vq_decay: float = 0.99
+    vq_decay: float = 0.99  # DGRL
     """EMA decay of the codebook"""
-    vq_dead_code_steps: int = 0
+    vq_dead_code_steps: int = 0  # DGRL
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
 
 
@@ -165,6 +165,7 @@ TEST_BOXES = {  # (low xy, high xy) of the test configuration's uniform draws
 }
 SUCCESS_DISTANCE = 0.05
 EPISODE_STEPS = 100
+IMAGE_SIZE = 84  # observation images are IMAGE_SIZE x IMAGE_SIZE RGB
 TIMESTEP, FRAME_SKIP = 0.002, 50  # 0.1 s per env step
 CAMERA_HEIGHT = 0.65  # the top camera's height: its 45-degree field of view spans 0.54 m, the arena and its walls
 
@@ -245,8 +246,13 @@ class SawyerPushAndReachEnv(gym.Env):
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, test: bool = False, image_size: int = 84, action_scale: float = 0.02, render_mode: str | None = None):
-        self.test, self.image_size, self.action_scale, self.render_mode = test, image_size, action_scale, render_mode
+    def __init__(
+        self, test: bool = False, image_size: int = IMAGE_SIZE, action_scale: float = 0.02, render_mode: str | None = None
+    ):
+        self.test = test
+        self.image_size = image_size
+        self.action_scale = action_scale
+        self.render_mode = render_mode
         self.model = mujoco.MjModel.from_xml_string(sawyer_xml())
         self.data = mujoco.MjData(self.model)
         image = gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
@@ -442,7 +448,7 @@ class ImageEncoder(nn.Module):
 
     channels = 32
 
-    def __init__(self, feature_dim: int, image_size: int = 84):
+    def __init__(self, feature_dim: int, image_size: int = IMAGE_SIZE):
         super().__init__()
         layers, in_channels, side = [], 3, image_size
         for stride in (2, 2, 2, 1):
@@ -672,10 +678,15 @@ def make_agent(args: Args, image_size: int, action_dim: int, device) -> Agent:
     encoder = ImageEncoder(args.feature_dim, image_size).to(device)
     driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
     high = HighLevelPolicy(args.feature_dim, args.hidden_dim).to(device)
-    vq = None
+    vq = None  # DGRL: RIS has no bottleneck
     if args.groups > 0:  # DGRL
         vq = VectorQuantizerEMA(  # DGRL
-            args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
+            args.feature_dim,  # DGRL
+            args.n_embed,  # DGRL
+            args.groups,  # DGRL
+            beta=args.vq_beta,  # DGRL
+            decay=args.vq_decay,  # DGRL
+            dead_code_steps=args.vq_dead_code_steps,  # DGRL
         ).to(device)  # DGRL
     fused = device.type in ("cpu", "cuda")
     critic_groups = [
@@ -1010,7 +1021,8 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 def validate(args: Args) -> None:
     """Refuse bad flags before any work: each message names the flag and the valid values; exit status 2."""
     errors = common_errors(args)
-    errors += range_errors(args, "seed start_timesteps image_pad driml_coef", 0)
+    errors += range_errors(args, "seed start_timesteps driml_coef", 0)
+    errors += range_errors(args, "image_pad", 0, IMAGE_SIZE - 1)  # a larger shift leaves none of the image's content
     errors += range_errors(
         args, "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals feature_dim driml_dim eval_frequency", 1
     )
@@ -1033,14 +1045,21 @@ def validate(args: Args) -> None:
     # The replay stores whole episodes (up to EPISODE_STEPS + 2 rows) and starts again at row 0 when the next one does not
     # fit, so it surely fills to --batch-size rows only if it holds a batch and one such episode besides.
     need_rows = args.batch_size + EPISODE_STEPS + 1
-    if args.batch_size >= 1 and args.buffer_size < need_rows:
+    if args.buffer_size >= 1 and args.buffer_size < need_rows:
         errors.append(
             f"--buffer-size must be >= --batch-size + {EPISODE_STEPS + 1} = {need_rows} (whole episodes of up to "
             f"{EPISODE_STEPS + 2} rows, and a batch besides); got {args.buffer_size}"
         )
+    row_bytes = IMAGE_SIZE * IMAGE_SIZE * 3 + 4 * 4 + 4 * 2 + 8 + 8 + 1  # image, state, action, two row indices, flag
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") if hasattr(os, "sysconf") else math.inf
+    if args.buffer_size * row_bytes > memory:
+        errors.append(
+            f"--buffer-size {args.buffer_size} needs {args.buffer_size * row_bytes / 1e9:.0f} GB of host memory ("
+            f"{row_bytes / 1e3:.0f} KB a row); this machine has {memory / 1e9:.0f} GB"
+        )
     # Updates start after the random steps, once finished episodes (up to EPISODE_STEPS steps each) hold a batch.
     first_update = max(args.start_timesteps + 1, args.batch_size + (EPISODE_STEPS - 1) * args.num_envs)
-    if args.total_timesteps < first_update:
+    if args.total_timesteps >= 1 and args.total_timesteps < first_update:
         errors.append(
             f"--total-timesteps must be >= {first_update} for any update to run: updates start after --start-timesteps "
             f"({args.start_timesteps}) random steps, once finished episodes of up to {EPISODE_STEPS} steps per env hold "

@@ -11,14 +11,18 @@ itself. `--groups 0` is plain HRAC from the same file.
 
     python dgrl_hrac_keychest.py --groups 16            # paper setting, DGRL G=16: 2M frames (about 28 min on a CPU core)
     python dgrl_hrac_keychest.py --groups 0             # HRAC
-    python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400   # smoke run
+    python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400 \
+        --eval-frequency 5000                           # smoke run (about 30 s)
 
-The study: benchmark/hrac_keychest.sh. Docs: docs/dgrl_hrac_keychest.md.
+The study: benchmark/hrac_keychest.sh; update times: benchmark/bench_hrac_keychest.py. Docs: docs/dgrl_hrac_keychest.md.
 """
 
+import importlib.util
+import math
 import os
 import random
 import signal
+import sys
 import time
 from dataclasses import dataclass
 from typing import ClassVar, Literal
@@ -42,23 +46,22 @@ class Args:
     """seed of the experiment"""
     torch_deterministic: bool = True
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
-    cuda: bool = False
-    """if toggled, cuda will be enabled when available (off by default: these small networks run faster on the CPU)"""
+    cuda: bool = True
+    """if toggled, cuda will be enabled when available"""
     track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "dgrl"
     """the wandb's project name"""
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to record the first evaluation episode of every 10th evaluation (saved in `videos/`)"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
     save_model: bool = False
-    """whether to save a checkpoint (both levels, adjacency network, goal autoencoder with its codebook) at every
-    evaluation and at the end"""
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
-    """path of a saved checkpoint: evaluate it over --eval-episodes episodes, then exit (no training)"""
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
-    """torch CPU threads (one is fastest for these 300-unit networks; two runs then fit side by side on 2 cores)"""
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
 
     # Environment
     env_id: Literal["KeyChest"] = "KeyChest"
@@ -89,14 +92,14 @@ class Args:
     """high-level replay capacity (k-step transitions); training starts when it is half full"""
     man_batch_size: int = 64
     """high-level batch size"""
-    man_noise_sigma: float = 5.0
-    """Gaussian exploration noise on the subgoal, in cells"""
+    man_noise: float = 5.0
+    """std of the Gaussian exploration noise on the high level's subgoals, in cells"""
     man_reward_scale: float = 1.0
     """scale of the environment reward summed over a k-step segment"""
     n_noisy_goals: int = 20
     """noisy candidate subgoals drawn per decision; one deemed k-step reachable is picked (0 = plain Gaussian noise)"""
-    goal_loss_coef: float = 20.0
-    """weight of the adjacency loss in the high-level actor loss"""
+    adj_weight: float = 20.0
+    """weight of the adjacency loss in the high level's actor loss"""
     hidden_dim: int = 300
     """hidden units of both levels' 2-layer networks"""
 
@@ -110,7 +113,7 @@ class Args:
     ctrl_reward_scale: float = 1.0
     """low-level reward for a step that ends within --goal-threshold of the subgoal in both coordinates"""
     goal_threshold: float = 0.5
-    """the subgoal counts as reached when |s' - g| <= this in both coordinates"""
+    """the subgoal counts as reached when |s' - g| <= this in both coordinates, in cells"""
 
     # Algorithm: adjacency network
     adj_lr: float = 2e-4
@@ -123,9 +126,9 @@ class Args:
     """frames of random-subgoal exploration (the chest does not end episodes) before the first adjacency training"""
     adj_init_epochs: int = 50
     """epochs of the first adjacency training"""
-    adj_training_freq: int = 50_000
-    """frames between two adjacency retrainings"""
-    adj_training_epochs: int = 25
+    adj_frequency: int = 50_000
+    """env steps (frames) between two adjacency retrainings, counted from the end of the exploration"""
+    adj_epochs: int = 25
     """epochs of each retraining"""
     adj_batch_size: int = 64
     """adjacency batch size (pairs of visited cells)"""
@@ -134,37 +137,44 @@ class Args:
     adj_embed_dim: int = 32
     """output size of the adjacency network"""
 
-    # Evaluation
-    eval_frequency: int = 50
-    """training episodes between evaluations"""
+    # Evaluation and logging
+    eval_frequency: int = 25_000
+    """env steps (frames) between evaluations, at its multiples after the exploration (25,000 = 50 full episodes of 8 envs)"""
     eval_episodes: int = 50
     """episodes per evaluation (random starts, deterministic subgoals, sampled low-level actions)"""
+    log_frequency: int = 5_000
+    """env steps (frames) between two logs of the latest update's losses"""
 
     # DGRL
-    groups: int = 16
+    groups: int = 16  # DGRL
     """G: factors of the subgoal embedding; 0 runs HRAC"""
-    n_embed: int = 64
+    n_embed: int = 64  # DGRL
     """L: codes in the shared codebook"""
-    vq_beta: float = 0.25
+    vq_beta: float = 0.25  # DGRL
     """commitment-loss weight"""
-    vq_decay: float = 0.99
+    vq_decay: float = 0.99  # DGRL
     """EMA decay of the codebook"""
-    vq_dead_code_steps: int = 0
+    vq_dead_code_steps: int = 0  # DGRL
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
-    embed_dim: int = 64
+    embed_dim: int = 64  # DGRL
     """size of the subgoal embedding (m); must be divisible by groups"""
-    dgrl_goal: Literal["decoded", "embedding"] = "decoded"
-    """what the low level gets under DGRL: the decoded discretized subgoal, a point of the grid that it is rewarded for
-    reaching (the paper appendix's encoder-bottleneck-decoder), or the discrete embedding itself, rewarded for reaching
-    the raw subgoal"""
-    ae_hidden_dim: int = 128
+    dgrl_goal: Literal["decoded", "embedding"] = "decoded"  # DGRL
+    """what the low level gets under DGRL: the decoded discretized subgoal (rewarded for reaching it), or the embedding"""
+    ae_hidden_dim: int = 128  # DGRL
     """hidden units of the subgoal encoder and decoder"""
-    ae_lr: float = 1e-3
+    ae_lr: float = 1e-3  # DGRL
     """Adam learning rate of the subgoal autoencoder"""
-    ae_init_steps: int = 2000
+    ae_init_steps: int = 2000  # DGRL
     """autoencoder steps on uniform random subgoals during adjacency pre-training"""
-    ae_batch_size: int = 256
+    ae_batch_size: int = 256  # DGRL
     """batch size of those steps"""
+
+
+# The flags a checkpoint must have been saved with to be evaluated: the task and what evaluation measures (the k-step
+# segments, the reach threshold), then the networks' shapes; under DGRL also the autoencoder's and the low level's input.
+MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold")
+MUST_MATCH += ("hidden_dim", "adj_hidden_dim", "adj_embed_dim", "groups")
+DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")  # DGRL
 
 
 # --- Environment ------------------------------------------------------------------------------------------------------
@@ -188,21 +198,23 @@ MOVES = np.array(((-1, 0), (1, 0), (0, -1), (0, 1)))  # up, down, left, right as
 WALLS = np.array([[char == "w" for char in line] for line in LAYOUT])
 HEIGHT, WIDTH = WALLS.shape
 GOAL_SCALE = np.array((HEIGHT, WIDTH), dtype=np.float32)  # the high level proposes cells in [0, 13] x [0, 17]
-KEY_CELL, CHEST_CELL = (6, 1), (2, 1)
+KEY_CELL = (6, 1)
+CHEST_CELL = (2, 1)
 FREE_CELLS = np.argwhere(~WALLS)  # (128, 2) in row-major order
-KEY_REWARD, CHEST_REWARD = 1.0, 5.0
+KEY_REWARD = 1.0
+CHEST_REWARD = 5.0
 
 
 class KeyChestVecEnv(gym.vector.VectorEnv):
-    """`num_envs` Key-Chest grids stepped together in numpy (HRAC's task, reference hrac-keychest.md).
+    """`num_envs` Key-Chest grids stepped together in numpy (HRAC's task: the 13 x 17 layout above, key K, chest B).
 
-    Observation (row, col, has_key) as float32. Actions: 0 up, 1 down, 2 left, 3 right; with probability
-    `random_action_prob` the action is replaced by a uniformly random one; walls block moves. Entering the key cell
-    gives +1 the first time (has_key becomes 1); entering the chest cell with the key gives +5 and terminates (unless
-    `terminate_at_chest` is False, HRAC's pure-exploration mode). Episodes truncate after `max_episode_steps` and
-    start on a uniformly random free cell. Autoreset is SAME_STEP: a finished env is reset in the step that ends it,
-    its last observation in `infos["final_obs"]` (mask `infos["_final_obs"]`) and its return and length in
-    `infos["episode"]["r"]` / `["l"]` (mask `infos["_episode"]`).
+    Observation (row, col, has_key) as float32. Actions: 0 up, 1 down, 2 left, 3 right (anything else raises a
+    ValueError); with probability `random_action_prob` the action is replaced by a uniformly random one; walls block
+    moves. Entering the key cell gives +1 the first time (has_key becomes 1); entering the chest cell with the key gives
+    +5 and terminates (unless `terminate_at_chest` is False, HRAC's pure-exploration mode). Episodes truncate after
+    `max_episode_steps` and start on a uniformly random free cell. Autoreset is SAME_STEP: a finished env is reset in the
+    step that ends it, its last observation in `infos["final_obs"]` (mask `infos["_final_obs"]`). Episode returns and
+    lengths come from gymnasium's `gym.wrappers.vector.RecordEpisodeStatistics`, as for any vector env.
     """
 
     metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
@@ -216,8 +228,10 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         render_mode: str | None = None,
     ):
         self.num_envs = num_envs
-        self.max_episode_steps, self.random_action_prob = max_episode_steps, random_action_prob
-        self.terminate_at_chest, self.render_mode = terminate_at_chest, render_mode
+        self.max_episode_steps = max_episode_steps
+        self.random_action_prob = random_action_prob
+        self.terminate_at_chest = terminate_at_chest
+        self.render_mode = render_mode
         self.single_observation_space = gym.spaces.Box(0, max(HEIGHT, WIDTH) - 1, (3,), np.float32)
         self.single_action_space = gym.spaces.Discrete(len(MOVES))
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
@@ -226,14 +240,14 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         self.position = np.zeros((num_envs, 2), dtype=np.int64)
         self.has_key = np.zeros(num_envs, dtype=bool)
         self.elapsed = np.zeros(num_envs, dtype=np.int64)
-        self.episode_return = np.zeros(num_envs, dtype=np.float64)
 
     def _observe(self) -> np.ndarray:
         return np.concatenate([self.position, self.has_key[:, None]], 1).astype(np.float32)
 
     def _reset_envs(self, mask: np.ndarray) -> None:
         self.position[mask] = FREE_CELLS[self.rng.integers(len(FREE_CELLS), size=int(mask.sum()))]
-        self.has_key[mask], self.elapsed[mask], self.episode_return[mask] = False, 0, 0.0
+        self.has_key[mask] = False
+        self.elapsed[mask] = 0
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is not None:
@@ -243,7 +257,13 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         return self._observe(), {}
 
     def step(self, actions):
-        actions = np.asarray(actions, dtype=np.int64)
+        actions = np.asarray(actions)
+        valid = actions.shape == (self.num_envs,) and actions.dtype.kind in "iu"
+        if not valid or (actions < 0).any() or (actions >= len(MOVES)).any():
+            raise ValueError(
+                f"KeyChestVecEnv.step: expected {self.num_envs} integer actions in [0, {len(MOVES) - 1}] "
+                f"(up, down, left, right); got {actions.tolist()!r} of dtype {actions.dtype}"
+            )
         replaced = self.rng.random(self.num_envs) < self.random_action_prob
         actions = np.where(replaced, self.rng.integers(len(MOVES), size=self.num_envs), actions)
         target = self.position + MOVES[actions]
@@ -254,18 +274,12 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         opened = moved & self.has_key & (self.position == CHEST_CELL).all(1)
         rewards = KEY_REWARD * got_key + CHEST_REWARD * opened
         self.elapsed += 1
-        self.episode_return += rewards
         terminations = opened & self.terminate_at_chest
         truncations = (self.elapsed >= self.max_episode_steps) & ~terminations
         done = terminations | truncations
         infos = {}
         if done.any():
-            infos = {
-                "final_obs": np.where(done[:, None], self._observe(), 0.0).astype(np.float32),
-                "_final_obs": done,
-                "episode": {"r": np.where(done, self.episode_return, 0.0), "l": np.where(done, self.elapsed, 0)},
-                "_episode": done,
-            }
+            infos = {"final_obs": np.where(done[:, None], self._observe(), 0.0).astype(np.float32), "_final_obs": done}
             self._reset_envs(done)
         return self._observe(), rewards, terminations, truncations, infos
 
@@ -281,7 +295,8 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         if subgoal is not None:
             row, col = np.clip(np.round(subgoal).astype(int), 0, (HEIGHT - 1, WIDTH - 1))
             cell = image[row * pixels : (row + 1) * pixels, col * pixels : (col + 1) * pixels]
-            cell[:2], cell[-2:], cell[:, :2], cell[:, -2:] = (0, 220, 0), (0, 220, 0), (0, 220, 0), (0, 220, 0)
+            for border in (cell[:2], cell[-2:], cell[:, :2], cell[:, -2:]):
+                border[:] = (0, 220, 0)
         return image
 
     def render(self):
@@ -294,7 +309,8 @@ def shortest_path_lengths() -> np.ndarray:
     index[FREE_CELLS[:, 0], FREE_CELLS[:, 1]] = np.arange(len(FREE_CELLS))
     distances = np.full((len(FREE_CELLS), len(FREE_CELLS)), -1, dtype=np.int64)
     for source in range(len(FREE_CELLS)):
-        distances[source, source], frontier = 0, [source]
+        distances[source, source] = 0
+        frontier = [source]
         while frontier:
             following = []
             for cell in frontier:
@@ -336,7 +352,8 @@ class TwinCritic(nn.Module):
 
     def __init__(self, hidden_dim: int):
         super().__init__()
-        self.q1, self.q2 = mlp(5, hidden_dim, 1), mlp(5, hidden_dim, 1)
+        self.q1 = mlp(5, hidden_dim, 1)
+        self.q2 = mlp(5, hidden_dim, 1)
 
     def forward(self, states: torch.Tensor, goals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = torch.cat([states, goals], 1)
@@ -368,29 +385,115 @@ class AdjacencyNet(nn.Module):
 
 
 class GoalAutoencoder(nn.Module):  # DGRL
-    """Subgoal -> encoder -> grouped VQ (shared EMA codebook) -> decoder -> subgoal (paper appendix "KeyChest")."""
+    """Subgoal -> encoder -> grouped VQ (shared EMA codebook) -> decoder -> subgoal (paper appendix "KeyChest")."""  # DGRL
 
-    def __init__(self, embed_dim: int, hidden_dim: int, groups: int, n_embed: int, beta: float, decay: float, dead: int):
-        super().__init__()
-        self.encoder = mlp(2, hidden_dim, embed_dim, n_hidden=1)
-        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta=beta, decay=decay, dead_code_steps=dead)
-        self.decoder = mlp(embed_dim, hidden_dim, 2, n_hidden=1)
-        self.register_buffer("scale", torch.as_tensor(GOAL_SCALE))
+    def __init__(  # DGRL
+        self,  # DGRL
+        embed_dim: int,  # DGRL
+        hidden_dim: int,  # DGRL
+        groups: int,  # DGRL
+        n_embed: int,  # DGRL
+        beta: float,  # DGRL
+        decay: float,  # DGRL
+        dead_code_steps: int,  # DGRL
+    ):  # DGRL
+        super().__init__()  # DGRL
+        self.encoder = mlp(2, hidden_dim, embed_dim, n_hidden=1)  # DGRL
+        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
+        self.decoder = mlp(embed_dim, hidden_dim, 2, n_hidden=1)  # DGRL
+        self.register_buffer("scale", torch.as_tensor(GOAL_SCALE))  # DGRL
 
-    def forward(self, goals: torch.Tensor, update: bool = False):
-        """(discrete embedding, commitment loss, code indices, reconstruction in [0, 1]^2 units) of raw subgoals."""
-        quantized, vq_loss, indices = self.vq(self.encoder(goals / self.scale), update=update)
-        return quantized, vq_loss, indices, self.decoder(quantized)
+    def forward(self, goals: torch.Tensor, update: bool = False):  # DGRL
+        """(discrete embedding, commitment loss, code indices, reconstruction in [0, 1]^2 units) of raw subgoals."""  # DGRL
+        quantized, vq_loss, indices = self.vq(self.encoder(goals / self.scale), update=update)  # DGRL
+        return quantized, vq_loss, indices, self.decoder(quantized)  # DGRL
 
 
-# --- Buffers, losses, evaluation --------------------------------------------------------------------------------------
+@dataclass
+class Agent:
+    """HRAC's two levels (the high level with its targets), the adjacency network and, under DGRL, the subgoal
+    autoencoder with its codebook; each with its Adam optimizer (the codebook moves by EMA, in no optimizer)."""
+
+    actor: ManagerActor
+    critic: TwinCritic
+    actor_target: ManagerActor
+    critic_target: TwinCritic
+    controller: Controller
+    adjacency: AdjacencyNet
+    goal_ae: GoalAutoencoder | None  # DGRL: None for --groups 0
+    dgrl_goal: str  # DGRL: what the low level gets of a subgoal, "decoded" or "embedding" (see Args)
+    actor_optimizer: torch.optim.Optimizer
+    critic_optimizer: torch.optim.Optimizer
+    controller_optimizer: torch.optim.Optimizer
+    adjacency_optimizer: torch.optim.Optimizer
+    ae_optimizer: torch.optim.Optimizer | None  # DGRL
+
+    def state_dicts(self) -> dict:
+        """What evaluation needs, as checkpoint entries (the autoencoder's includes the codebook and its EMA buffers)."""
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "controller": self.controller.state_dict(),
+            "adjacency": self.adjacency.state_dict(),
+            "goal_autoencoder": None if self.goal_ae is None else self.goal_ae.state_dict(),  # DGRL
+        }
+
+    def load_state_dicts(self, saved: dict) -> None:
+        self.actor.load_state_dict(saved["actor"])
+        self.critic.load_state_dict(saved["critic"])
+        self.controller.load_state_dict(saved["controller"])
+        self.adjacency.load_state_dict(saved["adjacency"])
+        if self.goal_ae is not None:  # DGRL
+            self.goal_ae.load_state_dict(saved["goal_autoencoder"])  # DGRL
+
+
+def make_agent(args: Args, device: torch.device) -> Agent:
+    """The agent the flags describe, on `device` (networks built in a fixed order, so a seed gives the same weights)."""
+    dgrl = args.groups > 0  # DGRL
+    actor = ManagerActor(args.hidden_dim).to(device)
+    critic = TwinCritic(args.hidden_dim).to(device)
+    goal_ae = None
+    if dgrl:  # DGRL
+        goal_ae = GoalAutoencoder(  # DGRL
+            embed_dim=args.embed_dim,  # DGRL
+            hidden_dim=args.ae_hidden_dim,  # DGRL
+            groups=args.groups,  # DGRL
+            n_embed=args.n_embed,  # DGRL
+            beta=args.vq_beta,  # DGRL
+            decay=args.vq_decay,  # DGRL
+            dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        ).to(device)  # DGRL
+    goal_input_dim = args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
+    controller = Controller(goal_input_dim, args.hidden_dim).to(device)
+    adjacency = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device)
+    return Agent(
+        actor=actor,
+        critic=critic,
+        actor_target=make_target(actor),
+        critic_target=make_target(critic),
+        controller=controller,
+        adjacency=adjacency,
+        goal_ae=goal_ae,
+        dgrl_goal=args.dgrl_goal,  # DGRL
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.man_actor_lr, fused=True),
+        critic_optimizer=torch.optim.Adam(critic.parameters(), lr=args.man_critic_lr, fused=True),
+        controller_optimizer=torch.optim.Adam(controller.parameters(), lr=args.ctrl_lr, fused=True),
+        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=True),
+        ae_optimizer=torch.optim.Adam(goal_ae.parameters(), lr=args.ae_lr, fused=True) if dgrl else None,  # DGRL
+    )
+
+
+# --- Buffers, losses, updates, evaluation -----------------------------------------------------------------------------
 
 
 class ManagerReplay:
     """Preallocated ring buffer of k-step high-level transitions (state, subgoal, summed reward, next state, terminal)."""
 
     def __init__(self, capacity: int, rng: np.random.Generator):
-        self.capacity, self.rng, self.size, self.pointer = capacity, rng, 0, 0
+        self.capacity = capacity
+        self.rng = rng
+        self.size = 0
+        self.pointer = 0
         self.states = np.zeros((capacity, 3), dtype=np.float32)
         self.goals = np.zeros((capacity, 2), dtype=np.float32)
         self.rewards = np.zeros(capacity, dtype=np.float32)
@@ -399,8 +502,11 @@ class ManagerReplay:
 
     def add(self, states, goals, rewards, next_states, terminals) -> None:
         slots = (self.pointer + np.arange(len(states))) % self.capacity
-        self.states[slots], self.goals[slots], self.rewards[slots] = states, goals, rewards
-        self.next_states[slots], self.terminals[slots] = next_states, terminals
+        self.states[slots] = states
+        self.goals[slots] = goals
+        self.rewards[slots] = rewards
+        self.next_states[slots] = next_states
+        self.terminals[slots] = terminals
         self.pointer = int((self.pointer + len(states)) % self.capacity)
         self.size = min(self.size + len(states), self.capacity)
 
@@ -449,9 +555,9 @@ def a2c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, 
 def contrastive_loss(emb_a: torch.Tensor, emb_b: torch.Tensor, labels: torch.Tensor, margin_pos: float, margin_neg: float):
     """HRAC's adjacency loss: mean(l * max(0, d - m+)) + mean((1 - l) * max(0, m- - d)), d = ||phi_a - phi_b||."""
     distances = torch.sqrt((emb_a - emb_b).pow(2).sum(1) + 1e-12)
-    return (labels * (distances - margin_pos).clamp(min=0)).mean() + (
-        (1 - labels) * (margin_neg - distances).clamp(min=0)
-    ).mean()
+    adjacent_term = (labels * (distances - margin_pos).clamp(min=0)).mean()
+    apart_term = ((1 - labels) * (margin_neg - distances).clamp(min=0)).mean()
+    return adjacent_term + apart_term
 
 
 def mark_adjacent(adjacency: np.ndarray, visited: np.ndarray, cells: np.ndarray, k: int) -> None:
@@ -462,28 +568,45 @@ def mark_adjacent(adjacency: np.ndarray, visited: np.ndarray, cells: np.ndarray,
         adjacency[cells[offset:], cells[:-offset]] = True
 
 
-def train_adjacency(anet, optimizer, adjacency, visited, epochs, batch_size, margin_pos, margin_neg, rng, device) -> float:
-    """`epochs` passes over every pair of visited cells in shuffled batches; returns the last epoch's mean loss."""
+def train_adjacency(
+    anet: AdjacencyNet,
+    optimizer: torch.optim.Optimizer,
+    adjacency: np.ndarray,
+    visited: np.ndarray,
+    *,
+    epochs: int,
+    batch_size: int,
+    margin_pos: float,
+    margin_neg: float,
+    rng: np.random.Generator,
+    stop: list[int] | None = None,
+) -> float:
+    """`epochs` passes over every pair of visited cells in shuffled batches (fewer if `stop` fills up); returns the last
+    epoch's mean loss (NaN if no epoch ran or fewer than two cells were visited)."""
+    device = next(anet.parameters()).device
     cells = np.flatnonzero(visited)
     first, second = np.triu_indices(len(cells), 1)
     coordinates = torch.as_tensor(np.stack(np.divmod(cells, WIDTH), 1), dtype=torch.float32, device=device)
     labels_all = torch.as_tensor(adjacency[cells[first], cells[second]], dtype=torch.float32, device=device)
-    first, second = torch.as_tensor(first, device=device), torch.as_tensor(second, device=device)
+    first = torch.as_tensor(first, device=device)
+    second = torch.as_tensor(second, device=device)
     anet.requires_grad_(True)
-    losses = [torch.tensor(float("nan"))]
+    losses = []
     for _ in range(epochs):
+        if stop:
+            break
         order = torch.as_tensor(rng.permutation(len(first)), device=device)
         losses = []
         for batch in order.split(batch_size):
-            loss = contrastive_loss(
-                anet(coordinates[first[batch]]), anet(coordinates[second[batch]]), labels_all[batch], margin_pos, margin_neg
-            )
+            embeddings_a = anet(coordinates[first[batch]])
+            embeddings_b = anet(coordinates[second[batch]])
+            loss = contrastive_loss(embeddings_a, embeddings_b, labels_all[batch], margin_pos, margin_neg)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
             losses.append(loss.detach())
     anet.requires_grad_(False)  # the high-level actor's adjacency loss must not train it
-    return torch.stack(losses).mean().item()
+    return torch.stack(losses).mean().item() if losses else float("nan")
 
 
 @torch.no_grad()
@@ -495,17 +618,31 @@ def adjacency_accuracy(anet: AdjacencyNet, distances: np.ndarray, k: int, thresh
     return float((predicted[first, second] == (distances[first, second] <= k)).mean())
 
 
+def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
+    """`count` uniformly random points of [0, 13] x [0, 17]: HRAC's subgoals before the high level trains."""
+    return torch.rand(count, 2, device=device) * torch.as_tensor(GOAL_SCALE, device=device)
+
+
 @torch.no_grad()
-def propose_subgoals(actor, anet, states, args: Args, threshold: float, explore: bool) -> torch.Tensor:
-    """HRAC's subgoal choice. Exploring: draw n_noisy_goals Gaussian candidates around the actor's output, clipped to the
-    grid, and pick uniformly among those the adjacency network deems k-step reachable, else the noiseless output."""
+def propose_subgoals(
+    actor: ManagerActor,
+    anet: AdjacencyNet,
+    states: torch.Tensor,
+    *,
+    threshold: float,
+    explore: bool,
+    n_noisy_goals: int,
+    noise: float,
+) -> torch.Tensor:
+    """HRAC's subgoal choice. Exploring: draw n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's
+    output, clipped to the grid, and pick uniformly among those the adjacency network deems k-step reachable, else the
+    noiseless output."""
     raw = actor(states)
     if not explore:
         return raw
-    noise_shape = (len(states), max(args.n_noisy_goals, 1), 2)
-    noise = args.man_noise_sigma * torch.randn(noise_shape, device=raw.device)
-    noisy = torch.minimum((raw.unsqueeze(1) + noise).clamp(min=0), actor.scale)
-    if args.n_noisy_goals == 0:
+    noise_shape = (len(states), max(n_noisy_goals, 1), 2)
+    noisy = torch.minimum((raw.unsqueeze(1) + noise * torch.randn(noise_shape, device=raw.device)).clamp(min=0), actor.scale)
+    if n_noisy_goals == 0:
         return noisy[:, 0]
     distances = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2)
     reachable = distances < threshold
@@ -527,208 +664,232 @@ def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode:
     return decoded, decoded, (vq_loss, codes, reconstruction)  # DGRL
 
 
+def controller_rollout(envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
+    """Generator over vector steps of the low level acting on subgoals from `choose_subgoals(states)` every k steps of
+    each env's episode (acting never moves the codebook). Yields (observations, each env's step in its episode, raw
+    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos)."""
+    device = next(agent.controller.parameters()).device
+    t_episode = np.zeros(envs.num_envs, dtype=np.int64)
+    goals = torch.zeros(envs.num_envs, 2, device=device)
+    goal_inputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal)[0]
+    while True:
+        states = torch.as_tensor(observations, device=device)
+        new_segment = t_episode % k == 0
+        if new_segment.any():
+            index = torch.as_tensor(np.flatnonzero(new_segment), device=device)
+            goals[index] = choose_subgoals(states[index])
+            goal_inputs[index] = controller_goals(agent.goal_ae, goals[index], agent.dgrl_goal)[0]
+        with torch.no_grad():
+            logits, _ = agent.controller(states, goal_inputs)
+            actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
+        next_observations, rewards, terminations, truncations, infos = envs.step(actions)
+        done = terminations | truncations
+        real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
+        goals_np = goals.cpu().numpy().copy()
+        yield observations, t_episode.copy(), goals_np, actions, real_next, rewards, terminations, done, infos
+        t_episode = np.where(done, 0, t_episode + 1)
+        observations = next_observations
+
+
+def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> torch.Tensor:  # DGRL
+    """One Adam step of the subgoal autoencoder on reconstruction (MSE in [0, 1]^2 units) + the commitment loss."""
+    reconstruction_loss = F.mse_loss(reconstruction, goals / agent.goal_ae.scale)  # DGRL
+    agent.ae_optimizer.zero_grad()  # DGRL
+    (reconstruction_loss + vq_loss).backward()  # DGRL
+    agent.ae_optimizer.step()  # DGRL
+    return reconstruction_loss  # DGRL
+
+
+def controller_update(
+    agent: Agent,
+    states: torch.Tensor,
+    goals: torch.Tensor,
+    actions: torch.Tensor,
+    next_states: torch.Tensor,
+    *,
+    k: int,
+    gamma: float,
+    entropy_coef: float,
+    reward_scale: float,
+    goal_threshold: float,
+) -> dict[str, torch.Tensor | float]:
+    """HRAC's low-level A2C update on one episode (raw subgoals as stored), returns truncated at each k-step segment's
+    end. Under DGRL the low level's goals are recomputed by the current autoencoder, whose training step this is (the
+    codebook moves here); the low level's loss does not shape the codes. Returns the figures to log."""
+    goal_inputs, target_goals, ae_outputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal, update=True)
+    figures = {}
+    if agent.goal_ae is not None:  # DGRL
+        vq_loss, codes, reconstruction = ae_outputs  # DGRL
+        reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
+        figures["losses/goal_reconstruction"] = reconstruction_loss.detach()  # DGRL
+        figures["vq/commit_loss"] = vq_loss.detach()  # DGRL
+        figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)  # DGRL
+        figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)  # DGRL
+    intrinsic = reward_scale * goal_reached(next_states, target_goals, goal_threshold)
+    intrinsic_np = intrinsic.cpu().numpy()
+    returns = torch.as_tensor(segment_returns(intrinsic_np, gamma, k), dtype=torch.float32, device=states.device)
+    logits, values = agent.controller(states, goal_inputs)
+    loss, policy_loss, value_loss, entropy = a2c_loss(logits, values, actions, returns, entropy_coef)
+    agent.controller_optimizer.zero_grad()
+    loss.backward()
+    agent.controller_optimizer.step()
+    figures["losses/ctrl_policy_loss"] = policy_loss.detach()
+    figures["losses/ctrl_value_loss"] = value_loss.detach()
+    figures["losses/ctrl_entropy"] = entropy.detach()
+    figures["charts/intrinsic_reward"] = intrinsic.mean()
+    figures["charts/subgoal_reach_rate"] = (np.add.reduceat(intrinsic_np, np.arange(0, len(intrinsic_np), k)) > 0).mean()
+    return figures
+
+
+def manager_update(
+    agent: Agent,
+    batch: tuple[torch.Tensor, ...],
+    *,
+    gamma: float,
+    tau: float,
+    adj_weight: float,
+    threshold: float,
+    policy_term: bool,
+) -> dict[str, torch.Tensor]:
+    """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), then
+    the actor on -Q1(s, pi(s)) (only when `policy_term`, TD3's delay) + adj_weight x the adjacency loss, then Polyak
+    targets. Returns the figures to log."""
+    states, goals, rewards, next_states, terminals = batch
+    with torch.no_grad():
+        next_q = torch.min(*agent.critic_target(next_states, agent.actor_target(next_states)))
+        td_target = rewards + gamma * (1 - terminals) * next_q
+    q1, q2 = agent.critic(states, goals)
+    critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
+    agent.critic_optimizer.zero_grad()
+    critic_loss.backward()
+    agent.critic_optimizer.step()
+    proposed = agent.actor(states)
+    actor_q_loss = -agent.critic.q1(torch.cat([states, proposed], 1)).mean() if policy_term else 0.0
+    with torch.no_grad():
+        state_embeddings = agent.adjacency(states[:, :2])
+    goal_loss = ((agent.adjacency(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
+    agent.actor_optimizer.zero_grad()
+    (actor_q_loss + adj_weight * goal_loss).backward()
+    agent.actor_optimizer.step()
+    update_target(agent.actor_target, agent.actor, tau)
+    update_target(agent.critic_target, agent.critic, tau)
+    return {
+        "losses/man_critic_loss": critic_loss.detach(),
+        "losses/man_goal_loss": goal_loss.detach(),
+        "losses/man_q_values": q1.detach().mean(),
+    }
+
+
 @torch.no_grad()
-def evaluate(envs: KeyChestVecEnv, actor, controller, goal_ae, args: Args, device, frames=None, random_subgoals=False):
+def evaluate(
+    envs: KeyChestVecEnv,
+    agent: Agent,
+    *,
+    k: int,
+    max_episode_steps: int,
+    goal_threshold: float,
+    frames: list | None = None,
+    random_subgoals: bool = False,
+) -> tuple[float, float, float]:
     """One episode per env (random starts): deterministic subgoals every k steps, sampled low-level actions, as the
     original. Returns (mean return, mean distance from a segment's last cell to its subgoal, fraction of segments whose
     subgoal was reached). With `frames`, env 0's episode is appended to it as RGB images. With `random_subgoals`, the
     high level is replaced by uniform random subgoals: the reference that tells what the high level adds."""
+    device = next(agent.controller.parameters()).device
     n = envs.num_envs
     observations, _ = envs.reset()
-    returns, running = np.zeros(n), np.ones(n, dtype=bool)
+    returns = np.zeros(n)
+    running = np.ones(n, dtype=bool)
     reached_in_segment = torch.zeros(n, dtype=torch.bool, device=device)
     distances, reached = [], []
-    for step in range(args.max_episode_steps):
+    for step in range(max_episode_steps):
         states = torch.as_tensor(observations, device=device)
-        if step % args.k == 0:
-            raw_goals = torch.rand(n, 2, device=device) * actor.scale if random_subgoals else actor(states)
-            goal_inputs, goals, _ = controller_goals(goal_ae, raw_goals, args.dgrl_goal)  # acting: update=False
+        if step % k == 0:
+            raw_goals = uniform_subgoals(n, device) if random_subgoals else agent.actor(states)
+            goal_inputs, goals, _ = controller_goals(agent.goal_ae, raw_goals, agent.dgrl_goal)  # acting: update=False
             reached_in_segment.zero_()
         if frames is not None and running[0]:
             frames.append(envs.frame(0, goals[0].cpu().numpy()))
-        logits, _ = controller(states, goal_inputs)
+        logits, _ = agent.controller(states, goal_inputs)
         actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1)
         observations, rewards, terminations, truncations, infos = envs.step(actions.cpu().numpy())
         done = terminations | truncations
         real_next = np.where(done[:, None], infos["final_obs"], observations) if done.any() else observations
         next_states = torch.as_tensor(real_next, device=device)
-        reached_in_segment |= goal_reached(next_states, goals, args.goal_threshold).bool()
+        reached_in_segment |= goal_reached(next_states, goals, goal_threshold).bool()
         returns += rewards * running
-        if (step + 1) % args.k == 0:  # a complete segment: score it for the envs still in their first episode
+        if (step + 1) % k == 0:  # a complete segment: score it for the envs still in their first episode
             mask = torch.as_tensor(running, device=device)
             distances.append((next_states[:, :2] - goals).norm(dim=1)[mask])
             reached.append(reached_in_segment[mask].float())
         running &= ~done
         if not running.any():
             break
-    distances, reached = torch.cat(distances), torch.cat(reached)
+    distances = torch.cat(distances)
+    reached = torch.cat(reached)
     return returns.mean(), distances.mean().item() if len(distances) else float("nan"), reached.mean().item()
 
 
-def manager_update(
-    actor,
-    critic,
-    actor_target,
-    critic_target,
-    actor_optimizer,
-    critic_optimizer,
-    anet,
-    batch,
-    args: Args,
-    threshold: float,
-    policy_term: bool,
-):
-    """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), then
-    the actor on -Q1(s, pi(s)) (only when `policy_term`, TD3's delay) + goal_loss_coef x the adjacency loss, then
-    Polyak targets. Returns (critic loss, adjacency loss, Q1 values)."""
-    states, goals, rewards, next_states, terminals = batch
-    with torch.no_grad():
-        next_q = torch.min(*critic_target(next_states, actor_target(next_states)))
-        td_target = rewards + args.man_gamma * (1 - terminals) * next_q
-    q1, q2 = critic(states, goals)
-    critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
-    critic_optimizer.zero_grad()
-    critic_loss.backward()
-    critic_optimizer.step()
-    proposed = actor(states)
-    actor_q_loss = -critic.q1(torch.cat([states, proposed], 1)).mean() if policy_term else 0.0
-    with torch.no_grad():
-        state_embeddings = anet(states[:, :2])
-    goal_loss = ((anet(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
-    actor_optimizer.zero_grad()
-    (actor_q_loss + args.goal_loss_coef * goal_loss).backward()
-    actor_optimizer.step()
-    update_target(actor_target, actor, args.man_tau)
-    update_target(critic_target, critic, args.man_tau)
-    return critic_loss, goal_loss, q1
+# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+
+CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
 
 
-def goal_autoencoder_step(optimizer, goals: torch.Tensor, reconstruction, vq_loss, goal_scale: torch.Tensor):  # DGRL
-    """One Adam step of the subgoal autoencoder on reconstruction (MSE in [0, 1]^2 units) + the commitment loss."""
-    reconstruction_loss = F.mse_loss(reconstruction, goals / goal_scale)
-    optimizer.zero_grad()
-    (reconstruction_loss + vq_loss).backward()
-    optimizer.step()
-    return reconstruction_loss
+def flag_text(key: str, value) -> str:
+    """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
+    name = key.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
 
 
-def save_checkpoint(path: str, modules: dict[str, nn.Module | None], args: Args) -> None:
-    """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
-    payload = {name: None if module is None else module.state_dict() for name, module in modules.items()}
-    payload["args"] = vars(args)
-    torch.save(payload, path + ".tmp")
-    os.replace(path + ".tmp", path)
-
-
-def write_video(path: str, frames: list[np.ndarray], fps: int = 10) -> None:
-    from moviepy import ImageSequenceClip
-
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
-
-
-def validate(args: Args) -> None:
-    """Reject bad flags before any work, naming the flag and the valid choices."""
+def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
     errors = []
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
-    for flag in (
-        "total_timesteps",
-        "num_envs",
-        "max_episode_steps",
-        "k",
-        "man_buffer_size",
-        "man_batch_size",
-        "man_policy_delay",
-        "hidden_dim",
-        "adj_init_steps",
-        "adj_training_freq",
-        "adj_batch_size",
-        "adj_hidden_dim",
-        "adj_embed_dim",
-        "eval_frequency",
-        "eval_episodes",
-        "embed_dim",
-        "n_embed",
-        "ae_hidden_dim",
-        "ae_batch_size",
-        "threads",
-    ):
-        if getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
-    for flag in ("n_noisy_goals", "adj_init_epochs", "adj_training_epochs", "ae_init_steps", "vq_dead_code_steps"):
-        if getattr(args, flag) < 0:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
-    if not 0.0 <= args.random_action_prob <= 1.0:
-        errors.append(f"--random-action-prob must be in [0, 1]; got {args.random_action_prob}")
-    if args.man_batch_size > args.man_buffer_size // 2:
-        errors.append(
-            f"--man-batch-size ({args.man_batch_size}) must be <= half of --man-buffer-size ({args.man_buffer_size}), "
-            "the fill at which training starts"
-        )
-    if args.adj_margin_pos > args.adj_margin_neg:
-        errors.append(f"--adj-margin-pos ({args.adj_margin_pos}) must be <= --adj-margin-neg ({args.adj_margin_neg})")
-    if args.adj_init_steps >= args.total_timesteps:
-        errors.append(f"--adj-init-steps ({args.adj_init_steps}) must be < --total-timesteps ({args.total_timesteps})")
+    for key in flags.split():
+        value = getattr(args, key)
+        if value < low or (low_open and value == low) or value > high:
+            if high == math.inf:
+                wanted = f"{'>' if low_open else '>='} {low:g}"
+            else:
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+            errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
+    return errors
+
+
+def common_errors(args) -> list[str]:
+    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    errors = [
+        f"--{key.replace('_', '-')} must be a finite number; got {value}"
+        for key, value in vars(args).items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    errors += range_errors(args, "threads", 1)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    return errors
+
+
+def exit_on_errors(errors: list[str]) -> None:
+    """Print every error with the script's name and exit with status 2 (as for an unknown flag), before any work."""
     if errors:
-        raise SystemExit("dgrl_hrac_keychest.py: invalid arguments:\n  " + "\n  ".join(errors))
+        print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
+        raise SystemExit(2)
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    dgrl = args.groups > 0
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
     random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    rng = np.random.default_rng(args.seed)
-    threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    actor = ManagerActor(args.hidden_dim).to(device)
-    critic = TwinCritic(args.hidden_dim).to(device)
-    goal_ae = (  # DGRL
-        GoalAutoencoder(
-            args.embed_dim, args.ae_hidden_dim, args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps
-        ).to(device)
-        if dgrl
-        else None
-    )
-    controller = Controller(args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2, args.hidden_dim).to(device)
-    anet = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device)
-    eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
-    eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
-    modules = {"actor": actor, "critic": critic, "controller": controller, "adjacency": anet, "goal_autoencoder": goal_ae}
 
-    if args.checkpoint is not None:
-        saved = torch.load(args.checkpoint, map_location=device)
-        architecture = ("groups", "dgrl_goal", "embed_dim", "n_embed", "hidden_dim", "adj_hidden_dim", "adj_embed_dim")
-        differ = [
-            f"--{key.replace('_', '-')} {saved['args'][key]}" for key in architecture if saved["args"][key] != vars(args)[key]
-        ]
-        if differ:
-            raise SystemExit(f"--checkpoint {args.checkpoint} was saved with other networks: pass {' '.join(differ)}")
-        for name, module in modules.items():
-            if module is not None:
-                module.load_state_dict(saved[name])
-        for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
-            mean_return, distance, reach = evaluate(
-                eval_envs, actor, controller, goal_ae, args, device, random_subgoals=random_subgoals
-            )
-            print(
-                f"{args.eval_episodes} episodes{label}: return {mean_return:.2f}, subgoal distance {distance:.2f}, "
-                f"reached {reach:.0%}"
-            )
-        raise SystemExit(0)
-
+def make_writer(args, run_name: str) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
     if args.track:
         import wandb
 
@@ -743,90 +904,241 @@ if __name__ == "__main__":
     writer = SummaryWriter(f"runs/{run_name}")
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
-    print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}")
-    start_time = time.time()
+    return writer
 
-    actor_target, critic_target = make_target(actor), make_target(critic)
-    actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.man_actor_lr, fused=True)
-    critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.man_critic_lr, fused=True)
-    controller_optimizer = torch.optim.Adam(controller.parameters(), lr=args.ctrl_lr, fused=True)
-    anet_optimizer = torch.optim.Adam(anet.parameters(), lr=args.adj_lr, fused=True)
-    ae_optimizer = torch.optim.Adam(goal_ae.parameters(), lr=args.ae_lr, fused=True) if dgrl else None  # DGRL
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
+    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
+    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+
+    def __init__(self, total: int, unit: str = "step"):
+        self.total, self.unit = total, unit
+        self.start_time = self.line_time = self.print_time = time.time()
+        self.line_step = 0
+
+    def sps(self, step: int) -> int:
+        return int(step / max(time.time() - self.start_time, 1e-6))
+
+    def line(self, step: int, figures: str) -> None:
+        now = time.time()
+        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
+        self.line_time = self.print_time = now
+        self.line_step = step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
+            self.print_time = time.time()
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
+    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
+    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
+    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
+    script = os.path.basename(__file__)
+    try:
+        saved = torch.load(path, map_location=device, weights_only=True)
+    except Exception as error:
+        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
+              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
+              "with --save-model", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
+    if differ:
+        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it)."""
+    from moviepy import ImageSequenceClip
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+# --- end of run management ---------------------------------------------------------------------------------------------
+
+
+def validate(args: Args) -> None:
+    """Reject bad flags before any work (exit status 2), naming the flag and the valid values."""
+    errors = common_errors(args)
+    counts = (
+        "total_timesteps num_envs max_episode_steps k man_buffer_size man_batch_size man_policy_delay hidden_dim "
+        "adj_init_steps adj_frequency adj_batch_size adj_hidden_dim adj_embed_dim eval_frequency eval_episodes "
+        "log_frequency embed_dim n_embed ae_hidden_dim ae_batch_size"
+    )
+    errors += range_errors(args, counts, 1)
+    errors += range_errors(args, "seed n_noisy_goals adj_init_epochs adj_epochs ae_init_steps vq_dead_code_steps", 0)
+    errors += range_errors(args, "man_noise adj_weight ctrl_entropy adj_margin_pos vq_beta", 0)
+    positive = "man_actor_lr man_critic_lr ctrl_lr adj_lr ae_lr man_reward_scale ctrl_reward_scale goal_threshold"
+    errors += range_errors(args, positive + " adj_margin_neg", 0, low_open=True)
+    errors += range_errors(args, "man_gamma ctrl_gamma man_tau", 0, 1, low_open=True)
+    errors += range_errors(args, "random_action_prob", 0, 1)
+    if not 0 <= args.vq_decay < 1:  # DGRL
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
+    if errors:  # the checks below combine flags and assume each is in range
+        exit_on_errors(errors)
+    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        errors.append(
+            f"--groups must be 0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
+        )
+    if args.k > args.max_episode_steps:
+        errors.append(f"--k ({args.k}) must be <= --max-episode-steps ({args.max_episode_steps}): a subgoal lasts k steps")
+    if args.man_batch_size > args.man_buffer_size // 2:
+        errors.append(
+            f"--man-batch-size ({args.man_batch_size}) must be <= half of --man-buffer-size ({args.man_buffer_size}), "
+            "the fill at which training starts"
+        )
+    if args.adj_margin_pos > args.adj_margin_neg:
+        errors.append(f"--adj-margin-pos ({args.adj_margin_pos}) must be <= --adj-margin-neg ({args.adj_margin_neg})")
+    # Frames when exploration ends, and when the high level's replay is half full: one transition per k-step segment.
+    explored = -(-args.adj_init_steps // args.num_envs) * args.num_envs
+    segments_per_episode = -(-args.max_episode_steps // args.k)
+    warm_up = math.ceil(args.man_buffer_size // 2 * args.max_episode_steps / segments_per_episode)
+    if args.total_timesteps < explored + warm_up:
+        errors.append(
+            f"--total-timesteps ({args.total_timesteps}) must be >= {explored + warm_up}, or no update runs: "
+            f"--adj-init-steps ({args.adj_init_steps}) of exploration, then {warm_up} frames to fill half of "
+            f"--man-buffer-size ({args.man_buffer_size}) with one transition per --k ({args.k}) frames"
+        )
+    first_evaluation = (explored // args.eval_frequency + 1) * args.eval_frequency
+    if first_evaluation > args.total_timesteps:
+        errors.append(
+            f"--eval-frequency ({args.eval_frequency}) leaves no evaluation: the first would be at frame {first_evaluation}, "
+            f"after --total-timesteps ({args.total_timesteps})"
+        )
+    exit_on_errors(errors)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    device = seed_and_device(args)
+    rng = np.random.default_rng(args.seed)
+    threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
+    agent = make_agent(args, device)
+    eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
+    eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
+    evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}
+
+    if args.checkpoint is not None:
+        must_match = MUST_MATCH if dgrl else tuple(key for key in MUST_MATCH if key not in DGRL_MUST_MATCH)  # DGRL
+        saved = load_checkpoint(args.checkpoint, args, must_match, device)
+        agent.load_state_dicts(saved)
+        for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
+            mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, random_subgoals=random_subgoals)
+            print(
+                f"{args.eval_episodes} episodes{label}: return {mean_return:.2f}, subgoal distance {distance:.2f}, "
+                f"reached {reach:.0%}"
+            )
+        raise SystemExit(0)
+
+    writer = make_writer(args, run_name)
+    stop = stop_on_signals()
+    progress = Progress(args.total_timesteps, unit="frame")
+    print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}")
     distances_bfs = shortest_path_lengths()
     adjacency = np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool)  # over flat cell indices; persists all run long
     visited = np.zeros(HEIGHT * WIDTH, dtype=bool)
-    goal_scale = torch.as_tensor(GOAL_SCALE, device=device)
-    max_steps, n_envs = args.max_episode_steps, args.num_envs
-
-    def controller_rollout(envs, observations, explore_goals):
-        """Generator over vector steps of the low level acting on subgoals from `explore_goals(states)` every k steps.
-        Yields (observations, each env's step in its episode, raw subgoals, actions, true next observations, rewards,
-        terminations, terminations | truncations, infos)."""
-        t_episode = np.zeros(n_envs, dtype=np.int64)
-        goals = torch.zeros(n_envs, 2, device=device)
-        goal_inputs = controller_goals(goal_ae, goals, args.dgrl_goal)[0]
-        while True:
-            states = torch.as_tensor(observations, device=device)
-            new_segment = t_episode % args.k == 0
-            if new_segment.any():
-                index = torch.as_tensor(np.flatnonzero(new_segment), device=device)
-                goals[index] = explore_goals(states[index])
-                goal_inputs[index] = controller_goals(goal_ae, goals[index], args.dgrl_goal)[0]  # the codebook stays put
-            with torch.no_grad():
-                logits, _ = controller(states, goal_inputs)
-                actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
-            next_observations, rewards, terminations, truncations, infos = envs.step(actions)
-            done = terminations | truncations
-            real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
-            goals_np = goals.cpu().numpy().copy()
-            yield observations, t_episode.copy(), goals_np, actions, real_next, rewards, terminations, done, infos
-            t_episode = np.where(done, 0, t_episode + 1)
-            observations = next_observations
-
-    def random_goals(states: torch.Tensor) -> torch.Tensor:
-        return torch.rand(len(states), 2, device=device) * goal_scale
+    adjacency_training = {
+        "batch_size": args.adj_batch_size,
+        "margin_pos": args.adj_margin_pos,
+        "margin_neg": args.adj_margin_neg,
+        "rng": rng,
+        "stop": stop,
+    }
+    max_steps = args.max_episode_steps
+    n_envs = args.num_envs
+    rows = np.arange(n_envs)
 
     # Phase 1: random-subgoal exploration (the chest ends no episode) to learn k-step adjacency, as HRAC does first.
-    frames, episodes = 0, 0
+    frames = 0
+    episodes = 0
     explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
     trajectories = np.zeros((n_envs, max_steps + 1), dtype=np.int64)  # flat cell indices of each env's current episode
-    rollout = controller_rollout(explore_envs, explore_envs.reset(seed=args.seed + 200)[0], random_goals)
-    while frames < args.adj_init_steps:
+    observations = explore_envs.reset(seed=args.seed + 200)[0]
+    rollout = controller_rollout(
+        explore_envs, observations, agent, lambda states: uniform_subgoals(len(states), device), args.k
+    )
+    done = np.ones(n_envs, dtype=bool)  # no step yet: no episode to mark below
+    while frames < args.adj_init_steps and not stop:
         observations, t_episode, _, _, real_next, _, _, done, _ = next(rollout)
-        trajectories[np.arange(n_envs), t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
-        trajectories[np.arange(n_envs), t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
+        trajectories[rows, t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
+        trajectories[rows, t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
         frames += n_envs
         for env in np.flatnonzero(done):
             mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
             episodes += 1
+        progress.heartbeat(frames, "exploring")
     for env in np.flatnonzero(~done):  # the episodes still running count too
         mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
     adj_loss = train_adjacency(
-        anet, anet_optimizer, adjacency, visited, args.adj_init_epochs, args.adj_batch_size,
-        args.adj_margin_pos, args.adj_margin_neg, rng, device,
-    )  # fmt: skip
-    adj_accuracy = adjacency_accuracy(anet, distances_bfs, args.k, threshold)
+        agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_init_epochs, **adjacency_training
+    )
+    adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
     writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
     writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
     if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
-        for _ in range(args.ae_init_steps):
-            goals = torch.rand(args.ae_batch_size, 2, device=device) * goal_scale  # DGRL
-            _, vq_loss, _, reconstruction = goal_ae(goals, update=True)  # DGRL
-            goal_autoencoder_step(ae_optimizer, goals, reconstruction, vq_loss, goal_scale)  # DGRL
+        for _ in range(args.ae_init_steps):  # DGRL
+            if stop:  # DGRL
+                break  # DGRL
+            goals = uniform_subgoals(args.ae_batch_size, device)  # DGRL
+            _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
+            goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
     print(
         f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
-        f"(loss {adj_loss:.3f}), {time.time() - start_time:.1f} s"
+        f"(loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
     )
 
     # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
     # subgoals are uniform random and neither level learns.
     replay = ManagerReplay(args.man_buffer_size, rng)
-    envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob)
+    envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
+    noise = {"n_noisy_goals": args.n_noisy_goals, "noise": args.man_noise}
 
-    def explore_goals(states: torch.Tensor) -> torch.Tensor:
+    def explore_subgoals(states: torch.Tensor) -> torch.Tensor:
         if not replay.started():
-            return random_goals(states)
-        return propose_subgoals(actor, anet, states, args, threshold, explore=True)
+            return uniform_subgoals(len(states), device)
+        return propose_subgoals(agent.actor, agent.adjacency, states, threshold=threshold, explore=True, **noise)
 
     episode_states = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
     episode_goals = np.zeros((n_envs, max_steps, 2), dtype=np.float32)
@@ -834,34 +1146,38 @@ if __name__ == "__main__":
     episode_next = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
     segment_start = np.zeros((n_envs, 3), dtype=np.float32)
     segment_reward = np.zeros(n_envs, dtype=np.float32)
-    frames_since_adjacency, man_updates, evaluations = 0, 0, 0
+    man_updates = 0
+    evaluations = 0
     recent_returns = []
-    rollout = controller_rollout(envs, envs.reset(seed=args.seed)[0], explore_goals)
-    stop = []  # Ctrl-C or SIGTERM ends the run after the current step, with the checkpoint saved and the logs flushed
-
-    def request_stop(number, frame):
-        stop.append(number)
-        signal.signal(number, signal.SIG_DFL)  # a second Ctrl-C or SIGTERM stops at once
-
-    for signal_number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signal_number, request_stop)
+    figures = {}  # the latest update's losses, logged every --log-frequency frames
+    next_adjacency = frames + args.adj_frequency
+    next_log = (frames // args.log_frequency + 1) * args.log_frequency
+    next_eval = (frames // args.eval_frequency + 1) * args.eval_frequency
+    rollout = controller_rollout(envs, envs.reset(seed=args.seed)[0], agent, explore_subgoals, args.k)
     while frames < args.total_timesteps and not stop:
+        # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
         observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = next(rollout)
-        rows = np.arange(n_envs)
-        episode_states[rows, t_episode], episode_goals[rows, t_episode] = observations, goals
-        episode_actions[rows, t_episode], episode_next[rows, t_episode] = actions, real_next
+        episode_states[rows, t_episode] = observations
+        episode_goals[rows, t_episode] = goals
+        episode_actions[rows, t_episode] = actions
+        episode_next[rows, t_episode] = real_next
+        frames += n_envs
+
         # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
         segment_start = np.where((t_episode % args.k == 0)[:, None], observations, segment_start)
         segment_reward = np.where(t_episode % args.k == 0, 0.0, segment_reward) + args.man_reward_scale * rewards
         segment_end = ((t_episode + 1) % args.k == 0) | done
         if segment_end.any():
             replay.add(
-                segment_start[segment_end], goals[segment_end], segment_reward[segment_end],
-                real_next[segment_end], terminations[segment_end],
-            )  # fmt: skip
-        frames += n_envs
-        frames_since_adjacency += n_envs
+                segment_start[segment_end],
+                goals[segment_end],
+                segment_reward[segment_end],
+                real_next[segment_end],
+                terminations[segment_end],
+            )
 
+        # Episode ends: adjacency labels; once the replay is half full, one A2C update on the episode and
+        # max(length // k, 1) TD3 updates, as HRAC does after every episode.
         for env in np.flatnonzero(done):
             length = int(t_episode[env]) + 1
             episodes += 1
@@ -871,104 +1187,83 @@ if __name__ == "__main__":
             writer.add_scalar("charts/success_rate", float(terminations[env]), frames)
             trajectory = np.vstack([episode_states[env, :length, :2], real_next[env, :2]]).astype(np.int64)
             mark_adjacent(adjacency, visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
-
-            if replay.started():
-                # Low level: one A2C update on this episode, returns truncated at each segment's end.
-                states_t = torch.as_tensor(episode_states[env, :length], device=device)
-                goals_t = torch.as_tensor(episode_goals[env, :length], device=device)
-                next_t = torch.as_tensor(episode_next[env, :length], device=device)
-                # DGRL: the low-level goals are recomputed from the stored raw subgoals by the current autoencoder, whose
-                # training step this is (the codebook moves here); the low level's loss does not shape the codes.
-                goal_inputs, target_goals, ae_outputs = controller_goals(goal_ae, goals_t, args.dgrl_goal, update=True)
-                if dgrl:
-                    vq_loss, codes, reconstruction = ae_outputs  # DGRL
-                    reconstruction_loss = goal_autoencoder_step(
-                        ae_optimizer, goals_t, reconstruction, vq_loss, goal_scale
-                    )  # DGRL
-                intrinsic = args.ctrl_reward_scale * goal_reached(next_t, target_goals, args.goal_threshold)
-                returns_t = torch.as_tensor(
-                    segment_returns(intrinsic.cpu().numpy(), args.ctrl_gamma, args.k), dtype=torch.float32, device=device
+            if not replay.started():
+                continue
+            figures = controller_update(
+                agent,
+                torch.as_tensor(episode_states[env, :length], device=device),
+                torch.as_tensor(episode_goals[env, :length], device=device),
+                torch.as_tensor(episode_actions[env, :length], device=device),
+                torch.as_tensor(episode_next[env, :length], device=device),
+                k=args.k,
+                gamma=args.ctrl_gamma,
+                entropy_coef=args.ctrl_entropy,
+                reward_scale=args.ctrl_reward_scale,
+                goal_threshold=args.goal_threshold,
+            )
+            for _ in range(max(length // args.k, 1)):
+                figures |= manager_update(
+                    agent,
+                    replay.sample(args.man_batch_size, device),
+                    gamma=args.man_gamma,
+                    tau=args.man_tau,
+                    adj_weight=args.adj_weight,
+                    threshold=threshold,
+                    policy_term=man_updates % args.man_policy_delay == 0,
                 )
-                logits, values = controller(states_t, goal_inputs)
-                ctrl_loss, policy_loss, value_loss, entropy = a2c_loss(
-                    logits, values, torch.as_tensor(episode_actions[env, :length], device=device), returns_t,
-                    args.ctrl_entropy,
-                )  # fmt: skip
-                controller_optimizer.zero_grad()
-                ctrl_loss.backward()
-                controller_optimizer.step()
+                man_updates += 1
 
-                # High level: max(length // k, 1) TD3 updates, as HRAC does after every episode.
-                for _ in range(max(length // args.k, 1)):
-                    critic_loss, goal_loss, q1 = manager_update(
-                        actor, critic, actor_target, critic_target, actor_optimizer, critic_optimizer, anet,
-                        replay.sample(args.man_batch_size, device), args, threshold,
-                        policy_term=man_updates % args.man_policy_delay == 0,
-                    )  # fmt: skip
-                    man_updates += 1
+        # Adjacency: retrain on every pair of cells seen so far.
+        if frames >= next_adjacency:
+            next_adjacency += args.adj_frequency
+            adj_loss = train_adjacency(
+                agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_epochs, **adjacency_training
+            )
+            adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
+            writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
+            writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
 
-                if episodes % 10 == 0:
-                    segment_reached = np.add.reduceat(intrinsic.cpu().numpy(), np.arange(0, length, args.k)) > 0
-                    writer.add_scalar("losses/ctrl_policy_loss", policy_loss.item(), frames)
-                    writer.add_scalar("losses/ctrl_value_loss", value_loss.item(), frames)
-                    writer.add_scalar("losses/ctrl_entropy", entropy.item(), frames)
-                    writer.add_scalar("losses/man_critic_loss", critic_loss.item(), frames)
-                    writer.add_scalar("losses/man_goal_loss", goal_loss.item(), frames)
-                    writer.add_scalar("losses/man_q_values", q1.mean().item(), frames)
-                    writer.add_scalar("charts/intrinsic_reward", intrinsic.mean().item(), frames)
-                    writer.add_scalar("charts/subgoal_reach_rate", segment_reached.mean(), frames)
-                    if dgrl:
-                        writer.add_scalar("losses/goal_reconstruction", reconstruction_loss.item(), frames)  # DGRL
-                        writer.add_scalar("vq/commit_loss", vq_loss.item(), frames)  # DGRL
-                        writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), frames)  # DGRL
-                        writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), frames)  # DGRL
+        # Log the latest update's losses.
+        if frames >= next_log:
+            next_log += args.log_frequency
+            for tag, value in figures.items():
+                writer.add_scalar(tag, float(value), frames)
 
-            # Adjacency: retrain on everything seen so far every adj_training_freq frames.
-            if frames_since_adjacency >= args.adj_training_freq:
-                adj_loss = train_adjacency(
-                    anet, anet_optimizer, adjacency, visited, args.adj_training_epochs, args.adj_batch_size,
-                    args.adj_margin_pos, args.adj_margin_neg, rng, device,
-                )  # fmt: skip
-                adj_accuracy = adjacency_accuracy(anet, distances_bfs, args.k, threshold)
-                writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
-                writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
-                frames_since_adjacency = 0
-
-            # Evaluate, log, print progress, checkpoint.
-            if episodes % args.eval_frequency == 0:
-                video = [] if args.capture_video and evaluations % 10 == 0 else None
-                mean_return, distance, reach = evaluate(eval_envs, actor, controller, goal_ae, args, device, video)
-                random_return = evaluate(eval_envs, actor, controller, goal_ae, args, device, random_subgoals=True)[0]
-                if dgrl:
-                    with torch.no_grad():
-                        cell_codes = goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]  # DGRL
-                    distinct = len(torch.unique(cell_codes, dim=0))  # DGRL
-                    writer.add_scalar("vq/distinct_cells", distinct, frames)  # DGRL: cells with their own code tuple
-                evaluations += 1
-                sps = int(frames / (time.time() - start_time))
-                writer.add_scalar("eval/return", mean_return, frames)
-                writer.add_scalar("eval/return_random_subgoals", random_return, frames)
-                writer.add_scalar("eval/subgoal_distance", distance, frames)
-                writer.add_scalar("eval/subgoal_reach_rate", reach, frames)
-                writer.add_scalar("charts/SPS", sps, frames)
-                train_return = np.mean(recent_returns) if recent_returns else float("nan")
-                recent_returns = []
-                elapsed = time.time() - start_time
-                print(
-                    f"frames {frames:>8}/{args.total_timesteps}  eval return {mean_return:5.2f} (random subgoals "
-                    f"{random_return:4.2f})  train return "
-                    f"{train_return:5.2f}  subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc "
-                    f"{adj_accuracy:.3f}" + (f"  distinct cells {distinct:3d}" if dgrl else "") + f"  SPS {sps}  "
-                    f"{elapsed:.0f}s elapsed, {(args.total_timesteps - frames) / max(sps, 1):.0f}s left"
-                )
-                if video is not None:
-                    write_video(f"videos/{run_name}/eval_{frames}.mp4", video)
-                if args.save_model:
-                    save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
+        # Evaluate, print progress, checkpoint.
+        if frames >= next_eval:
+            next_eval += args.eval_frequency
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, frames=video)
+            random_return = evaluate(eval_envs, agent, **evaluation, random_subgoals=True)[0]
+            distinct = ""  # DGRL
+            if dgrl:  # DGRL
+                with torch.no_grad():  # DGRL
+                    cell_codes = agent.goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]  # DGRL
+                distinct_cells = len(torch.unique(cell_codes, dim=0))  # DGRL: cells with their own code tuple
+                writer.add_scalar("vq/distinct_cells", distinct_cells, frames)  # DGRL
+                distinct = f"  distinct cells {distinct_cells:3d}"  # DGRL
+            evaluations += 1
+            writer.add_scalar("eval/return", mean_return, frames)
+            writer.add_scalar("eval/return_random_subgoals", random_return, frames)
+            writer.add_scalar("eval/subgoal_distance", distance, frames)
+            writer.add_scalar("eval/subgoal_reach_rate", reach, frames)
+            writer.add_scalar("charts/SPS", progress.sps(frames), frames)
+            train_return = np.mean(recent_returns) if recent_returns else float("nan")
+            recent_returns = []
+            progress.line(
+                frames,
+                f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train_return:5.2f}  "
+                f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {adj_accuracy:.3f}{distinct}",
+            )
+            if video is not None:
+                write_video(f"videos/{run_name}/eval_{frames}.mp4", video, fps=10)
+            if args.save_model:
+                save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
+        progress.heartbeat(frames)
 
     if args.save_model:
-        save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
+        save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
         print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
-    print(f"{'stopped' if stop else 'done'}: {frames} frames, {episodes} episodes, {time.time() - start_time:.0f} s")
+    progress.finish(bool(stop), run_name, f"{frames} frames, {episodes} episodes")
     envs.close()
     writer.close()

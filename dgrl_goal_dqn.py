@@ -8,16 +8,24 @@ encoder pre-trained on random-walk transitions with Deep InfoMax (DRIML's InfoNC
 equal to the fraction of the G factors whose codes match between state and goal. The baseline (`--groups 0`) is the
 same agent on continuous embeddings, with a bonus equal to their cosine similarity.
 
-    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 16       # paper setting, DGRL (about 1 min)
-    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 0        # the continuous goal-DQN
-    python dgrl_goal_dqn.py --env-id SpiralWorld --n-train-goals 8 --groups 8      # then tested on 4 novel goals
-    python dgrl_goal_dqn.py --total-timesteps 2000 --rep-steps 50                  # a quick CPU smoke run
+The paper's experiments (LoopWorld trained on 4 or 8 goals; SpiralWorld trained on 8 or 16 goals and tested on 4 novel
+goals) at this project's CPU-sized budget: the paper states no budget and no DQN hyper-parameters for them, and the
+defaults here (1,000 pre-training steps, 20,000 DQN steps) take about 1 min on one CPU core:
 
-The whole study: benchmark/goal_dqn.sh. Docs: docs/dgrl_goal_dqn.md.
+    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 16     # LoopWorld, 4 training goals, DGRL G=16
+    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 0      # the same with the continuous goal-DQN
+    python dgrl_goal_dqn.py --env-id SpiralWorld --n-train-goals 16 --groups 8   # SpiralWorld, then the 4 novel goals
+    python dgrl_goal_dqn.py --total-timesteps 2000 --rep-steps 50                # a quick CPU smoke run (seconds)
+
+The whole study (3 seeds, as in the paper): benchmark/goal_dqn.sh. Docs: docs/dgrl_goal_dqn.md.
 """
 
+import importlib.util
+import math
 import os
 import random
+import signal
+import sys
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -45,17 +53,19 @@ class Args:
     cuda: bool = True
     """if toggled, cuda will be enabled when available"""
     track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "dgrl"
     """the wandb's project name"""
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to capture videos of the agent's episodes (env 0, saved in `videos/`)"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
     save_model: bool = False
-    """whether to save a checkpoint (encoder, codebook, Q-network) at every evaluation and at the end"""
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
-    """path of a saved checkpoint: evaluate it on the train and novel goals, then exit (no training)"""
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
+    threads: int = 1
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
 
     # Environment
     env_id: Literal["SpiralWorld", "LoopWorld", "EmptyWorld"] = "SpiralWorld"
@@ -69,7 +79,7 @@ class Args:
     noise: float = 0.0
     """amplitude in [0, 1] of fresh per-pixel noise drawn on the maze floor for every observation (0 = clean)"""
     max_episode_steps: int = 100
-    """episode step limit (truncation, bootstrapped through)"""
+    """step limit of training episodes (truncation, bootstrapped through) and of evaluation episodes"""
 
     # Algorithm: DQN
     total_timesteps: int = 20000
@@ -79,7 +89,7 @@ class Args:
     buffer_size: int = 20000
     """replay memory size"""
     gamma: float = 0.99
-    """discount factor"""
+    """discount factor, in (0, 1]"""
     target_network_frequency: int = 50
     """training steps between hard copies of the target network (codebook included)"""
     batch_size: int = 128
@@ -89,9 +99,9 @@ class Args:
     end_e: float = 0.05
     """final epsilon"""
     exploration_fraction: float = 0.5
-    """fraction of total_timesteps over which epsilon decays linearly"""
+    """fraction of total_timesteps, in (0, 1], over which epsilon decays linearly"""
     learning_starts: int = 1000
-    """environment steps before learning starts"""
+    """environment steps before learning starts (fewer than total_timesteps)"""
     train_frequency: int = 1
     """environment steps between training steps"""
     double_dqn: bool = True
@@ -109,7 +119,7 @@ class Args:
     rep_transitions: int = 20000
     """random-walk transitions collected for pre-training"""
     rep_steps: int = 1000
-    """pre-training gradient steps"""
+    """pre-training gradient steps (0 leaves phi and the codebook at their random initialisation)"""
     rep_batch_size: int = 128
     """pre-training batch size"""
     rep_learning_rate: float = 1e-3
@@ -129,8 +139,15 @@ class Args:
     vq_decay: float = 0.99
     """EMA decay of the codebook"""
     vq_dead_code_steps: int = 50
-    """restart a code unused for this many pre-training updates at a random current segment (0 = off, as in the paper;
-    without it G=4 and G=8 collapse to 1 and 3 active codes here, see the docs)"""
+    """restart a code unused for this many pre-training updates at a random segment (0 = off, as in the paper; see docs)"""
+
+
+# A checkpoint is evaluated only with the flags it was saved with that fix the architecture, the maze, the goal split and
+# what evaluation measures (the noise on the images and the episode step limit).
+MUST_MATCH = (
+    "env_id", "n_train_goals", "goal_seed", "noise", "max_episode_steps",
+    "rep", "embed_dim", "hidden_dim", "groups", "n_embed",
+)  # fmt: skip
 
 
 # --- Environment ------------------------------------------------------------------------------------------------------
@@ -170,9 +187,13 @@ LAYOUTS = {
     "EmptyWorld": ("#############",) + ("#. . . . . .#", "#           #") * 5 + ("#. . . . . .#", "#############"),
 }
 MOVES = ((0, -1), (0, 1), (-1, 0), (1, 0))  # left, right, up, down as (row, column) steps
-PIXELS_PER_CHAR, BORDER = 6, 1  # 13 characters x 6 px + 2 px of border = 80 px
-WALL_RGB, FLOOR_RGB, AGENT_RGB = (128, 128, 128), (0, 0, 0), (255, 0, 0)
+PIXELS_PER_CHAR = 6  # 13 characters x 6 px + 2 px of border = 80 px
+BORDER = 1
+WALL_RGB = (128, 128, 128)
+FLOOR_RGB = (0, 0, 0)
+AGENT_RGB = (255, 0, 0)
 START_CELL = 0  # the top-left corner: one end of the spiral, a corner of the loop
+N_NOVEL_GOALS = 4  # the paper's test set: 4 goals never trained on
 
 
 class MazeLayout:
@@ -180,7 +201,8 @@ class MazeLayout:
 
     def __init__(self, name: str):
         rows = LAYOUTS[name]
-        self.name, self.size = name, (len(rows) - 1) // 2
+        self.name = name
+        self.size = (len(rows) - 1) // 2
         self.n_cells = self.size * self.size
         self.next_cell = np.empty((self.n_cells, len(MOVES)), dtype=np.int64)
         for row in range(self.size):
@@ -196,10 +218,8 @@ class MazeLayout:
         background = np.where(self.floor[..., None], np.array(FLOOR_RGB, np.uint8), np.array(WALL_RGB, np.uint8))
         self.images = np.repeat(background[None], self.n_cells, axis=0)
         for cell in range(self.n_cells):
-            top, left = (
-                BORDER + (2 * (cell // self.size) + 1) * PIXELS_PER_CHAR,
-                BORDER + (2 * (cell % self.size) + 1) * PIXELS_PER_CHAR,
-            )
+            top = BORDER + (2 * (cell // self.size) + 1) * PIXELS_PER_CHAR
+            left = BORDER + (2 * (cell % self.size) + 1) * PIXELS_PER_CHAR
             self.images[cell, top : top + PIXELS_PER_CHAR, left : left + PIXELS_PER_CHAR] = AGENT_RGB
         self.agent_mask = (self.images != background[None]).any(-1)
         self.distances = self._all_pairs_distances()
@@ -208,7 +228,8 @@ class MazeLayout:
         """Shortest-path lengths between all pairs of cells, by breadth-first search from every cell."""
         distances = np.full((self.n_cells, self.n_cells), -1, dtype=np.int64)
         for source in range(self.n_cells):
-            distances[source, source], frontier = 0, [source]
+            distances[source, source] = 0
+            frontier = [source]
             while frontier:
                 following = []
                 for cell in frontier:
@@ -229,7 +250,9 @@ class MazeLayout:
         return images
 
 
-def goal_split(layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = 4) -> tuple[np.ndarray, np.ndarray]:
+def goal_split(
+    layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS
+) -> tuple[np.ndarray, np.ndarray]:
     """Disjoint (train, novel) goal cells, never the start cell. The novel cells depend only on goal_seed, and the train
     cells are the first n_train of one seeded order, so K=4 goals are a subset of K=8, which are a subset of K=16."""
     candidates = np.array([cell for cell in range(layout.n_cells) if cell != START_CELL])
@@ -245,7 +268,10 @@ class VisualMazeEnv(gym.Env):
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 8}
 
     def __init__(self, layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, render_mode=None):
-        self.layout, self.goal_cells, self.random_start, self.noise = layout, np.asarray(goal_cells), random_start, noise
+        self.layout = layout
+        self.goal_cells = np.asarray(goal_cells)
+        self.random_start = random_start
+        self.noise = noise
         self.render_mode = render_mode
         image_space = gym.spaces.Box(0, 255, layout.images.shape[1:], np.uint8)
         self.observation_space = gym.spaces.Dict({"observation": image_space, "desired_goal": image_space})
@@ -274,15 +300,11 @@ class VisualMazeEnv(gym.Env):
         return self._frame.repeat(4, 0).repeat(4, 1)
 
 
-def make_env(layout: MazeLayout, goal_cells: np.ndarray, args: Args, idx: int, run_name: str):
+def make_env(layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, max_episode_steps: int):
     def thunk():
-        render_mode = "rgb_array" if args.capture_video and idx == 0 else None
-        env = VisualMazeEnv(layout, goal_cells, args.random_start, args.noise, render_mode=render_mode)
-        env = gym.wrappers.TimeLimit(env, args.max_episode_steps)
-        env = gym.wrappers.RecordEpisodeStatistics(env)
-        if render_mode is not None:
-            env = gym.wrappers.RecordVideo(env, f"videos/{run_name}", episode_trigger=lambda episode: episode % 100 == 0)
-        return env
+        env = VisualMazeEnv(layout, goal_cells, random_start, noise)
+        env = gym.wrappers.TimeLimit(env, max_episode_steps)
+        return gym.wrappers.RecordEpisodeStatistics(env)
 
     return thunk
 
@@ -291,12 +313,21 @@ def make_env(layout: MazeLayout, goal_cells: np.ndarray, args: Args, idx: int, r
 
 
 class Representation(nn.Module):
-    """phi: 80x80x3 uint8 -> R^embed_dim, with the heads of its self-supervised objective and, for DGRL, the bottleneck."""
+    """phi: 80x80x3 uint8 -> R^embed_dim, with the heads of its self-supervised objective and, for DGRL, the bottleneck
+    (`vq`, None for the baseline)."""
 
     def __init__(
-        self, embed_dim: int, rep: str, groups: int, n_embed: int, vq_beta: float, vq_decay: float, dead_code_steps: int = 0
+        self,
+        embed_dim: int,
+        objective: str,
+        groups: int,
+        n_embed: int,
+        beta: float,
+        decay: float,
+        dead_code_steps: int = 0,
     ):
         super().__init__()
+        self.objective = objective
         self.encoder = nn.Sequential(
             nn.Conv2d(3, 16, 8, stride=4),
             nn.ReLU(),
@@ -307,27 +338,23 @@ class Representation(nn.Module):
             nn.Flatten(),
             nn.Linear(32 * 6 * 6, embed_dim),
         )
-        if rep == "infomax":  # psi_t(phi(s_t), a_t) and psi_t+1(phi(s_t+1)) of DRIML's score
+        if objective == "infomax":  # psi_t(phi(s_t), a_t) and psi_t+1(phi(s_t+1)) of DRIML's score
             self.psi_state_action = nn.Sequential(nn.Linear(embed_dim + len(MOVES), 128), nn.ReLU(), nn.Linear(128, 64))
             self.psi_next = nn.Linear(embed_dim, 64)
         else:
             self.decoder = nn.Sequential(nn.Linear(embed_dim, 256), nn.ReLU(), nn.Linear(256, 80 * 80 * 3))
-        self.vq = (  # DGRL
-            VectorQuantizerEMA(
-                embed_dim, n_embed, groups, beta=vq_beta, decay=vq_decay, dead_code_steps=dead_code_steps
-            )  # DGRL
-            if groups  # DGRL
-            else None  # DGRL
-        )  # DGRL
+        self.vq = None
+        if groups:  # DGRL
+            self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
 
     def embed(self, images: torch.Tensor) -> torch.Tensor:
         return self.encoder(images.permute(0, 3, 1, 2).float() / 255.0)
 
     def forward(self, z: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(features the agent sees, commitment loss, code indices) of embeddings z."""
-        if self.vq is None:
-            return z, z.new_zeros(()), None
-        return self.vq(z, update=update)  # DGRL
+        if self.vq is not None:  # DGRL
+            return self.vq(z, update=update)  # DGRL
+        return z, z.new_zeros(()), None
 
 
 class QNetwork(nn.Module):
@@ -341,7 +368,51 @@ class QNetwork(nn.Module):
         return self.network(torch.cat([state_features, goal_features], dim=-1))
 
 
-# --- Losses, data, evaluation -----------------------------------------------------------------------------------------
+@dataclass
+class Agent:
+    """Everything that learns. The DGRL bottleneck is `rep.vq` (None for --groups 0), inside phi, so that a target copy
+    of phi carries its codebook."""
+
+    rep: Representation  # phi with its pre-training heads and the bottleneck
+    q_network: QNetwork
+    target_q_network: QNetwork
+    target_rep: Representation | None  # only with --finetune: phi and its codebook as the TD targets see them
+    rep_optimizer: torch.optim.Optimizer  # pre-training: phi, its heads (the codebook moves by EMA)
+    q_optimizer: torch.optim.Optimizer  # the DQN phase: the Q-network, and phi's encoder with --finetune
+
+
+def make_agent(
+    *,
+    embed_dim: int,
+    hidden_dim: int,
+    objective: str,
+    groups: int,
+    n_embed: int,
+    vq_beta: float,
+    vq_decay: float,
+    vq_dead_code_steps: int,
+    learning_rate: float,
+    rep_learning_rate: float,
+    finetune: bool,
+    device: torch.device,
+) -> Agent:
+    """The agent of the script, the tests and the benchmarks: phi (with the bottleneck for groups > 0), the Q-network,
+    their targets and the two Adam optimizers. A target of phi exists only with `finetune`; copy phi into it once
+    pre-training ends."""
+    rep = Representation(embed_dim, objective, groups, n_embed, vq_beta, vq_decay, vq_dead_code_steps).to(device)
+    q_network = QNetwork(embed_dim, hidden_dim).to(device)
+    q_parameters = list(q_network.parameters()) + (list(rep.encoder.parameters()) if finetune else [])
+    return Agent(
+        rep=rep,
+        q_network=q_network,
+        target_q_network=make_target(q_network),
+        target_rep=make_target(rep) if finetune else None,
+        rep_optimizer=torch.optim.Adam(rep.parameters(), lr=rep_learning_rate, fused=True),
+        q_optimizer=torch.optim.Adam(q_parameters, lr=learning_rate, fused=True),
+    )
+
+
+# --- Losses, data, updates, evaluation --------------------------------------------------------------------------------
 
 
 def infonce_loss(anchors: torch.Tensor, positives: torch.Tensor, clip: float = 20.0) -> torch.Tensor:
@@ -358,7 +429,7 @@ def intrinsic_bonus(
     z_state: torch.Tensor, z_goal: torch.Tensor, codes_state: torch.Tensor | None, codes_goal: torch.Tensor | None
 ) -> torch.Tensor:
     """DGRL: fraction of the G factors whose codes match. Baseline: cosine similarity of the continuous embeddings."""
-    if codes_state is not None:
+    if codes_state is not None:  # DGRL
         return factor_match(codes_state, codes_goal)  # DGRL
     return F.cosine_similarity(z_state, z_goal, dim=-1)
 
@@ -398,7 +469,10 @@ class CellEmbedder:
     """
 
     def __init__(self, layout: MazeLayout, noise: float, device: torch.device, rng: np.random.Generator):
-        self.layout, self.noise, self.device, self.rng = layout, noise, device, rng
+        self.layout = layout
+        self.noise = noise
+        self.device = device
+        self.rng = rng
         self.all_images = torch.as_tensor(layout.images, device=device)
 
     def __call__(self, rep: Representation, cells: torch.Tensor) -> torch.Tensor:
@@ -408,10 +482,155 @@ class CellEmbedder:
         return rep.embed(torch.as_tensor(images, device=self.device))
 
 
+@dataclass
+class CellTable:
+    """phi's embeddings, the features the agent sees and (DGRL) the codes of the maze's noiseless cell images."""
+
+    z: torch.Tensor
+    features: torch.Tensor
+    codes: torch.Tensor | None
+
+
+@torch.no_grad()
+def cell_table(rep: Representation, embedder: CellEmbedder) -> CellTable:
+    """Encode every cell's noiseless image once (the codebook does not update)."""
+    z = rep.embed(embedder.all_images)
+    features, _, codes = rep(z)
+    return CellTable(z, features, codes)
+
+
+def cell_features(model: Representation, embedder: CellEmbedder, cells: torch.Tensor, table: CellTable | None, update=False):
+    """(features, continuous embedding, commitment loss, codes) of the observations of `cells` under `model`: rows of
+    `table` when there is one (a frozen phi on noiseless images), else encoded."""
+    if table is not None:
+        codes = None if table.codes is None else table.codes[cells]
+        return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
+    z = embedder(model, cells)
+    features, vq_loss, codes = model(z, update=update)
+    return features, z, vq_loss, codes
+
+
+@dataclass
+class Batch:
+    cells: torch.Tensor  # (batch, 3): cell, next cell, goal cell
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    terminated: torch.Tensor
+
+
+class ReplayBuffer:
+    """Transitions as (cell, next cell, goal cell, action, reward, terminated). The cells fix the raw images (with
+    --noise, up to the noise), so the replay never stores code indices."""
+
+    def __init__(self, size: int):
+        self.cells = np.zeros((size, 3), dtype=np.int64)
+        self.actions = np.zeros(size, dtype=np.int64)
+        self.rewards = np.zeros(size, dtype=np.float32)
+        self.terminated = np.zeros(size, dtype=np.float32)
+        self.position = 0
+        self.count = 0
+
+    def add(self, cell: int, next_cell: int, goal_cell: int, action: int, reward: float, terminated: bool) -> None:
+        self.cells[self.position] = (cell, next_cell, goal_cell)
+        self.actions[self.position] = action
+        self.rewards[self.position] = reward
+        self.terminated[self.position] = terminated
+        self.position = (self.position + 1) % len(self.actions)
+        self.count = min(self.count + 1, len(self.actions))
+
+    def sample(self, batch_size: int, rng: np.random.Generator, device: torch.device) -> Batch:
+        rows = rng.integers(self.count, size=batch_size)
+        return Batch(
+            cells=torch.as_tensor(self.cells[rows], device=device),
+            actions=torch.as_tensor(self.actions[rows], device=device),
+            rewards=torch.as_tensor(self.rewards[rows], device=device),
+            terminated=torch.as_tensor(self.terminated[rows], device=device),
+        )
+
+
+def pretrain_step(
+    agent: Agent, embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """One Adam step of phi's self-supervised objective on the random-walk transitions `rows` of `walks` (cells,
+    actions, next cells), plus, for DGRL, the commitment loss and one EMA update of the codebook. Returns the detached
+    (objective loss, commitment loss, codes)."""
+    rep = agent.rep
+    cells, actions, next_cells = walks
+    z = embedder(rep, torch.cat([cells[rows], next_cells[rows]]))
+    _, vq_loss, codes = rep(z, update=True)  # DGRL: one pooled update for s and s', the mean of their commitment losses
+    z_state, z_next = z.chunk(2)
+    if rep.objective == "infomax":
+        anchors = rep.psi_state_action(torch.cat([z_state, F.one_hot(actions[rows], len(MOVES)).float()], 1))
+        rep_loss = infonce_loss(anchors, rep.psi_next(z_next))
+    else:  # with --noise, the clean image is the target: a denoising autoencoder
+        clean_images = embedder.all_images[cells[rows]].flatten(1).float() / 255.0
+        rep_loss = F.mse_loss(torch.sigmoid(rep.decoder(z_state)), clean_images)
+    agent.rep_optimizer.zero_grad()
+    (rep_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
+    agent.rep_optimizer.step()
+    return rep_loss.detach(), vq_loss.detach(), codes
+
+
+@torch.no_grad()
+def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, infos: dict) -> np.ndarray:
+    """The Q-network's actions on the features of the actual observations and goals (the codebook never updates here)."""
+    if table is not None:
+        state_features = table.features[infos["cell"]]
+        goal_features = table.features[infos["goal_cell"]]
+    else:
+        images = np.concatenate([observations["observation"], observations["desired_goal"]])
+        z = agent.rep.embed(torch.as_tensor(images, device=next(agent.q_network.parameters()).device))
+        state_features, goal_features = agent.rep(z, update=False)[0].chunk(2)
+    return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()
+
+
+def td_update(
+    agent: Agent, batch: Batch, embedder: CellEmbedder, table: CellTable | None, *, gamma: float, bonus_coef: float,
+    double_dqn: bool,
+) -> dict[str, torch.Tensor]:  # fmt: skip
+    """One DQN step: smooth-L1 between Q(s, g, a) and r + bonus_coef * bonus(s', g) + gamma * Q_target(s', g, a'), a'
+    from the online network (Double DQN) or the target's max. With a target phi (--finetune) the TD loss trains phi's
+    encoder and the codebook updates on the (state, goal) batch. Returns the detached metrics."""
+    finetune = agent.target_rep is not None
+    with torch.no_grad():
+        target_rep = agent.target_rep if finetune else agent.rep
+        next_goal_cells = torch.cat([batch.cells[:, 1], batch.cells[:, 2]])
+        next_goal_features, next_goal_z, _, next_goal_codes = cell_features(target_rep, embedder, next_goal_cells, table)
+        next_codes = None
+        goal_codes = None
+        if next_goal_codes is not None:  # DGRL
+            next_codes, goal_codes = next_goal_codes.chunk(2)  # DGRL
+        bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)
+        rewards = batch.rewards + bonus_coef * bonus
+        target_q = agent.target_q_network(*next_goal_features.chunk(2))
+        if double_dqn:
+            online_features = cell_features(agent.rep, embedder, next_goal_cells, table)[0] if finetune else next_goal_features
+            next_actions = agent.q_network(*online_features.chunk(2)).argmax(1, keepdim=True)
+            next_values = target_q.gather(1, next_actions).squeeze(1)
+        else:
+            next_values = target_q.max(1).values
+        td_target = rewards + gamma * (1 - batch.terminated) * next_values
+    # State and goal in one call: one pooled codebook update, and the mean of their commitment losses.
+    state_goal_cells = torch.cat([batch.cells[:, 0], batch.cells[:, 2]])
+    state_goal_features, _, vq_loss, _ = cell_features(agent.rep, embedder, state_goal_cells, table, update=finetune)
+    q_values = agent.q_network(*state_goal_features.chunk(2)).gather(1, batch.actions.unsqueeze(1)).squeeze(1)
+    td_loss = F.smooth_l1_loss(q_values, td_target)
+    loss = td_loss + vq_loss  # DGRL: zero unless the codebook is fine-tuned
+    agent.q_optimizer.zero_grad()
+    loss.backward()
+    agent.q_optimizer.step()
+    return {
+        "td_loss": td_loss.detach(),
+        "q_values": q_values.detach().mean(),
+        "bonus": bonus.mean(),
+        "vq_loss": vq_loss.detach(),
+    }
+
+
 @torch.no_grad()
 def evaluate(rep, q_network, embedder, layout: MazeLayout, goal_cells: np.ndarray, max_steps: int):
-    """Greedy episodes from the start cell to every goal at once. Returns (reached, steps) per goal; steps is max_steps
-    for a goal not reached."""
+    """Greedy episodes from the start cell to every goal at once. Returns (reached, steps, path) per goal: steps is
+    max_steps for a goal not reached; path (time, goal) holds the cells visited, the start cell first."""
     device = embedder.device
     goals = torch.as_tensor(goal_cells, device=device)
     next_cell = torch.as_tensor(layout.next_cell, device=device)
@@ -429,101 +648,95 @@ def evaluate(rep, q_network, embedder, layout: MazeLayout, goal_cells: np.ndarra
     cells = torch.full_like(goals, START_CELL)
     steps = torch.full_like(goals, max_steps)
     reached = torch.zeros_like(goals, dtype=torch.bool)
+    path = [cells]
     for t in range(max_steps):
         actions = q_network(cell_features(cells), goal_features).argmax(1)
         cells = torch.where(reached, cells, next_cell[cells, actions])
+        path.append(cells)
         arrived = (cells == goals) & ~reached
         steps[arrived] = t + 1
         reached |= arrived
         if reached.all():
             break
-    return reached.cpu().numpy(), steps.cpu().numpy()
+    return reached.cpu().numpy(), steps.cpu().numpy(), torch.stack(path).cpu().numpy()
 
 
-def save_checkpoint(path: str, rep: Representation, q_network: QNetwork, args: Args) -> None:
-    """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
-    payload = {"representation": rep.state_dict(), "q_network": q_network.state_dict(), "args": vars(args)}
-    torch.save(payload, path + ".tmp")
-    os.replace(path + ".tmp", path)
+def evaluation_text(tag: str, reached: np.ndarray, steps: np.ndarray, optimal: int) -> str:
+    return f"{tag} {reached.mean():.2f} success, {steps.sum()} total steps (optimal {optimal})"
 
 
-def validate(args: Args) -> None:
-    """Reject bad flags before any work, naming the flag and the valid choices."""
+def episode_frames(layout: MazeLayout, path: np.ndarray, steps: np.ndarray, goal_cells: np.ndarray) -> list[np.ndarray]:
+    """Video frames of evaluate()'s greedy episodes, one goal after another: the observation (noiseless) on the left,
+    the goal image on the right, upscaled 2x."""
+    gap = np.full((layout.images.shape[1], 2, 3), 255, dtype=np.uint8)
+    frames = []
+    for index, goal in enumerate(goal_cells):
+        for cell in path[: steps[index] + 1, index]:
+            frame = np.concatenate([layout.images[cell], gap, layout.images[goal]], axis=1)
+            frames.append(frame.repeat(2, 0).repeat(2, 1))
+    return frames
+
+
+# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+
+CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+
+
+def flag_text(key: str, value) -> str:
+    """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
+    name = key.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
+
+
+def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
     errors = []
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
-    n_free = len(LAYOUTS[args.env_id]) // 2 * (len(LAYOUTS[args.env_id]) // 2) - 1 - 4
-    if not 1 <= args.n_train_goals <= n_free:
-        errors.append(
-            f"--n-train-goals must be in [1, {n_free}] (cells other than the start and the 4 novel goals); "
-            f"got {args.n_train_goals}"
-        )
-    if not 0.0 <= args.noise <= 1.0:
-        errors.append(f"--noise must be in [0, 1]; got {args.noise}")
-    for flag in (
-        "total_timesteps",
-        "buffer_size",
-        "batch_size",
-        "max_episode_steps",
-        "eval_frequency",
-        "target_network_frequency",
-        "train_frequency",
-        "rep_transitions",
-        "rep_batch_size",
-        "embed_dim",
-        "n_embed",
-        "hidden_dim",
-    ):
-        if getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
-    if args.rep_steps < 0 or args.learning_starts < 0:
-        errors.append("--rep-steps and --learning-starts must be >= 0")
-    if args.vq_dead_code_steps < 0:
-        errors.append(f"--vq-dead-code-steps must be >= 0; got {args.vq_dead_code_steps}")
-    if not 0.0 <= args.vq_decay < 1.0:
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")
+    for key in flags.split():
+        value = getattr(args, key)
+        if value < low or (low_open and value == low) or value > high:
+            if high == math.inf:
+                wanted = f"{'>' if low_open else '>='} {low:g}"
+            else:
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+            errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
+    return errors
+
+
+def common_errors(args) -> list[str]:
+    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    errors = [
+        f"--{key.replace('_', '-')} must be a finite number; got {value}"
+        for key, value in vars(args).items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    errors += range_errors(args, "threads", 1)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
-        errors.append(f"--checkpoint {args.checkpoint} is not a file")
+        errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    return errors
+
+
+def exit_on_errors(errors: list[str]) -> None:
+    """Print every error with the script's name and exit with status 2 (as for an unknown flag), before any work."""
     if errors:
-        raise SystemExit("error: " + "\n       ".join(errors))
+        print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
+        raise SystemExit(2)
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    dgrl = args.groups > 0
-    run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
     random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    rng = np.random.default_rng(args.seed)
+    torch.set_num_threads(args.threads)
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    layout = MazeLayout(args.env_id)
-    train_goals, novel_goals = goal_split(layout, args.n_train_goals, args.goal_seed)
-    embedder = CellEmbedder(layout, args.noise, device, rng)
-    rep = Representation(
-        args.embed_dim, args.rep, args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps
-    ).to(device)
-    q_network = QNetwork(args.embed_dim, args.hidden_dim).to(device)
 
-    def report(tag: str, reached: np.ndarray, steps: np.ndarray, goals: np.ndarray) -> str:
-        optimal = layout.distances[START_CELL, goals].sum()
-        return f"{tag} {reached.mean():.2f} success, {steps.sum()} total steps (optimal {optimal})"
-
-    if args.checkpoint is not None:
-        saved = torch.load(args.checkpoint, map_location=device)
-        rep.load_state_dict(saved["representation"])
-        q_network.load_state_dict(saved["q_network"])
-        rep.eval()
-        for tag, goals in (("train goals", train_goals), ("novel goals", novel_goals)):
-            print(report(tag, *evaluate(rep, q_network, embedder, layout, goals, args.max_episode_steps), goals))
-        raise SystemExit(0)
-
+def make_writer(args, run_name: str) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
     if args.track:
         import wandb
 
@@ -533,199 +746,341 @@ if __name__ == "__main__":
             sync_tensorboard=True,
             config=vars(args),
             name=run_name,
-            monitor_gym=True,
             save_code=True,
         )
     writer = SummaryWriter(f"runs/{run_name}")
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
+    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
+    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+
+    def __init__(self, total: int, unit: str = "step"):
+        self.total, self.unit = total, unit
+        self.start_time = self.line_time = self.print_time = time.time()
+        self.line_step = 0
+
+    def sps(self, step: int) -> int:
+        return int(step / max(time.time() - self.start_time, 1e-6))
+
+    def line(self, step: int, figures: str) -> None:
+        now = time.time()
+        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
+        self.line_time = self.print_time = now
+        self.line_step = step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
+            self.print_time = time.time()
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
+    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
+    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
+    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
+    script = os.path.basename(__file__)
+    try:
+        saved = torch.load(path, map_location=device, weights_only=True)
+    except Exception as error:
+        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
+              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
+              "with --save-model", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
+    if differ:
+        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it)."""
+    from moviepy import ImageSequenceClip
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+# --- end of run management ---------------------------------------------------------------------------------------------
+
+
+def validate(args: Args) -> None:
+    """Refuse bad flags before any work (exit status 2), naming each flag and what it accepts."""
+    errors = common_errors(args)
+    errors += range_errors(args, "total_timesteps buffer_size batch_size max_episode_steps eval_frequency", 1)
+    errors += range_errors(args, "target_network_frequency train_frequency rep_transitions rep_batch_size", 1)
+    errors += range_errors(args, "embed_dim hidden_dim n_embed", 1)
+    errors += range_errors(args, "seed goal_seed learning_starts rep_steps vq_dead_code_steps vq_beta bonus_coef", 0)
+    errors += range_errors(args, "learning_rate rep_learning_rate", 0, low_open=True)
+    errors += range_errors(args, "gamma exploration_fraction", 0, 1, low_open=True)
+    errors += range_errors(args, "start_e end_e noise", 0, 1)
+    errors += range_errors(args, "vq_decay", 0)
+    if args.vq_decay >= 1:
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")
+    if args.start_e < args.end_e:
+        errors.append(f"--start-e {args.start_e} must be >= --end-e {args.end_e}: epsilon decays from one to the other")
+    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        errors.append(
+            f"--groups must be 0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
+        )
+    n_free = (len(LAYOUTS[args.env_id]) // 2) ** 2 - 1 - N_NOVEL_GOALS
+    if not 1 <= args.n_train_goals <= n_free:
+        errors.append(
+            f"--n-train-goals must be in [1, {n_free}] (cells other than the start and the {N_NOVEL_GOALS} novel goals); "
+            f"got {args.n_train_goals}"
+        )
+    if args.batch_size > args.buffer_size:
+        errors.append(f"--batch-size {args.batch_size} must be <= --buffer-size {args.buffer_size}")
+    if args.rep_batch_size > args.rep_transitions:
+        errors.append(f"--rep-batch-size {args.rep_batch_size} must be <= --rep-transitions {args.rep_transitions}")
+    if args.rep == "infomax" and args.rep_steps and args.rep_batch_size < 2:
+        errors.append("--rep-batch-size must be >= 2 with --rep infomax (InfoNCE needs in-batch negatives)")
+    if args.train_frequency >= 1 and args.learning_starts >= 0:
+        first_update = -(-args.learning_starts // args.train_frequency) * args.train_frequency
+        if first_update >= args.total_timesteps:
+            errors.append(
+                f"--total-timesteps {args.total_timesteps} must exceed --learning-starts {args.learning_starts} (the first "
+                f"training step is at step {first_update} with --train-frequency {args.train_frequency}): no DQN update "
+                "would run"
+            )
+    exit_on_errors(errors)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    device = seed_and_device(args)
+    rng = np.random.default_rng(args.seed)  # random walks, replay batches and image noise
+
+    layout = MazeLayout(args.env_id)
+    train_goals, novel_goals = goal_split(layout, args.n_train_goals, args.goal_seed)
+    optimal_steps = {
+        "train": layout.distances[START_CELL, train_goals].sum(),
+        "novel": layout.distances[START_CELL, novel_goals].sum(),
+    }
+    embedder = CellEmbedder(layout, args.noise, device, rng)
+    agent = make_agent(
+        embed_dim=args.embed_dim,
+        hidden_dim=args.hidden_dim,
+        objective=args.rep,
+        groups=args.groups,
+        n_embed=args.n_embed,
+        vq_beta=args.vq_beta,
+        vq_decay=args.vq_decay,
+        vq_dead_code_steps=args.vq_dead_code_steps,
+        learning_rate=args.learning_rate,
+        rep_learning_rate=args.rep_learning_rate,
+        finetune=args.finetune,
+        device=device,
+    )
+
+    if args.checkpoint is not None:
+        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+        split = {"train_goals": train_goals.tolist(), "novel_goals": novel_goals.tolist()}
+        if any(saved.get(key) != cells for key, cells in split.items()):
+            saved_split = {key: saved.get(key) for key in split}
+            print(f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} was trained on the goal split {saved_split}, "
+                  f"but these flags give {split}", file=sys.stderr)  # fmt: skip
+            raise SystemExit(2)
+        agent.rep.load_state_dict(saved["representation"])
+        agent.q_network.load_state_dict(saved["q_network"])
+        agent.rep.eval()
+        for tag, goals in (("train", train_goals), ("novel", novel_goals)):
+            reached, steps, _ = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
+            print(evaluation_text(f"{tag} goals", reached, steps, optimal_steps[tag]))
+        raise SystemExit(0)
+
+    writer = make_writer(args, run_name)
+    stop = stop_on_signals()
     print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}")
-    start_time = time.time()
 
     # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
-    walk_cells, walk_actions, walk_next = (
+    walks = tuple(
         torch.as_tensor(column, device=device)
         for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
     )
-    rep_optimizer = torch.optim.Adam(rep.parameters(), lr=args.rep_learning_rate, fused=True)
-    for rep_step in range(args.rep_steps):
-        batch = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
-        z = embedder(rep, torch.cat([walk_cells[batch], walk_next[batch]]))
-        _, vq_loss, codes = rep(z, update=True)  # DGRL: one pooled update for s and s', the mean of their commitment losses
-        z_state, z_next = z.chunk(2)
-        if args.rep == "infomax":
-            anchors = rep.psi_state_action(torch.cat([z_state, F.one_hot(walk_actions[batch], len(MOVES)).float()], 1))
-            rep_loss = infonce_loss(anchors, rep.psi_next(z_next))
-        else:  # with --noise, the clean image is the target: a denoising autoencoder
-            clean_images = embedder.all_images[walk_cells[batch]].flatten(1).float() / 255.0
-            rep_loss = F.mse_loss(torch.sigmoid(rep.decoder(z_state)), clean_images)
-        rep_optimizer.zero_grad()
-        (rep_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
-        rep_optimizer.step()
-        if rep_step % 100 == 0 or rep_step == args.rep_steps - 1:
+    pretraining = Progress(args.rep_steps, unit="pre-training step")
+    rep_step = 0
+    next_rep_log = 0
+    rep_loss = None
+    while rep_step < args.rep_steps and not stop:
+        rows = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
+        rep_loss, vq_loss, codes = pretrain_step(agent, embedder, walks, rows)
+        if rep_step >= next_rep_log or rep_step == args.rep_steps - 1:
+            next_rep_log += 100
             writer.add_scalar("losses/rep_loss", rep_loss.item(), rep_step)
-            if dgrl:
+            if dgrl:  # DGRL
                 writer.add_scalar("vq/commit_loss", vq_loss.item(), rep_step)  # DGRL
                 writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), rep_step)  # DGRL
+        rep_step += 1
+        pretraining.heartbeat(rep_step)
 
-    # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
-    rep.eval()
-    rep.requires_grad_(args.finetune)
-    with torch.no_grad():
-        all_z = rep.embed(embedder.all_images)
-        all_features, _, all_codes = rep(all_z)
-    if dgrl:
-        distinct = len(torch.unique(all_codes, dim=0))  # DGRL
+    # Freeze phi (unless --finetune); encode the maze's cells once; measure how well the bonus tracks maze distance.
+    agent.rep.eval()
+    agent.rep.requires_grad_(args.finetune)
+    pretrained = cell_table(agent.rep, embedder)
+    if dgrl:  # DGRL
+        distinct = len(torch.unique(pretrained.codes, dim=0))  # DGRL
         writer.add_scalar("vq/distinct_cells", distinct, 0)  # DGRL
-        n_active = active_codes(all_codes, args.n_embed).item()  # DGRL
+        n_active = active_codes(pretrained.codes, args.n_embed).item()  # DGRL
         writer.add_scalar("vq/active_codes", n_active, 0)  # DGRL
         print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
     pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
-    pair_codes = (None, None) if all_codes is None else (all_codes[pairs[:, 0]], all_codes[pairs[:, 1]])
-    all_bonus = intrinsic_bonus(all_z[pairs[:, 0]], all_z[pairs[:, 1]], *pair_codes).view(layout.n_cells, -1)
+    pair_codes = (None, None)
+    if dgrl:  # DGRL
+        pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]])  # DGRL
+    all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes).view(layout.n_cells, -1)
     correlation, step_closer = bonus_quality(all_bonus.cpu().numpy(), layout)
     writer.add_scalar("charts/bonus_distance_corr", correlation, 0)
     writer.add_scalar("charts/bonus_step_closer", step_closer, 0)
+    loss_text = "not trained" if rep_loss is None else f"loss {rep_loss.item():.3f}"
     print(
-        f"pre-training: {args.rep_steps} steps, {args.rep} loss {rep_loss.item():.3f}, {time.time() - start_time:.1f} s; "
+        f"pre-training: {rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
         f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
     )
     if args.finetune:
-        rep.train()
-        target_rep = make_target(rep)
-    q_optimizer = torch.optim.Adam(
-        list(q_network.parameters()) + (list(rep.encoder.parameters()) if args.finetune else []),
-        lr=args.learning_rate,
-        fused=True,
-    )
-    target_network = make_target(q_network)
+        agent.rep.train()
+        update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
+    lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
 
-    lookup = not args.finetune and args.noise == 0  # frozen phi, noiseless images: features are a 36-row table
-
-    def features(model: Representation, cells: torch.Tensor, update: bool = False):
-        """(features, continuous embedding, commitment loss, codes) of the observations of `cells` under `model`."""
-        if lookup:
-            return all_features[cells], all_z[cells], all_z.new_zeros(()), None if all_codes is None else all_codes[cells]
-        z = embedder(model, cells)
-        features_, vq_loss_, codes_ = model(z, update=update)
-        return features_, z, vq_loss_, codes_
-
+    # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
     envs = gym.vector.SyncVectorEnv(
-        [make_env(layout, train_goals, args, 0, run_name)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP
+        [make_env(layout, train_goals, args.random_start, args.noise, args.max_episode_steps)],
+        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
     envs.action_space.seed(args.seed)
-    cells_buffer = np.zeros((args.buffer_size, 3), dtype=np.int64)  # cell, next cell, goal cell: they fix the raw images
-    actions_buffer = np.zeros(args.buffer_size, dtype=np.int64)
-    rewards_buffer = np.zeros(args.buffer_size, dtype=np.float32)
-    terminated_buffer = np.zeros(args.buffer_size, dtype=np.float32)
+    replay = ReplayBuffer(args.buffer_size)
     recent_success = deque(maxlen=100)
+    exploration_steps = args.exploration_fraction * args.total_timesteps
+    progress = Progress(args.total_timesteps)
     observations, infos = envs.reset(seed=args.seed)
-    dqn_start, train_steps = time.time(), 0
-    for global_step in range(args.total_timesteps):
-        # Act: epsilon-greedy on the features of the actual observation and goal (the codebook never updates here).
-        epsilon = max(
-            args.end_e,
-            args.start_e - (args.start_e - args.end_e) * global_step / (args.exploration_fraction * args.total_timesteps),
-        )
+    global_step = 0
+    train_steps = 0
+    next_train_log = 100
+    next_eval = args.eval_frequency
+    last_evaluation = "no evaluation"
+    while global_step < args.total_timesteps and not stop:
+        # Act: epsilon-greedy on the features of the actual observation and goal.
+        epsilon = max(args.end_e, args.start_e - (args.start_e - args.end_e) * global_step / exploration_steps)
         if random.random() < epsilon:
             actions = envs.action_space.sample()
         else:
-            with torch.no_grad():
-                if lookup:
-                    state_features, goal_features = all_features[infos["cell"]], all_features[infos["goal_cell"]]
-                else:
-                    images = torch.as_tensor(
-                        np.concatenate([observations["observation"], observations["desired_goal"]]), device=device
-                    )
-                    state_features, goal_features = rep(rep.embed(images), update=False)[0].chunk(2)
-                actions = q_network(state_features, goal_features).argmax(1).cpu().numpy()
+            actions = greedy_actions(agent, lookup, observations, infos)
         next_observations, rewards, terminations, truncations, next_infos = envs.step(actions)
 
         # Store: the true final cell of a finished episode comes from final_info (same-step autoreset).
         done = terminations | truncations
-        real_next_cells = (
-            np.where(done, next_infos["final_info"]["cell"], next_infos["cell"]) if done.any() else next_infos["cell"]
-        )
-        slot = global_step % args.buffer_size
-        cells_buffer[slot] = (infos["cell"][0], real_next_cells[0], infos["goal_cell"][0])
-        actions_buffer[slot], rewards_buffer[slot], terminated_buffer[slot] = actions[0], rewards[0], terminations[0]
+        next_cells = next_infos["cell"]
+        if done.any():
+            next_cells = np.where(done, next_infos["final_info"]["cell"], next_cells)
+        replay.add(infos["cell"][0], next_cells[0], infos["goal_cell"][0], actions[0], rewards[0], terminations[0])
         if done[0]:
             episode = next_infos["final_info"]["episode"]
             recent_success.append(float(terminations[0]))
             writer.add_scalar("charts/episodic_return", episode["r"][0], global_step)
             writer.add_scalar("charts/episodic_length", episode["l"][0], global_step)
             writer.add_scalar("charts/success_rate", np.mean(recent_success), global_step)
-        observations, infos = next_observations, next_infos
+        observations = next_observations
+        infos = next_infos
 
         # Learn
         if global_step >= args.learning_starts and global_step % args.train_frequency == 0:
-            batch = rng.integers(min(global_step + 1, args.buffer_size), size=args.batch_size)
-            cells = torch.as_tensor(cells_buffer[batch], device=device)
-            actions_t = torch.as_tensor(actions_buffer[batch], device=device)
-            with torch.no_grad():
-                target_model = target_rep if args.finetune else rep
-                next_goal_cells = torch.cat([cells[:, 1], cells[:, 2]])
-                next_goal_features, next_goal_z, _, next_goal_codes = features(target_model, next_goal_cells)
-                next_codes, goal_codes = (None, None) if next_goal_codes is None else next_goal_codes.chunk(2)
-                bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)
-                rewards_t = torch.as_tensor(rewards_buffer[batch], device=device) + args.bonus_coef * bonus
-                target_q = target_network(*next_goal_features.chunk(2))
-                if args.double_dqn:
-                    online_features = features(rep, next_goal_cells)[0] if args.finetune else next_goal_features
-                    next_actions = q_network(*online_features.chunk(2)).argmax(1, keepdim=True)
-                    next_values = target_q.gather(1, next_actions).squeeze(1)
-                else:
-                    next_values = target_q.max(1).values
-                td_target = (
-                    rewards_t + args.gamma * (1 - torch.as_tensor(terminated_buffer[batch], device=device)) * next_values
-                )
-            # State and goal in one call: one pooled codebook update, and the mean of their commitment losses.
-            state_goal_features, _, vq_loss, _ = features(rep, torch.cat([cells[:, 0], cells[:, 2]]), update=args.finetune)
-            state_features, goal_features = state_goal_features.chunk(2)
-            q_values = q_network(state_features, goal_features).gather(1, actions_t.unsqueeze(1)).squeeze(1)
-            td_loss = F.smooth_l1_loss(q_values, td_target)
-            loss = td_loss + vq_loss  # DGRL: zero unless the codebook is fine-tuned
-            q_optimizer.zero_grad()
-            loss.backward()
-            q_optimizer.step()
+            batch = replay.sample(args.batch_size, rng, device)
+            metrics = td_update(agent, batch, embedder, lookup, gamma=args.gamma, bonus_coef=args.bonus_coef,
+                                double_dqn=args.double_dqn)  # fmt: skip
             train_steps += 1
             if train_steps % args.target_network_frequency == 0:
-                update_target(target_network, q_network)
-                if args.finetune:
-                    update_target(target_rep, rep)  # the codebook buffers are copied too
-            if train_steps % 100 == 0:
-                writer.add_scalar("losses/td_loss", td_loss.item(), global_step)
-                writer.add_scalar("losses/q_values", q_values.mean().item(), global_step)
-                writer.add_scalar("charts/intrinsic_bonus", bonus.mean().item(), global_step)
+                update_target(agent.target_q_network, agent.q_network)
+                if agent.target_rep is not None:
+                    update_target(agent.target_rep, agent.rep)  # the codebook buffers are copied too
+            if train_steps >= next_train_log:
+                next_train_log += 100
+                writer.add_scalar("losses/td_loss", metrics["td_loss"].item(), global_step)
+                writer.add_scalar("losses/q_values", metrics["q_values"].item(), global_step)
+                writer.add_scalar("charts/intrinsic_bonus", metrics["bonus"].item(), global_step)
                 writer.add_scalar("charts/epsilon", epsilon, global_step)
-                if dgrl:
-                    writer.add_scalar("vq/factor_match", bonus.mean().item(), global_step)  # DGRL
-                    if args.finetune:
-                        writer.add_scalar("vq/commit_loss", vq_loss.item(), global_step)  # DGRL
+                if dgrl:  # DGRL
+                    writer.add_scalar("vq/factor_match", metrics["bonus"].item(), global_step)  # DGRL
+                    if args.finetune:  # DGRL
+                        writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), global_step)  # DGRL
 
-        # Evaluate greedily on every train goal and every novel goal; log, print progress, checkpoint.
-        if (global_step + 1) % args.eval_frequency == 0 or global_step + 1 == args.total_timesteps:
-            rep.eval()
-            results = {}
+        # Evaluate greedily on every train goal and every novel goal; log, print progress, record the episodes.
+        steps_done = global_step + 1
+        if steps_done >= next_eval or steps_done == args.total_timesteps:
+            next_eval += args.eval_frequency
+            agent.rep.eval()
+            texts = []
+            frames = []
             for split, goals in (("train", train_goals), ("novel", novel_goals)):
-                reached, steps = evaluate(rep, q_network, embedder, layout, goals, args.max_episode_steps)
-                results[split] = (reached, steps)
+                reached, steps, path = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
+                texts.append(evaluation_text(split, reached, steps, optimal_steps[split]))
                 writer.add_scalar(f"eval/{split}_success_rate", reached.mean(), global_step)
                 writer.add_scalar(f"eval/{split}_mean_steps", steps.mean(), global_step)
                 writer.add_scalar(f"eval/{split}_total_steps", steps.sum(), global_step)
-            rep.train(args.finetune)
-            sps = int((global_step + 1) / (time.time() - dqn_start))
-            writer.add_scalar("charts/SPS", sps, global_step)
-            elapsed = time.time() - start_time
-            remaining = (args.total_timesteps - global_step - 1) / max(sps, 1)
-            print(
-                f"step {global_step + 1:>7}/{args.total_timesteps}  {report('train', *results['train'], train_goals)}  "
-                f"{report('novel', *results['novel'], novel_goals)}  SPS {sps}  {elapsed:.0f}s elapsed, {remaining:.0f}s left"
-            )
-            if args.save_model:
-                save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", rep, q_network, args)
+                if args.capture_video:
+                    frames += episode_frames(layout, path, steps, goals)
+            agent.rep.train(args.finetune)
+            last_evaluation = "  ".join(texts)
+            writer.add_scalar("charts/SPS", progress.sps(steps_done), global_step)
+            progress.line(steps_done, last_evaluation)
+            if args.capture_video:
+                write_video(f"videos/{run_name}/eval_step{steps_done}.mp4", frames, fps=VisualMazeEnv.metadata["render_fps"])
+        global_step = steps_done
+        progress.heartbeat(global_step)
 
+    if args.save_model:
+        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+        entries = {
+            "representation": agent.rep.state_dict(),  # phi, its heads and (DGRL) the codebook with its EMA buffers
+            "q_network": agent.q_network.state_dict(),
+            "train_goals": train_goals.tolist(),
+            "novel_goals": novel_goals.tolist(),
+            "pretraining_steps": rep_step,
+            "steps": global_step,
+        }
+        save_checkpoint(path, entries, args)
+        print(f"checkpoint: {path}")
+    progress.finish(bool(stop), run_name, f"{rep_step} pre-training steps, {global_step} DQN steps; {last_evaluation}")
     envs.close()
     writer.close()
-    if args.save_model:
-        print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")

@@ -14,21 +14,27 @@ prior on the discrete goal and subgoal embeddings. `--groups 0` is plain RIS fro
     python dgrl_ris.py --env-id PointMaze_UMaze-v3 --total-timesteps 30000 --batch-size 128 --start-timesteps 2000 \
         --eval-frequency 2000 --eval-episodes 10            # the CPU preset (20 min on a CPU core; --groups 0: 10 min)
     python dgrl_ris.py --env-id AntU --total-timesteps 3000 --start-timesteps 500 --batch-size 64   # 1-minute smoke run
+    python dgrl_ris.py --env-id AntU --checkpoint runs/<run>/dgrl_ris.cleanrl_model   # evaluate a --save-model checkpoint
 
 Environments: the four Ant mazes of RIS (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built here from the Ant model inside
 gymnasium, and every gymnasium-robotics maze id (`PointMaze_UMaze-v3`, `AntMaze_UMaze-v5`, ...).
 The study: benchmark/ris.sh. Docs: docs/dgrl_ris.md.
 """
 
+import importlib.util
 import math
 import os
 import random
 import signal
+import sys
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from functools import cache
 from typing import ClassVar
+
+if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos, pixels) without a display; set it to override
 
 import gymnasium as gym
 import mujoco
@@ -51,26 +57,25 @@ class Args:
     torch_deterministic: bool = True
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
-    """if toggled, cuda will be enabled when available (the paper's batch of 2048 needs a GPU)"""
+    """if toggled, cuda will be enabled when available"""
     track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "dgrl"
     """the wandb's project name"""
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to record the first episode of every 10th evaluation (saved in `videos/`; set MUJOCO_GL=egl headless)"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
     save_model: bool = False
-    """whether to save a checkpoint (actor, critics, high level, encoder with its codebook) at every evaluation"""
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
-    """path of a saved checkpoint: evaluate it over --eval-episodes episodes on the test configuration, then exit"""
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
-    """torch CPU threads"""
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
 
     # Environment
     env_id: str = "AntMaze"
-    """AntU, AntFb (S maze), AntMaze (Pi maze), AntFg (omega maze), or a gymnasium-robotics maze id such as
-    PointMaze_UMaze-v3 or AntMaze_UMaze-v5"""
+    """AntU, AntFb (S), AntMaze (Pi), AntFg (omega), or a gymnasium-robotics maze id (PointMaze_UMaze-v3, AntMaze_UMaze-v5)"""
     max_episode_steps: int = 0
     """episode step limit (0 = 600 for the four Ant mazes, the registered limit for gymnasium-robotics ids)"""
     num_envs: int = 1
@@ -82,13 +87,13 @@ class Args:
     buffer_size: int = 1_000_000
     """replay capacity in transitions"""
     batch_size: int = 2048
-    """transitions per update"""
+    """transitions per update (the paper's 2048 needs a GPU: 0.2-0.5 s per update on a CPU core)"""
     start_timesteps: int = 10_000
     """steps of uniform random actions before the first update"""
     gamma: float = 0.99
-    """discount"""
+    """discount, in (0, 1]"""
     tau: float = 0.005
-    """Polyak rate of the critic and actor targets"""
+    """Polyak rate of the critic and actor targets, in (0, 1]"""
     q_lr: float = 1e-3
     """Adam learning rate of the twin critics"""
     actor_lr: float = 1e-3
@@ -114,32 +119,32 @@ class Args:
 
     # Evaluation
     eval_frequency: int = 1000
-    """environment steps between evaluations"""
+    """environment steps between evaluations (also the checkpoint cadence with --save-model)"""
     eval_episodes: int = 5
-    """episodes per evaluation, on the test configuration"""
+    """episodes per evaluation, on the test configuration (--capture-video records the first of every 10th evaluation)"""
     eval_deterministic: bool = False
     """act with the mean action during evaluation (RIS samples actions, as in training)"""
 
     # DGRL
-    groups: int = 16
+    groups: int = 16  # DGRL
     """G: factors of the goal embedding; 0 runs RIS"""
-    n_embed: int = 64
+    n_embed: int = 64  # DGRL
     """L: codes in the shared codebook"""
-    vq_beta: float = 0.25
+    vq_beta: float = 0.25  # DGRL
     """commitment-loss weight"""
-    vq_decay: float = 0.99
-    """EMA decay of the codebook"""
-    vq_dead_code_steps: int = 0
+    vq_decay: float = 0.99  # DGRL
+    """EMA decay of the codebook, in [0, 1)"""
+    vq_dead_code_steps: int = 0  # DGRL
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
-    embed_dim: int = 64
+    embed_dim: int = 64  # DGRL
     """size of the goal embedding (m); must be divisible by groups"""
-    encoder_lr: float = 1e-4
+    encoder_lr: float = 1e-4  # DGRL
     """Adam learning rate of the goal encoder and decoder (a parameter group of the critic optimizer)"""
 
 
 # --- Environments -----------------------------------------------------------------------------------------------------
 
-ANT_MAZES = {  # RIS's four mazes (reference ris.md): interior bounds, inner walls as (cx, cy, hx, hy), test boxes
+ANT_MAZES = {  # RIS's four mazes (its multiworld code): interior bounds, inner walls as (cx, cy, hx, hy), test boxes
     "AntU": dict(
         interior=((-3.75, 3.75), (-9.0, 9.0)),
         walls=((0.0, 1.5, 0.75, 7.5),),
@@ -255,7 +260,7 @@ def ant_maze_xml(name: str) -> str:
 
 
 class AntMazeEnv(gym.Env):
-    """One of RIS's four Ant mazes (reference ris.md) on the modern `mujoco` bindings.
+    """One of RIS's four Ant mazes (as in its multiworld code) on the modern `mujoco` bindings.
 
     Observation: Dict(state = the 31-d ant state, goal = a 31-d goal state). Action: 8 motor commands in [-1, 1].
     Physics: timestep 0.03 with RK4, frame_skip 5 (0.15 s per step), gear 10. The reward is -1 per step (RIS recomputes
@@ -311,15 +316,17 @@ class AntMazeEnv(gym.Env):
             self._renderer = None
 
 
-class RoboticsMaze(gym.Wrapper):
+class RoboticsMaze(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A gymnasium-robotics maze env seen as Dict(state, goal): state = (achieved xy, observation), goal = desired xy.
 
     Episodes end on success (`continuing_task=False`). Test resets of the U mazes put the start and the goal at the two
-    ends of the U, the analogue of RIS's test configuration; other maps keep their own reset distribution.
+    ends of the U, the analogue of RIS's test configuration; other maps keep their own reset distribution. Recording its
+    constructor arguments (as gymnasium's own wrappers do) lets gymnasium re-create the wrapped env from its spec.
     """
 
     def __init__(self, env: gym.Env, test: bool):
-        super().__init__(env)
+        gym.utils.RecordConstructorArgs.__init__(self, test=test)
+        gym.Wrapper.__init__(self, env)
         spaces = env.observation_space
         state_dim = spaces["achieved_goal"].shape[0] + spaces["observation"].shape[0]
         self.observation_space = gym.spaces.Dict(
@@ -350,6 +357,16 @@ def robotics_ids() -> list[str]:
     return sorted(env_id for env_id in gym.registry if env_id.startswith(ROBOTICS_PREFIXES))
 
 
+def episode_limit(env_id: str, max_episode_steps: int) -> int:
+    """The episode step limit a run uses: --max-episode-steps, else 600 (Ant mazes) or the id's registered limit."""
+    if max_episode_steps:
+        return max_episode_steps
+    if env_id in ANT_MAZES:
+        return ANT_EPISODE_STEPS
+    robotics_ids()
+    return gym.spec(env_id).max_episode_steps
+
+
 def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False):
     def thunk():
         render_mode = "rgb_array" if render else None
@@ -370,10 +387,11 @@ def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, thresho
     return thunk
 
 
-def make_vector_env(env_id: str, n: int, seed: int, test: bool, args: "Args", render: bool = False):
-    thunks = [
-        make_env(env_id, seed + i, test, args.max_episode_steps, args.goal_threshold, render and i == 0) for i in range(n)
-    ]
+def make_vector_env(
+    env_id: str, n: int, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False
+) -> gym.vector.SyncVectorEnv:
+    """n envs seeded seed, seed + 1, ...; with `render`, env 0 renders frames (videos)."""
+    thunks = [make_env(env_id, seed + i, test, max_episode_steps, threshold, render and i == 0) for i in range(n)]
     return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
 
@@ -436,17 +454,25 @@ class GoalEncoder(nn.Module):  # DGRL
     loss that shapes the encoder; the agent consumes the discrete embedding z_q.
     """
 
-    def __init__(self, goal_dim: int, embed_dim: int, hidden_dim: int, args: "Args"):
-        super().__init__()
-        self.encoder = mlp(goal_dim, hidden_dim, embed_dim)
-        self.decoder = mlp(embed_dim, hidden_dim, goal_dim)
-        self.vq = VectorQuantizerEMA(
-            embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
-        )
+    def __init__(  # DGRL
+        self,  # DGRL
+        goal_dim: int,  # DGRL
+        embed_dim: int,  # DGRL
+        hidden_dim: int,  # DGRL
+        groups: int,  # DGRL
+        n_embed: int,  # DGRL
+        beta: float,  # DGRL
+        decay: float,  # DGRL
+        dead_code_steps: int,  # DGRL
+    ):  # DGRL
+        super().__init__()  # DGRL
+        self.encoder = mlp(goal_dim, hidden_dim, embed_dim)  # DGRL
+        self.decoder = mlp(embed_dim, hidden_dim, goal_dim)  # DGRL
+        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
 
-    def forward(self, goals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, goals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # DGRL
         """(z_q, commitment loss, code indices); the codebook moves only with update=True."""
-        return self.vq(self.encoder(goals), update=update)
+        return self.vq(self.encoder(goals), update=update)  # DGRL
 
 
 def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:
@@ -454,6 +480,86 @@ def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.T
     if goal_encoder is None:
         return goals
     return goal_encoder(goals, update=False)[0]  # DGRL
+
+
+@dataclass
+class Agent:
+    """RIS's networks with their targets and optimizers, and the DGRL goal encoder (None for --groups 0)."""
+
+    actor: Actor
+    critic: TwinCritic
+    high: HighLevelPolicy
+    goal_encoder: GoalEncoder | None  # DGRL: trained with the critic, by its optimizer
+    actor_target: Actor
+    critic_target: TwinCritic
+    actor_optimizer: torch.optim.Optimizer
+    critic_optimizer: torch.optim.Optimizer
+    high_optimizer: torch.optim.Optimizer
+
+    def checkpoint_entries(self) -> dict:
+        """What evaluation needs, as state dicts: the goal encoder's include its codebook and EMA buffers."""
+        entries = {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(), "high": self.high.state_dict()}
+        entries["goal_encoder"] = None if self.goal_encoder is None else self.goal_encoder.state_dict()  # DGRL
+        return entries
+
+    def load_checkpoint_entries(self, saved: dict) -> None:
+        self.actor.load_state_dict(saved["actor"])
+        self.critic.load_state_dict(saved["critic"])
+        self.high.load_state_dict(saved["high"])
+        if self.goal_encoder is not None:  # DGRL
+            self.goal_encoder.load_state_dict(saved["goal_encoder"])  # DGRL
+
+
+def make_agent(
+    state_dim: int,
+    goal_dim: int,
+    action_dim: int,
+    *,
+    hidden_dim: int,
+    q_lr: float,
+    actor_lr: float,
+    h_lr: float,
+    groups: int,  # DGRL
+    embed_dim: int,  # DGRL
+    n_embed: int,  # DGRL
+    vq_beta: float,  # DGRL
+    vq_decay: float,  # DGRL
+    vq_dead_code_steps: int,  # DGRL
+    encoder_lr: float,  # DGRL
+    device: torch.device,
+) -> Agent:
+    """The agent of a run (the networks are created in this order, so a seed gives the same weights)."""
+    goal_input_dim = embed_dim if groups else goal_dim  # DGRL: the networks take z_q(g) instead of g
+    actor = Actor(state_dim, goal_input_dim, action_dim, hidden_dim).to(device)
+    critic = TwinCritic(state_dim, goal_input_dim, action_dim, hidden_dim).to(device)
+    high = HighLevelPolicy(state_dim, goal_dim, hidden_dim).to(device)
+    goal_encoder = None  # DGRL: RIS has none
+    if groups:  # DGRL
+        goal_encoder = GoalEncoder(  # DGRL
+            goal_dim,  # DGRL
+            embed_dim,  # DGRL
+            hidden_dim,  # DGRL
+            groups,  # DGRL
+            n_embed,  # DGRL
+            vq_beta,  # DGRL
+            vq_decay,  # DGRL
+            vq_dead_code_steps,  # DGRL
+        ).to(device)  # DGRL
+    fused = device.type in ("cpu", "cuda")
+    critic_groups = [{"params": critic.parameters(), "lr": q_lr}]
+    if goal_encoder is not None:  # DGRL
+        critic_groups.append({"params": goal_encoder.parameters(), "lr": encoder_lr})  # DGRL: the codebook moves by EMA
+    return Agent(
+        actor=actor,
+        critic=critic,
+        high=high,
+        goal_encoder=goal_encoder,  # DGRL
+        actor_target=make_target(actor),
+        critic_target=make_target(critic),
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=actor_lr, fused=fused),
+        critic_optimizer=torch.optim.Adam(critic_groups, fused=fused),
+        high_optimizer=torch.optim.Adam(high.parameters(), lr=h_lr, fused=fused),
+    )
 
 
 # --- Replay with hindsight relabelling --------------------------------------------------------------------------------
@@ -545,10 +651,24 @@ def prior_kl(
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
-def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim: int) -> dict[str, torch.Tensor]:
-    """One RIS update (critic, high level, actor, targets) with the DGRL representation loss; returns detached metrics."""
-    actor, critic, high, goal_encoder = nets["actor"], nets["critic"], nets["high"], nets["goal_encoder"]
-    actor_target, critic_target = nets["actor_target"], nets["critic_target"]
+def ris_update(
+    agent: Agent,
+    batch: tuple,
+    *,
+    goal_dim: int,
+    gamma: float,
+    tau: float,
+    alpha: float,
+    h_lambda: float,
+    n_subgoals: int,
+    prior_epsilon: float,
+) -> dict[str, torch.Tensor]:
+    """One RIS update (critic, high level, actor, targets) with the DGRL representation loss; returns detached metrics.
+
+    `batch` is EpisodeReplay.sample's (s, a, s', g, r, done, s_g); goal_dim: the goal-space projection of a state is
+    its first goal_dim entries.
+    """
+    actor, critic, high, goal_encoder = agent.actor, agent.critic, agent.high, agent.goal_encoder
     states, actions, next_states, goals, rewards, done, subgoals = batch
     batch_size = len(states)
     metrics = {}
@@ -559,19 +679,20 @@ def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim:
         z_q, vq_loss, codes = goal_encoder(points, update=True)  # DGRL: one pooled EMA step over the four embeddings
         reconstruction_loss = F.mse_loss(goal_encoder.decoder(z_q[:batch_size]), points[:batch_size])  # DGRL
         goal_z = z_q[2 * batch_size : 3 * batch_size]  # DGRL: straight-through, so the critic loss shapes the encoder
-        representation_loss = reconstruction_loss + 4 * vq_loss  # DGRL: the sum of the four commitment losses
+        representation_loss = reconstruction_loss + 4 * vq_loss  # DGRL: 4 x the mean over the union = the sum of the four
         metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)  # DGRL
     else:
-        goal_z, representation_loss = goals, 0.0
+        goal_z = goals
+        representation_loss = 0.0
     with torch.no_grad():
         next_actions = actor.sample(next_states, goal_z.detach())
-        next_q = critic_target(next_states, next_actions, goal_z.detach()).min(0).values
-        target_q = rewards + (1.0 - done) * args.gamma * next_q
+        next_q = agent.critic_target(next_states, next_actions, goal_z.detach()).min(0).values
+        target_q = rewards + (1.0 - done) * gamma * next_q
     q_values = critic(states, actions, goal_z)
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
-    optimizers["critic"].zero_grad(set_to_none=True)
+    agent.critic_optimizer.zero_grad(set_to_none=True)
     (critic_loss + representation_loss).backward()  # DGRL: + the representation loss
-    optimizers["critic"].step()
+    agent.critic_optimizer.step()
     goal_z = goal_z.detach()
 
     # High level: advantage-weighted regression onto random replay states.
@@ -583,37 +704,41 @@ def ris_update(nets: dict, optimizers: dict, batch: tuple, args: Args, goal_dim:
         value_goal_z = goal_input(goal_encoder, value_goals)  # DGRL: V(x, y) sees y's discrete embedding
         value_actions = torch.tanh(actor(value_states, value_goal_z)[0])
         values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)
-        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
+        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoals).sum(-1)).mean()
-    optimizers["high"].zero_grad(set_to_none=True)
+    agent.high_optimizer.zero_grad(set_to_none=True)
     high_loss.backward()
-    optimizers["high"].step()
+    agent.high_optimizer.step()
 
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
-        imagined = high(states, goals).sample((args.n_subgoals,))  # (K, B, state_dim)
+        imagined = high(states, goals).sample((n_subgoals,))  # (K, B, state_dim)
         imagined_z = goal_input(goal_encoder, imagined[..., :goal_dim])  # DGRL: the prior sees discrete subgoals
-        prior_mean, prior_std = actor_target(states.expand(args.n_subgoals, -1, -1), imagined_z)
+        prior_mean, prior_std = agent.actor_target(states.expand(n_subgoals, -1, -1), imagined_z)
     mean, std = actor(states, goal_z)
     actions_pre_tanh = mean + std * torch.randn_like(mean)
-    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, args.prior_epsilon)
+    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, prior_epsilon)
     actor_q = critic(states, torch.tanh(actions_pre_tanh), goal_z).min(0).values
-    actor_loss = (args.alpha * kl - actor_q).mean()
-    optimizers["actor"].zero_grad(set_to_none=True)
+    actor_loss = (alpha * kl - actor_q).mean()
+    agent.actor_optimizer.zero_grad(set_to_none=True)
     actor_loss.backward()
-    optimizers["actor"].step()
+    agent.actor_optimizer.step()
 
-    update_target(critic_target, critic, args.tau)
-    update_target(actor_target, actor, args.tau)
+    update_target(agent.critic_target, critic, tau)
+    update_target(agent.actor_target, actor, tau)
     metrics.update(
-        critic_loss=critic_loss, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean(), q_values=q_values.mean(),
+        critic_loss=critic_loss,
+        high_loss=high_loss,
+        actor_loss=actor_loss,
+        kl=kl.mean(),
+        q_values=q_values.mean(),
         high_weight_max=weights.max(),
         subgoal_distance=torch.linalg.vector_norm(proposed[:, :2] - states[:, :2], dim=-1).mean(),
-    )  # fmt: skip
+    )
     return {name: value.detach() for name, value in metrics.items()}
 
 
-# --- Evaluation, checkpoints, flags -----------------------------------------------------------------------------------
+# --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
 @torch.no_grad()
@@ -625,12 +750,24 @@ def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, devi
     return actor.sample(states, goal_z).cpu().numpy()
 
 
-def evaluate(envs: gym.vector.SyncVectorEnv, actor, goal_encoder, device, deterministic: bool, frames=None):
-    """One episode per env on the test configuration: (success rate, mean final xy distance to the goal)."""
+def evaluate(
+    envs: gym.vector.SyncVectorEnv,
+    actor: Actor,
+    goal_encoder: GoalEncoder | None,
+    device: torch.device,
+    deterministic: bool,
+    frames: list | None = None,
+    stop: list[int] | None = None,
+) -> tuple[float, float] | None:
+    """One episode per env on the test configuration: (success rate, mean final xy distance to the goal). Env 0's frames
+    go to `frames` if given; a signal in `stop` (from stop_on_signals) ends the evaluation early, returning None."""
     observations, _ = envs.reset()
     finished = np.zeros(envs.num_envs, dtype=bool)
-    success, distance = np.zeros(envs.num_envs), np.zeros(envs.num_envs)
+    success = np.zeros(envs.num_envs)
+    distance = np.zeros(envs.num_envs)
     while not finished.all():
+        if stop:
+            return None
         if frames is not None and not finished[0]:
             frames.append(envs.envs[0].render())
         actions = act(actor, goal_encoder, observations, device, deterministic)
@@ -644,108 +781,73 @@ def evaluate(envs: gym.vector.SyncVectorEnv, actor, goal_encoder, device, determ
     return success.mean(), distance.mean()
 
 
-def save_checkpoint(path: str, modules: dict[str, nn.Module | None], args: Args) -> None:
-    """Write atomically, so that a crash mid-write never destroys the previous checkpoint."""
-    payload = {name: None if module is None else module.state_dict() for name, module in modules.items()}
-    payload["args"] = vars(args)
-    torch.save(payload, path + ".tmp")
-    os.replace(path + ".tmp", path)
+# --- Flags and checkpoints --------------------------------------------------------------------------------------------
+
+# A checkpoint is evaluated only under the flags that shape its networks, its env and what success means.
+MUST_MATCH = ("env_id", "max_episode_steps", "goal_threshold", "groups", "embed_dim", "n_embed", "hidden_dim")
+LOSS_LOG_UPDATES = 1000  # losses and codebook statistics are logged every this many updates
 
 
-def write_video(path: str, frames: list[np.ndarray], fps: int = 15) -> None:
-    from moviepy import ImageSequenceClip
+# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
 
 
-def validate(args: Args) -> None:
-    """Reject bad flags before any work, naming the flag and the valid choices."""
+def flag_text(key: str, value) -> str:
+    """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
+    name = key.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
+
+
+def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
     errors = []
-    if args.env_id not in ANT_MAZES and not args.env_id.startswith(ROBOTICS_PREFIXES):
-        errors.append(
-            f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ANT_MAZES)} or a gymnasium-robotics maze id "
-            "(AntMaze_* or PointMaze_*, e.g. PointMaze_UMaze-v3, AntMaze_UMaze-v5)"
-        )
-    elif args.env_id not in ANT_MAZES and args.env_id not in (ids := robotics_ids()):
-        errors.append(f"--env-id {args.env_id!r} is not a registered gymnasium-robotics maze id; choices: {', '.join(ids)}")
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(f"--groups must be 0 (RIS) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}")
-    for flag in (
-        "total_timesteps", "num_envs", "buffer_size", "batch_size", "hidden_dim", "n_subgoals", "eval_frequency",
-        "eval_episodes", "n_embed", "embed_dim", "threads",
-    ):  # fmt: skip
-        if getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
-    for flag in ("max_episode_steps", "start_timesteps", "vq_dead_code_steps", "goal_threshold"):
-        if getattr(args, flag) < 0:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 0; got {getattr(args, flag)}")
-    for flag in ("alpha", "h_lambda", "prior_epsilon", "tau", "q_lr", "actor_lr", "h_lr", "encoder_lr"):
-        if getattr(args, flag) <= 0:
-            errors.append(f"--{flag.replace('_', '-')} must be > 0; got {getattr(args, flag)}")
-    if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
-        errors.append(
-            f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
-            "sum <= 1 (the rest are future goals)"
-        )
-    if args.buffer_size < args.batch_size:
-        errors.append(f"--buffer-size ({args.buffer_size}) must be >= --batch-size ({args.batch_size})")
-    if not errors:  # the replay writes whole episodes, so the longest one must fit
-        default = ANT_EPISODE_STEPS if args.env_id in ANT_MAZES else gym.spec(args.env_id).max_episode_steps
-        limit = args.max_episode_steps or default
-        if args.buffer_size < limit:
-            errors.append(f"--buffer-size ({args.buffer_size}) must hold one whole episode: >= {limit} (--max-episode-steps)")
+    for key in flags.split():
+        value = getattr(args, key)
+        if value < low or (low_open and value == low) or value > high:
+            if high == math.inf:
+                wanted = f"{'>' if low_open else '>='} {low:g}"
+            else:
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+            errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
+    return errors
+
+
+def common_errors(args) -> list[str]:
+    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    errors = [
+        f"--{key.replace('_', '-')} must be a finite number; got {value}"
+        for key, value in vars(args).items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    errors += range_errors(args, "threads", 1)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    return errors
+
+
+def exit_on_errors(errors: list[str]) -> None:
+    """Print every error with the script's name and exit with status 2 (as for an unknown flag), before any work."""
     if errors:
-        raise SystemExit("dgrl_ris.py: invalid arguments:\n  " + "\n  ".join(errors))
+        print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
+        raise SystemExit(2)
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    dgrl = args.groups > 0
-    args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
     random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, args)
-    eval_envs = make_vector_env(args.env_id, args.eval_episodes, args.seed + 10_000, True, args, render=args.capture_video)
-    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    state_dim = envs.single_observation_space["state"].shape[0]
-    goal_dim = envs.single_observation_space["goal"].shape[0]
-    action_dim = envs.single_action_space.shape[0]
-    if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
-        raise SystemExit(f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]")
-    goal_input_dim = args.embed_dim if dgrl else goal_dim  # DGRL: the networks take z_q(g) instead of g
 
-    actor = Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
-    critic = TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
-    high = HighLevelPolicy(state_dim, goal_dim, args.hidden_dim).to(device)
-    goal_encoder = GoalEncoder(goal_dim, args.embed_dim, args.hidden_dim, args).to(device) if dgrl else None  # DGRL
-    modules = {"actor": actor, "critic": critic, "high": high, "goal_encoder": goal_encoder}
-
-    if args.checkpoint is not None:
-        saved = torch.load(args.checkpoint, map_location=device)
-        architecture = ("env_id", "groups", "embed_dim", "n_embed", "hidden_dim")
-        differ = [
-            f"--{key.replace('_', '-')} {saved['args'][key]}" for key in architecture if saved["args"][key] != vars(args)[key]
-        ]
-        if differ:
-            raise SystemExit(f"--checkpoint {args.checkpoint} was saved with other settings: pass {' '.join(differ)}")
-        for name, module in modules.items():
-            if module is not None:
-                module.load_state_dict(saved[name])
-        success, distance = evaluate(eval_envs, actor, goal_encoder, device, args.eval_deterministic)
-        print(f"{args.eval_episodes} test episodes: success {success:.0%}, final distance {distance:.2f}")
-        raise SystemExit(0)
-
+def make_writer(args, run_name: str) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
     if args.track:
         import wandb
 
@@ -760,44 +862,228 @@ if __name__ == "__main__":
     writer = SummaryWriter(f"runs/{run_name}")
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
+    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
+    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+
+    def __init__(self, total: int, unit: str = "step"):
+        self.total, self.unit = total, unit
+        self.start_time = self.line_time = self.print_time = time.time()
+        self.line_step = 0
+
+    def sps(self, step: int) -> int:
+        return int(step / max(time.time() - self.start_time, 1e-6))
+
+    def line(self, step: int, figures: str) -> None:
+        now = time.time()
+        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
+        self.line_time = self.print_time = now
+        self.line_step = step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
+            self.print_time = time.time()
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
+    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
+    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
+    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
+    script = os.path.basename(__file__)
+    try:
+        saved = torch.load(path, map_location=device, weights_only=True)
+    except Exception as error:
+        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
+              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
+              "with --save-model", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
+    if differ:
+        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it)."""
+    from moviepy import ImageSequenceClip
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+# --- end of run management ---------------------------------------------------------------------------------------------
+
+
+def validate(args: Args) -> None:
+    """Reject bad flags before any work, naming the flag and the valid choices; exit with status 2."""
+    errors = common_errors(args)
+    if args.env_id not in ANT_MAZES and not args.env_id.startswith(ROBOTICS_PREFIXES):
+        errors.append(
+            f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ANT_MAZES)} or a gymnasium-robotics maze id "
+            "(AntMaze_* or PointMaze_*, e.g. PointMaze_UMaze-v3, AntMaze_UMaze-v5)"
+        )
+    elif args.env_id not in ANT_MAZES and args.env_id not in (ids := robotics_ids()):
+        errors.append(f"--env-id {args.env_id!r} is not a registered gymnasium-robotics maze id; choices: {', '.join(ids)}")
+    if args.groups < 0 or (args.groups and args.embed_dim > 0 and args.embed_dim % args.groups):  # DGRL
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
+        choices = f"0 (RIS) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
+        errors.append(f"--groups must be {choices}; got {args.groups}")  # DGRL
+    counts = "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals eval_frequency eval_episodes"
+    errors += range_errors(args, counts, 1)
+    errors += range_errors(args, "n_embed embed_dim", 1)  # DGRL
+    errors += range_errors(args, "seed max_episode_steps start_timesteps goal_threshold", 0)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
+    errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr", 0, low_open=True)
+    errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
+    errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
+    if not 0 <= args.vq_decay < 1:  # DGRL
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
+    if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
+        errors.append(
+            f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
+            "sum <= 1 (the rest are future goals)"
+        )
+    if args.buffer_size < args.batch_size:
+        errors.append(f"--buffer-size ({args.buffer_size}) must be >= --batch-size ({args.batch_size})")
+    if args.total_timesteps <= max(args.start_timesteps, args.batch_size):
+        errors.append(
+            f"--total-timesteps ({args.total_timesteps}) must exceed --start-timesteps ({args.start_timesteps}) and "
+            f"--batch-size ({args.batch_size}): updates start after both, so no update would run"
+        )
+    if not errors:  # the replay is written one whole episode at a time: an episode, and a batch of them, must fit
+        limit = episode_limit(args.env_id, args.max_episode_steps)
+        warm_up = max(args.start_timesteps, args.batch_size + args.num_envs * (limit - 1))
+        if args.buffer_size < limit:
+            errors.append(f"--buffer-size ({args.buffer_size}) must hold one whole episode: >= {limit} (--max-episode-steps)")
+        elif args.buffer_size // limit * limit < args.batch_size:
+            errors.append(
+                f"--buffer-size ({args.buffer_size}) holds {args.buffer_size // limit} whole {limit}-step episodes, fewer "
+                f"transitions than --batch-size ({args.batch_size}): the replay may never hold a batch; raise --buffer-size"
+            )
+        elif args.total_timesteps <= warm_up:
+            errors.append(
+                f"--total-timesteps ({args.total_timesteps}) must exceed {warm_up}: the first update also waits for "
+                f"--batch-size ({args.batch_size}) transitions of finished episodes, which {limit}-step episodes "
+                f"(--max-episode-steps) and --num-envs {args.num_envs} only guarantee after {warm_up} steps"
+            )
+    exit_on_errors(errors)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    dgrl = args.groups > 0  # DGRL
+    args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    device = seed_and_device(args)
+
+    # Environments: training (random starts and goals) and evaluation (the test configuration, one seeded stream)
+    envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, args.max_episode_steps, args.goal_threshold)
+    eval_envs = make_vector_env(
+        args.env_id,
+        args.eval_episodes,
+        args.seed + 10_000,
+        True,
+        args.max_episode_steps,
+        args.goal_threshold,
+        render=args.capture_video,
+    )
+    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    state_dim = envs.single_observation_space["state"].shape[0]
+    goal_dim = envs.single_observation_space["goal"].shape[0]
+    action_dim = envs.single_action_space.shape[0]
+    if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
+        exit_on_errors([f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]"])
+    agent = make_agent(
+        state_dim,
+        goal_dim,
+        action_dim,
+        hidden_dim=args.hidden_dim,
+        q_lr=args.q_lr,
+        actor_lr=args.actor_lr,
+        h_lr=args.h_lr,
+        groups=args.groups,  # DGRL
+        embed_dim=args.embed_dim,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        encoder_lr=args.encoder_lr,  # DGRL
+        device=device,
+    )
+
+    if args.checkpoint is not None:
+        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+        agent.load_checkpoint_entries(saved)
+        success, distance = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic)
+        print(f"{args.eval_episodes} test episodes: success {success:.0%}, final distance {distance:.2f}")
+        raise SystemExit(0)
+
+    writer = make_writer(args, run_name)
     print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
     if device.type == "cpu" and args.batch_size >= 1024:
         print(
             f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
         )
-
-    nets = dict(modules, actor_target=make_target(actor), critic_target=make_target(critic))
-    fused = device.type in ("cpu", "cuda")
-    critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
-    if dgrl:  # DGRL
-        critic_groups.append({"params": goal_encoder.parameters(), "lr": args.encoder_lr})  # DGRL: the codebook moves by EMA
-    optimizers = {
-        "critic": torch.optim.Adam(critic_groups, fused=fused),
-        "actor": torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused),
-        "high": torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=fused),
-    }
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
     n_envs = args.num_envs
     episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
-    stop = []  # Ctrl-C or SIGTERM ends the run after the current step, with the checkpoint saved and the logs flushed
-
-    def request_stop(number, frame):
-        stop.append(number)
-        signal.signal(number, signal.SIG_DFL)  # a second Ctrl-C or SIGTERM stops at once
-
-    for signal_number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signal_number, request_stop)
-
+    stop = stop_on_signals()
+    progress = Progress(args.total_timesteps)
     observations, _ = envs.reset(seed=args.seed)
-    start_time, step, updates, evaluations, next_eval = time.time(), 0, 0, 0, args.eval_frequency
-    last_print = start_time  # a heartbeat line at least every 60 s, so that a slow run never looks hung
-    recent_success, metrics = [], {}
+    step = 0
+    updates = 0
+    evaluations = 0
+    next_eval = args.eval_frequency
+    next_loss_log = LOSS_LOG_UPDATES
+    recent_success = []
     eval_success = eval_distance = float("nan")
     while step < args.total_timesteps and not stop:
+        # Act: uniform random actions during the warm-up, then the actor's samples.
         if step < args.start_timesteps:
             actions = envs.action_space.sample()
         else:
-            actions = act(actor, goal_encoder, observations, device, deterministic=False)
+            actions = act(agent.actor, agent.goal_encoder, observations, device, deterministic=False)
         next_observations, _, terminations, truncations, infos = envs.step(actions)
         step += n_envs
 
@@ -819,13 +1105,24 @@ if __name__ == "__main__":
                 writer.add_scalar("charts/success_rate", float(terminations[env]), step)
         observations = next_observations
 
-        # Train: one update per environment step once the random phase is over.
+        # Train: one update per environment step once the random phase is over and the replay holds a batch.
         if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
             for _ in range(n_envs):
                 batch = replay.sample(args.batch_size, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
-                metrics = ris_update(nets, optimizers, batch, args, goal_dim)
+                metrics = ris_update(
+                    agent,
+                    batch,
+                    goal_dim=goal_dim,
+                    gamma=args.gamma,
+                    tau=args.tau,
+                    alpha=args.alpha,
+                    h_lambda=args.h_lambda,
+                    n_subgoals=args.n_subgoals,
+                    prior_epsilon=args.prior_epsilon,
+                )
                 updates += 1
-            if updates % 1000 < n_envs:
+            if updates >= next_loss_log:
+                next_loss_log += LOSS_LOG_UPDATES
                 for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values", "high_weight_max"):
                     writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
                 writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), step)
@@ -834,42 +1131,34 @@ if __name__ == "__main__":
                     writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
                     writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
                     writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
-
-        if time.time() - last_print > 60:
-            last_print = time.time()
-            print(f"step {step:>8}/{args.total_timesteps}  {updates} updates  SPS {int(step / (last_print - start_time))}")
+        progress.heartbeat(step, f"{updates} updates")
 
         # Evaluate on the test configuration, log, print progress, checkpoint.
         if step >= next_eval or step >= args.total_timesteps:
-            last_print = time.time()
             next_eval += args.eval_frequency
             video = [] if args.capture_video and evaluations % 10 == 0 else None
-            eval_success, eval_distance = evaluate(eval_envs, actor, goal_encoder, device, args.eval_deterministic, video)
+            result = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, video, stop)
+            if result is None:  # stopped by a signal mid-evaluation: nothing partial is logged
+                break
+            eval_success, eval_distance = result
             evaluations += 1
-            elapsed = time.time() - start_time
-            sps = int(step / elapsed)
             writer.add_scalar("eval/success_rate", eval_success, step)
             writer.add_scalar("eval/final_distance", eval_distance, step)
-            writer.add_scalar("charts/SPS", sps, step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
             train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
             recent_success = []
-            print(
-                f"step {step:>8}/{args.total_timesteps}  eval success {eval_success:4.0%} distance {eval_distance:5.2f}  "
-                f"train success {train_success}  SPS {sps}  {elapsed:.0f}s elapsed, "
-                f"{(args.total_timesteps - step) / max(sps, 1):.0f}s left"
+            progress.line(
+                step, f"eval success {eval_success:4.0%} distance {eval_distance:5.2f}  train success {train_success}"
             )
             if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video)
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=15)
             if args.save_model:
-                save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
+                save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
 
     if args.save_model:
-        save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", modules, args)
-        print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
-    print(
-        f"{'stopped' if stop else 'done'}: {step} steps, {updates} updates, last eval success {eval_success:.0%}, "
-        f"{time.time() - start_time:.0f} s"
-    )
+        save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
+        print(f"checkpoint: {checkpoint_path}")
+    progress.finish(bool(stop), run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
     envs.close()
     eval_envs.close()
     writer.close()

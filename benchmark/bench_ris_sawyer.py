@@ -1,14 +1,14 @@
 """Where the time of dgrl_ris_sawyer.py goes: acting (env step with rendering + encoder + actor) and one RIS update from
 pixels, with and without DGRL.
 
-    MUJOCO_GL=egl python benchmark/bench_ris_sawyer.py                 # about 2 min on a CPU core; run nothing else meanwhile
-    MUJOCO_GL=egl python benchmark/bench_ris_sawyer.py --device cuda   # the same on a GPU (the paper's batch 256)
+    python benchmark/bench_ris_sawyer.py                 # about 2 min on a CPU core; run nothing else meanwhile
+    python benchmark/bench_ris_sawyer.py --device cuda   # the same on a GPU (the paper's batch 256)
 
 Prints one line per measurement (median of 5 blocks): one training step's acting (an 84x84 render of the new state, the
 encoder on state and goal images, the actor's sample), and one `ris_update` (HER batch of 4 x batch uint8 images sampled
 from the replay in host memory, moved to the device, random translate, encoder, DRIML loss, critic, high level, actor
 with 10 imagined subgoals, targets) for --groups 0 and 16 at each batch size. RIS does one update per environment
-step, so training steps/s is about 1 / (update time + acting time).
+step, so training steps/s is about 1 / (update time + acting time). The agents come from the script's make_agent.
 """
 
 import argparse
@@ -46,14 +46,13 @@ def filled_replay(episodes: int, rng: np.random.Generator) -> sawyer.ImageEpisod
 
 
 def act_time(groups: int, device: torch.device) -> float:
-    args = sawyer.Args(groups=groups)
-    nets, _ = sawyer.make_agent(args, 84, 2, device)
+    agent = sawyer.make_agent(sawyer.Args(groups=groups), 84, 2, device)
     envs = sawyer.make_vector_env(1, 0, test=False)
     observations, _ = envs.reset(seed=0)
 
     def step():
         nonlocal observations
-        actions = sawyer.act(nets["actor"], nets["encoder"], nets["vq"], observations, device, deterministic=False)
+        actions = sawyer.act(agent, observations, device, deterministic=False)
         observations = envs.step(actions)[0]
 
     seconds = median_time(step, repeats=200)
@@ -63,11 +62,15 @@ def act_time(groups: int, device: torch.device) -> float:
 
 def update_time(replay, groups: int, batch: int, device: torch.device, rng: np.random.Generator) -> float:
     args = sawyer.Args(groups=groups, batch_size=batch)
-    nets, optimizers = sawyer.make_agent(args, 84, 2, device)
+    agent = sawyer.make_agent(args, 84, 2, device)
 
     def step():
         sample = replay.sample(batch, args.her_goal_frac, args.her_random_frac, rng)
-        sawyer.ris_update(nets, optimizers, sample, args)
+        sawyer.ris_update(
+            agent, sample, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
+            n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
+            driml_coef=args.driml_coef,
+        )  # fmt: skip
         if device.type == "cuda":
             torch.cuda.synchronize()
 

@@ -1,6 +1,6 @@
 """The Sawyer push-and-reach env of dgrl_ris_sawyer.py: its speed with 84x84 image observations and what the images show.
 
-    MUJOCO_GL=egl python benchmark/sawyer_env.py --out results/sawyer_env.png
+    python benchmark/sawyer_env.py --out results/sawyer_env.png
 
 Prints env frames/s (one env, random actions, every step rendering its 84x84 observation image, resets included: each
 reset also renders the goal image) for the training and the test configuration, and writes one image: a training reset's

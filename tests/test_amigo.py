@@ -1,10 +1,17 @@
-"""dgrl_amigo.py: the fully observed MiniGrid encoding, the vectorized env (same-step autoreset, seeding, truncation, the
-partial-view bypass), AMIGo's goal-reach test on real envs, the student and teacher rewards, the t* schedule, the
-outcome buffer, V-trace and the actor-critic losses, one teacher and one student update with and without DGRL,
-evaluation with scripted networks, flag validation, smoke runs (train, checkpoint, evaluate, video)."""
+"""dgrl_amigo.py: the fully observed MiniGrid encoding, the vectorized env (gymnasium's VectorEnv API, same-step
+autoreset, seeding, truncation, the partial-view bypass), AMIGo's goal-reach test on real envs, the student and teacher
+rewards, the t* schedule, the outcome buffer, V-trace and the actor-critic losses, the agent make_agent builds, one
+teacher and one student update with and without DGRL, evaluation with scripted networks, flag validation, smoke runs
+(train, checkpoint, evaluate, video, Ctrl-C)."""
 
+import dataclasses
 import math
 import re
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -20,6 +27,15 @@ import dgrl_amigo as amigo
 
 LEFT, RIGHT, FORWARD, PICKUP, DROP, TOGGLE, DONE = range(7)
 DOORKEY, EMPTY, CORRIDOR = "MiniGrid-DoorKey-5x5-v0", "MiniGrid-Empty-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0"
+ROOT = Path(__file__).resolve().parents[1]
+TINY_AGENT = dict(goal_channel=True, embed_dim=16, n_embed=8, vq_beta=0.25, vq_decay=0.99, vq_dead_code_steps=50)
+TINY_AGENT |= dict(learning_rate=1e-3, teacher_learning_rate=2e-3, rmsprop_alpha=0.99, rmsprop_eps=0.01)
+STUDENT_HYPER = {"gamma": 0.99, "baseline_coef": 0.5, "entropy_coef": 0.0005, "max_grad_norm": 40.0}
+
+
+def tiny_agent(groups: int, width: int = 5, height: int = 5, **overrides) -> amigo.Agent:
+    """The script's make_agent with small goal embeddings (16-d, 8 codes)."""
+    return amigo.make_agent(width, height, 7, "cpu", groups=groups, **(TINY_AGENT | overrides))
 
 
 def cell(x: int, y: int, height: int) -> int:
@@ -60,18 +76,54 @@ def test_carried_is_empty_then_the_picked_up_key():
 # --- the vectorized env -----------------------------------------------------------------------------------------------
 
 
+def test_vec_env_follows_gymnasiums_vector_env_api():
+    envs = amigo.MiniGridVecEnv(CORRIDOR, 3)
+    assert isinstance(envs, gym.vector.VectorEnv) and envs.num_envs == 3
+    assert envs.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+    assert envs.single_action_space == gym.spaces.Discrete(7)
+    assert envs.action_space == gym.spaces.MultiDiscrete([7, 7, 7])
+    assert set(envs.single_observation_space.spaces) == {"grid", "carried"}
+    assert envs.single_observation_space["grid"].shape == (7, 3, 3)
+    assert envs.observation_space["grid"].shape == (3, 7, 3, 3)
+    obs, info = envs.reset(seed=4, options=None)
+    assert info == {} and envs.observation_space.contains(obs)
+    envs.action_space.seed(0)
+    for _ in range(300):  # through the 270-step limit: reset frames are in the space too
+        obs, rewards, terminated, truncated, info = envs.step(envs.action_space.sample())
+        assert envs.observation_space.contains(obs)
+        assert rewards.shape == terminated.shape == truncated.shape == info["_episode"].shape == (3,)
+        np.testing.assert_array_equal(info["_episode"], terminated | truncated)
+    seeded, _ = envs.reset(seed=[9, None, 11])  # one seed per env, as gymnasium's vector envs take them
+    np.testing.assert_array_equal(seeded["grid"][[0, 2]], envs.reset(seed=9)[0]["grid"][[0, 2]])
+    assert envs.render_mode is None and not envs.closed
+    envs.close()
+    assert envs.closed
+
+
+def test_vec_env_renders_env_0_only():
+    envs = amigo.MiniGridVecEnv(EMPTY, 2, render_env0=True)
+    envs.reset(seed=0)
+    (frame,) = envs.render()
+    assert envs.render_mode == "rgb_array" and frame.shape == (5 * 32, 5 * 32, 3) and frame.dtype == np.uint8
+    envs.record = True
+    envs.step(np.array([FORWARD, FORWARD]))
+    assert envs.frame0.shape == frame.shape and not np.array_equal(envs.frame0, frame)  # the agent moved
+
+
 def test_vec_env_shapes_and_reset_frames():
     envs = amigo.MiniGridVecEnv(CORRIDOR, 3)
     assert (envs.width, envs.height, envs.max_steps, envs.n_actions) == (7, 3, 270, 7)
-    grids, carry = envs.reset(seed=4)
+    obs, _ = envs.reset(seed=4)
+    grids, carry = obs["grid"], obs["carried"]
     assert grids.shape == (3, 7, 3, 3) and grids.dtype == np.uint8 and carry.shape == (3, 2)
-    (grids2, carry2), after, rewards, terminated, truncated, (returns, lengths) = envs.step(np.array([LEFT, RIGHT, DONE]))
-    assert grids2.shape == after.shape == (3, 7, 3, 3) and carry2.shape == (3, 2)
+    obs2, rewards, terminated, truncated, info = envs.step(np.array([LEFT, RIGHT, DONE]))
+    after = info["final_grid"]
+    assert obs2["grid"].shape == after.shape == (3, 7, 3, 3) and obs2["carried"].shape == (3, 2)
     assert rewards.shape == terminated.shape == truncated.shape == (3,)
-    assert len(returns) == len(lengths) == 0
+    assert not info["_episode"].any()
     for i, env in enumerate(envs.envs):
         np.testing.assert_array_equal(after[i], amigo.full_grid(env))
-    assert (grids2[:, 3, 1, 2] == (grids[:, 3, 1, 2] + np.array([-1, 1, 0])) % 4).all()  # the agent turned in place
+    assert (obs2["grid"][:, 3, 1, 2] == (grids[:, 3, 1, 2] + np.array([-1, 1, 0])) % 4).all()  # the agent turned in place
 
 
 def test_vec_env_autoreset_returns_the_reset_frame_and_the_final_frame():
@@ -81,8 +133,10 @@ def test_vec_env_autoreset_returns_the_reset_frame_and_the_final_frame():
     env.agent_pos, env.agent_dir = (3, 2), 1  # right above the green goal at (3, 3), facing down
     envs.step(np.array([DONE, DONE]))  # one step spent before reaching the goal
     other_before = amigo.full_grid(envs.envs[1])
-    (grids, carry), after, rewards, terminated, truncated, (returns, lengths) = envs.step(np.array([FORWARD, DONE]))
-    assert terminated.tolist() == [True, False] and not truncated.any()
+    obs, rewards, terminated, truncated, info = envs.step(np.array([FORWARD, DONE]))
+    grids, carry, after = obs["grid"], obs["carried"], info["final_grid"]
+    returns, lengths = info["episode"]["r"][info["_episode"]], info["episode"]["l"][info["_episode"]]
+    assert terminated.tolist() == [True, False] and not truncated.any() and info["_episode"].tolist() == [True, False]
     assert rewards[0] == pytest.approx(1 - 0.9 * 2 / 100) and rewards[1] == 0
     np.testing.assert_allclose(returns, [1 - 0.9 * 2 / 100])
     assert lengths.tolist() == [2]
@@ -100,7 +154,8 @@ def test_vec_env_truncates_at_max_steps():
     envs = amigo.MiniGridVecEnv(EMPTY, 1)
     envs.reset(seed=0)
     for t in range(1, envs.max_steps + 1):
-        _, _, rewards, terminated, truncated, (returns, lengths) = envs.step(np.array([DONE]))
+        _, rewards, terminated, truncated, info = envs.step(np.array([DONE]))
+        returns, lengths = info["episode"]["r"][info["_episode"]], info["episode"]["l"][info["_episode"]]
         assert not terminated[0] and rewards[0] == 0
         assert truncated[0] == (t == envs.max_steps) and len(lengths) == (t == envs.max_steps)
     assert envs.max_steps == 100 and lengths.tolist() == [100] and returns.tolist() == [0.0]
@@ -109,8 +164,8 @@ def test_vec_env_truncates_at_max_steps():
 
 def test_vec_env_seeding_reproduces_and_seeds_env_i_with_seed_plus_i():
     a, b = amigo.MiniGridVecEnv(DOORKEY, 4), amigo.MiniGridVecEnv(DOORKEY, 4)
-    grids_a, _ = a.reset(seed=7)
-    grids_b, _ = b.reset(seed=7)
+    grids_a = a.reset(seed=7)[0]["grid"]
+    grids_b = b.reset(seed=7)[0]["grid"]
     np.testing.assert_array_equal(grids_a, grids_b)
     for i in range(4):
         single = gym.make(DOORKEY).unwrapped
@@ -120,35 +175,34 @@ def test_vec_env_seeding_reproduces_and_seeds_env_i_with_seed_plus_i():
     rng = np.random.default_rng(0)
     for _ in range(260):  # past one episode's 250 steps: the unseeded autoresets reproduce too
         actions = rng.integers(7, size=4)
-        (grids_a, _), after_a, *_ = a.step(actions)
-        (grids_b, _), after_b, *_ = b.step(actions)
-        np.testing.assert_array_equal(grids_a, grids_b)
-        np.testing.assert_array_equal(after_a, after_b)
-    other, _ = amigo.MiniGridVecEnv(DOORKEY, 4).reset(seed=8)
-    np.testing.assert_array_equal(other[:3], a.reset(seed=7)[0][1:])
+        obs_a, *_, info_a = a.step(actions)
+        obs_b, *_, info_b = b.step(actions)
+        np.testing.assert_array_equal(obs_a["grid"], obs_b["grid"])
+        np.testing.assert_array_equal(info_a["final_grid"], info_b["final_grid"])
+    other = amigo.MiniGridVecEnv(DOORKEY, 4).reset(seed=8)[0]["grid"]
+    np.testing.assert_array_equal(other[:3], a.reset(seed=7)[0]["grid"][1:])
 
 
 def test_partial_view_bypass_does_not_change_the_dynamics():
     wrapped = FullyObsWrapper(gym.make(DOORKEY))
     envs = amigo.MiniGridVecEnv(DOORKEY, 1)
     obs, _ = wrapped.reset(seed=3)
-    grids, _ = envs.reset(seed=3)
-    np.testing.assert_array_equal(grids[0], obs["image"])
+    np.testing.assert_array_equal(envs.reset(seed=3)[0]["grid"][0], obs["image"])
     rng, episodes, total_reward = np.random.default_rng(1), 0, 0.0
     for _ in range(300):
         action = int(rng.integers(7))
         obs, reward, terminated, truncated, _ = wrapped.step(action)
-        (grids, carry), after, rewards, terms, truncs, _ = envs.step(np.array([action]))
-        np.testing.assert_array_equal(after[0], obs["image"])
+        vec_obs, rewards, terms, truncs, info = envs.step(np.array([action]))
+        np.testing.assert_array_equal(info["final_grid"][0], obs["image"])
         assert (rewards[0], terms[0], truncs[0]) == (reward, terminated, truncated)
-        assert tuple(carry[0]) == amigo.carried(wrapped.unwrapped)
+        assert tuple(vec_obs["carried"][0]) == amigo.carried(wrapped.unwrapped)
         total_reward += reward
         if terminated or truncated:
             obs, _ = wrapped.reset()
             episodes += 1
         assert tuple(envs.envs[0].agent_pos) == tuple(wrapped.unwrapped.agent_pos)
         assert envs.envs[0].agent_dir == wrapped.unwrapped.agent_dir
-        np.testing.assert_array_equal(grids[0], obs["image"])
+        np.testing.assert_array_equal(vec_obs["grid"][0], obs["image"])
     assert episodes >= 1  # the comparison went through an autoreset
 
 
@@ -166,9 +220,9 @@ def reach(env_id: str, seed: int, setup, action: int, goals: list[tuple[int, int
     book = amigo.GoalBook(len(goals), envs.width, envs.height)
     flat = np.array([cell(x, y, envs.height) for x, y in goals])
     book.issue(np.ones(len(goals), dtype=bool), np.repeat(frame[None], len(goals), 0), flat, np.zeros(len(goals)))
-    _, after, _, terminated, truncated, _ = envs.step(np.array([action]))
+    _, _, terminated, truncated, info = envs.step(np.array([action]))
     assert not terminated[0] and not truncated[0]
-    return book.reached(np.repeat(after, len(goals), 0)).tolist()
+    return book.reached(np.repeat(info["final_grid"], len(goals), 0)).tolist()
 
 
 def place(pos, direction):
@@ -254,15 +308,15 @@ def test_goal_book_issue_resets_steps_and_stores_goal_frame_and_logp_for_the_mas
 
 def test_renew_goals_issues_teacher_goals_on_the_current_frames():
     envs = amigo.MiniGridVecEnv(DOORKEY, 3)
-    grids, _ = envs.reset(seed=0)
-    args = amigo.Args(env_id=DOORKEY, groups=4, embed_dim=16, n_embed=8)
-    teacher, encoder = amigo.Teacher(5, 5), amigo.GoalEncoder(5, 5, 16, args)
+    grids = envs.reset(seed=0)[0]["grid"]
+    agent = tiny_agent(groups=4)
+    teacher, encoder = agent.teacher, agent.goal_encoder
     book = amigo.GoalBook(3, 5, 5)
     book.steps[:] = 9
     embedding = torch.zeros(3, 16)
     mask = np.array([True, False, True])
     codebook = encoder.vq.codebook.clone()
-    amigo.renew_goals(mask, book, embedding, grids, teacher, encoder, "cpu")
+    amigo.renew_goals(agent, book, mask, grids, embedding, "cpu")
     assert book.steps.tolist() == [0, 9, 0]
     np.testing.assert_array_equal(book.frame[mask], grids[mask])
     assert not book.frame[1].any() and ((book.goal >= 0) & (book.goal < 25)).all()
@@ -437,7 +491,7 @@ def test_actor_critic_loss_on_random_numbers():
 
 def teacher_batch(teacher, goal: int, n: int, behaviour_shift: float = 0.0):
     envs = amigo.MiniGridVecEnv(DOORKEY, n)
-    frames, _ = envs.reset(seed=0)
+    frames = envs.reset(seed=0)[0]["grid"]
     with torch.no_grad():
         logp = F.log_softmax(teacher(torch.as_tensor(frames))[0], -1)[:, goal].numpy()
     goals = np.full(n, goal)
@@ -446,10 +500,9 @@ def teacher_batch(teacher, goal: int, n: int, behaviour_shift: float = 0.0):
 
 def test_teacher_loss_on_policy_values():
     teacher = amigo.Teacher(5, 5)
-    args = amigo.Args(teacher_baseline_coef=0.5, teacher_entropy_coef=0.05)
     batch = teacher_batch(teacher, cell(3, 2, 5), 3)
     rewards = np.array([0.7, -0.3, 1.0])
-    losses = amigo.teacher_loss(teacher, batch, rewards, args, "cpu")
+    losses = amigo.teacher_loss(teacher, batch, rewards, "cpu", baseline_coef=0.5, entropy_coef=0.05)
     with torch.no_grad():
         logits, baseline = teacher(torch.as_tensor(batch["frame"]))
         log_probs = F.log_softmax(logits, -1)
@@ -465,7 +518,6 @@ def test_teacher_loss_on_policy_values():
 def test_teacher_loss_off_policy_truncates_the_importance_weight():
     teacher = amigo.Teacher(5, 5)
     rewards = np.array([1.0, 1.0])
-    args = amigo.Args(teacher_baseline_coef=0.5, teacher_entropy_coef=0.0)
     with torch.no_grad():
         frames = teacher_batch(teacher, 12, 2)["frame"]
         logits, baseline = teacher(torch.as_tensor(frames))
@@ -473,7 +525,7 @@ def test_teacher_loss_off_policy_truncates_the_importance_weight():
     advantage = torch.tensor(rewards) - baseline.double()
     for shift, rho in ((-1.0, 1.0), (1.0, math.exp(-1.0))):  # pi/mu = e (truncated to 1) or 1/e
         batch = teacher_batch(teacher, 12, 2, behaviour_shift=shift)
-        losses = amigo.teacher_loss(teacher, batch, rewards, args, "cpu")
+        losses = amigo.teacher_loss(teacher, batch, rewards, "cpu", baseline_coef=0.5, entropy_coef=0.0)
         assert losses["policy_loss"].item() == pytest.approx(-(logp * rho * advantage).sum().item(), rel=1e-4)
         vs = baseline.double() + rho * advantage
         assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((vs - baseline) ** 2).sum().item(), rel=1e-4)
@@ -482,14 +534,13 @@ def test_teacher_loss_off_policy_truncates_the_importance_weight():
 @pytest.mark.parametrize("direction", [1.0, -1.0])
 def test_teacher_update_pushes_a_goal_up_or_down_with_its_reward(direction):
     teacher = amigo.Teacher(5, 5)
-    args = amigo.Args(teacher_baseline_coef=0.0, teacher_entropy_coef=0.0)
     goal = cell(3, 3, 5)
     batch = teacher_batch(teacher, goal, 4)
     with torch.no_grad():
         _, baseline = teacher(torch.as_tensor(batch["frame"]))
     rewards = baseline.numpy() + direction  # above or below the baseline by 1
     optimizer = torch.optim.SGD(teacher.parameters(), lr=1e-2)
-    losses = amigo.teacher_loss(teacher, batch, rewards, args, "cpu")
+    losses = amigo.teacher_loss(teacher, batch, rewards, "cpu", baseline_coef=0.0, entropy_coef=0.0)
     optimizer.zero_grad()
     losses["loss"].backward()
     optimizer.step()
@@ -497,59 +548,83 @@ def test_teacher_update_pushes_a_goal_up_or_down_with_its_reward(direction):
     assert (np.sign(after - batch["logp"]) == direction).all()
 
 
-# --- the student update -----------------------------------------------------------------------------------------------
+def test_teacher_update_steps_the_teacher_only_with_clipped_gradients():
+    agent = tiny_agent(groups=4)
+    batch = teacher_batch(agent.teacher, cell(3, 3, 5), 4)
+    student = {name: p.detach().clone() for name, p in agent.student.named_parameters()}
+    teacher = {name: p.detach().clone() for name, p in agent.teacher.named_parameters()}
+    losses = amigo.teacher_update(
+        agent, batch, np.array([1.0, -0.3, 0.7, 1.0]), "cpu", baseline_coef=0.5, entropy_coef=0.05, max_grad_norm=1e-3
+    )
+    assert set(losses) == {"loss", "policy_loss", "baseline_loss", "entropy"}
+    for name, p in agent.student.named_parameters():
+        torch.testing.assert_close(p, student[name])
+    assert all(not torch.equal(p, teacher[name]) for name, p in agent.teacher.named_parameters() if p.grad is not None)
+    grads = [p.grad for p in agent.teacher.parameters() if p.grad is not None]
+    assert torch.linalg.vector_norm(torch.stack([g.norm() for g in grads])) == pytest.approx(1e-3, rel=1e-3)  # clipped
 
 
-def tiny_setup(groups: int):
-    args = amigo.Args(env_id=DOORKEY, groups=groups, embed_dim=16, n_embed=8, num_envs=2, batch_envs=2, num_steps=4)
-    envs = amigo.MiniGridVecEnv(DOORKEY, args.num_envs)
-    student = amigo.Student(5, 5, envs.n_actions, args.goal_channel, args.embed_dim)
-    encoder = amigo.GoalEncoder(5, 5, args.embed_dim, args)
-    teacher = amigo.Teacher(5, 5)
-    return args, envs, student, encoder, teacher
+# --- the agent and the student update ---------------------------------------------------------------------------------
 
 
-def collect(args, envs, student, encoder, teacher):
-    """A rollout of the tiny setup, collected with the script's acting functions."""
-    T, n = args.num_steps, args.num_envs
-    grids, carry = envs.reset(seed=0)
+@pytest.mark.parametrize("groups", [0, 4])
+def test_make_agent_wires_the_optimizers(groups):
+    agent = tiny_agent(groups=groups)
+    student_params = {id(p) for group in agent.student_optimizer.param_groups for p in group["params"]}
+    teacher_params = {id(p) for group in agent.teacher_optimizer.param_groups for p in group["params"]}
+    assert student_params == {id(p) for p in [*agent.student.parameters(), *agent.goal_encoder.parameters()]}
+    assert teacher_params == {id(p) for p in agent.teacher.parameters()}
+    for optimizer, lr in ((agent.student_optimizer, 1e-3), (agent.teacher_optimizer, 2e-3)):
+        assert isinstance(optimizer, torch.optim.RMSprop)
+        assert optimizer.defaults["lr"] == lr and optimizer.defaults["alpha"] == 0.99 and optimizer.defaults["eps"] == 0.01
+    assert (agent.goal_encoder.vq is None) == (groups == 0)
+    if groups:  # the codebook is a buffer, moved by EMA, in no optimizer; a checkpoint holds it
+        assert agent.goal_encoder.vq.groups == groups and agent.goal_encoder.vq.n_embed == 8
+        assert "vq.codebook" in agent.state_dicts()["goal_encoder"]
+    assert set(agent.state_dicts()) == {"student", "goal_encoder", "teacher"}
+
+
+def collect(envs, agent, steps: int):
+    """A rollout of `steps` steps, collected with the script's acting functions."""
+    n = envs.num_envs
+    obs, _ = envs.reset(seed=0)
     book = amigo.GoalBook(n, envs.width, envs.height)
-    embedding = torch.zeros(n, args.embed_dim)
-    amigo.renew_goals(np.ones(n, dtype=bool), book, embedding, grids, teacher, encoder, "cpu")
+    embedding = torch.zeros(n, agent.student.embed_dim)
+    amigo.renew_goals(agent, book, np.ones(n, dtype=bool), obs["grid"], embedding, "cpu")
     keys = ("grids", "carried", "goal_frames", "goals", "actions", "logps")
     rollout = {key: [] for key in keys}
-    for _ in range(T):
-        actions, logps = amigo.act(student, grids, carry, book, embedding, "cpu")
-        for key, value in zip(keys, (grids, carry, book.frame, book.goal, actions, logps), strict=True):
+    for _ in range(steps):
+        actions, logps = amigo.act(agent.student, obs, book.goal, embedding, "cpu")
+        for key, value in zip(keys, (obs["grid"], obs["carried"], book.frame, book.goal, actions, logps), strict=True):
             rollout[key].append(np.copy(value))
-        (grids, carry), *_ = envs.step(actions)
+        obs, *_ = envs.step(actions)
     rollout = {key: np.stack(value) for key, value in rollout.items()}
     rng = np.random.default_rng(0)
-    rollout["rewards"] = rng.uniform(0, 1, (T, n)).astype(np.float32)
-    rollout["dones"] = np.zeros((T, n), dtype=np.float32)
+    rollout["rewards"] = rng.uniform(0, 1, (steps, n)).astype(np.float32)
+    rollout["dones"] = np.zeros((steps, n), dtype=np.float32)
     rollout["dones"][1, 0] = 1.0
-    last = {"grids": grids, "carried": carry, "goal_frames": book.frame.copy(), "goals": book.goal.copy()}
+    last = {"grids": obs["grid"], "carried": obs["carried"], "goal_frames": book.frame.copy(), "goals": book.goal.copy()}
     return rollout, last
 
 
-def optimizer_for(student, encoder, args):
-    return torch.optim.RMSprop([*student.parameters(), *encoder.parameters()], lr=args.learning_rate, alpha=0.99, eps=0.01)
-
-
 def test_student_update_under_dgrl_moves_the_codebook_and_every_parameter():
-    args, envs, student, encoder, teacher = tiny_setup(groups=4)
-    rollout, last = collect(args, envs, student, encoder, teacher)
+    agent = tiny_agent(groups=4)
+    encoder = agent.goal_encoder
+    rollout, last = collect(amigo.MiniGridVecEnv(DOORKEY, 2), agent, steps=4)
     buffers = {name: value.clone() for name, value in encoder.vq.named_buffers()}
     amigo.embed_goals(encoder, rollout["goal_frames"][0], rollout["goals"][0], "cpu")  # acting: no codebook update
     for name, value in encoder.vq.named_buffers():
         torch.testing.assert_close(value, buffers[name])
-    params = {name: p.detach().clone() for name, p in [*student.named_parameters(), *encoder.named_parameters()]}
-    metrics = amigo.student_update(student, encoder, optimizer_for(student, encoder, args), rollout, last, args, "cpu")
+    teacher = {name: p.detach().clone() for name, p in agent.teacher.named_parameters()}
+    params = {name: p.detach().clone() for name, p in [*agent.student.named_parameters(), *encoder.named_parameters()]}
+    metrics = amigo.student_update(agent, rollout, last, "cpu", **STUDENT_HYPER)
     assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
     assert not torch.equal(encoder.vq.ema_count, buffers["ema_count"])
-    for name, p in [*student.named_parameters(), *encoder.named_parameters()]:
+    for name, p in [*agent.student.named_parameters(), *encoder.named_parameters()]:
         assert not torch.equal(p, params[name]), name
-    assert metrics["codes"].shape == ((args.num_steps + 1) * args.num_envs, 4)
+    for name, p in agent.teacher.named_parameters():
+        torch.testing.assert_close(p, teacher[name])  # the teacher learns only from its own outcomes
+    assert metrics["codes"].shape == ((4 + 1) * 2, 4)
     assert ((metrics["codes"] >= 0) & (metrics["codes"] < 8)).all()
     assert metrics["vq_loss"].item() > 0
     for name in ("policy_loss", "baseline_loss", "entropy"):
@@ -564,9 +639,11 @@ def test_default_encoder_uses_many_codes_only_with_dead_code_restarts(dead_code_
     EMA keeps it so (the study's runs used 1 code of 64 throughout before the default changed). Restarting
     codes unused for 50 updates (the script's default) spreads the codebook over the segments."""
     args = amigo.Args(env_id=DOORKEY, vq_dead_code_steps=dead_code_steps)
-    encoder = amigo.GoalEncoder(5, 5, args.embed_dim, args)
+    encoder = amigo.GoalEncoder(
+        5, 5, args.embed_dim, args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps
+    )
     envs = amigo.MiniGridVecEnv(DOORKEY, 64)
-    frames, _ = envs.reset(seed=0)
+    frames = envs.reset(seed=0)[0]["grid"]
     goals = torch.as_tensor(np.random.default_rng(0).integers(25, size=64))
     for _ in range(60):
         _, _, codes = encoder(torch.as_tensor(frames), goals, update=True)
@@ -578,9 +655,10 @@ def test_default_encoder_uses_many_codes_only_with_dead_code_restarts(dead_code_
 
 
 def test_student_update_without_dgrl_matches_the_n_step_targets():
-    args, envs, student, encoder, teacher = tiny_setup(groups=0)
+    agent = tiny_agent(groups=0)
+    student, encoder = agent.student, agent.goal_encoder
     assert encoder.vq is None
-    rollout, last = collect(args, envs, student, encoder, teacher)
+    rollout, last = collect(amigo.MiniGridVecEnv(DOORKEY, 2), agent, steps=4)
     T, B = rollout["actions"].shape
     with torch.no_grad():  # the values before the update: on-policy V-trace targets are n-step returns
         stacked = [np.concatenate([rollout[key].reshape(T * B, *rollout[key].shape[2:]), last[key]]) for key in last]
@@ -588,14 +666,18 @@ def test_student_update_without_dgrl_matches_the_n_step_targets():
         embedding, _, codes = encoder(frames, goals)
         assert codes is None
         values = student(grids, carry, goals, embedding)[1].double().numpy().reshape(T + 1, B)
-    discounts = args.gamma * (1.0 - rollout["dones"])
+    discounts = 0.99 * (1.0 - rollout["dones"])
     vs, _ = naive_vtrace(rollout["logps"], rollout["logps"], rollout["rewards"], values[:T], values[T], discounts)
     params = {name: p.detach().clone() for name, p in [*student.named_parameters(), *encoder.named_parameters()]}
-    metrics = amigo.student_update(student, encoder, optimizer_for(student, encoder, args), rollout, last, args, "cpu")
+    metrics = amigo.student_update(agent, rollout, last, "cpu", **STUDENT_HYPER)
     assert metrics["baseline_loss"].item() == pytest.approx(0.5 * ((vs - values[:T]) ** 2).sum(), rel=1e-4)
     assert metrics["codes"] is None and metrics["vq_loss"].item() == 0
     for name, p in [*student.named_parameters(), *encoder.named_parameters()]:
         assert not torch.equal(p, params[name]), name  # the continuous goal encoder learns from the student's loss
+
+
+def test_linear_decay_reaches_zero_at_the_budget():
+    assert [amigo.linear_decay(frames, 1000) for frames in (0, 250, 1000, 1200)] == [1.0, 0.75, 0.0, 0.0]
 
 
 # --- evaluation with scripted networks --------------------------------------------------------------------------------
@@ -625,17 +707,36 @@ class FixedTeacher(nn.Module):
         return logits, torch.zeros(len(grids))
 
 
+def scripted_agent(goal: int) -> amigo.Agent:
+    return dataclasses.replace(tiny_agent(groups=0), student=ForwardStudent(), teacher=FixedTeacher(goal, 25))
+
+
 def test_evaluate_counts_goals_on_the_frame_before_the_reset():
     # Empty-5x5: the agent starts at (1, 1) facing right and walks to (3, 1), the goal cell, in two steps, then stays
     # against the wall until the 100-step limit. The goal re-issued there never changes again, and the reset frame
     # (where (3, 1) is empty) must not count as reaching it.
     envs = amigo.MiniGridVecEnv(EMPTY, 1)
-    encoder = amigo.GoalEncoder(5, 5, 16, amigo.Args(groups=0, embed_dim=16))
-    result = amigo.evaluate(envs, ForwardStudent(), encoder, FixedTeacher(cell(3, 1, 5), 25), "cpu", 2, seed=0)
-    assert result == {"return": 0.0, "success": 0.0, "goals_per_episode": 1.0}
+    result = amigo.evaluate(scripted_agent(cell(3, 1, 5)), envs, 2, 0, "cpu")
+    assert result == {"episodes": 2, "return": 0.0, "success": 0.0, "goals_per_episode": 1.0}
+
+
+def test_evaluate_stops_when_a_signal_came():
+    envs = amigo.MiniGridVecEnv(EMPTY, 1)
+    result = amigo.evaluate(scripted_agent(cell(3, 1, 5)), envs, 2, 0, "cpu", stop=[signal.SIGINT])
+    assert result["episodes"] == 0 and math.isnan(result["return"])
 
 
 # --- flags ------------------------------------------------------------------------------------------------------------
+
+
+def refusal(capsys, **overrides) -> str:
+    """validate's message for Args(**overrides), after asserting it exits with status 2 (as for an unknown flag)."""
+    with pytest.raises(SystemExit) as error:
+        amigo.validate(amigo.Args(**overrides))
+    assert error.value.code == 2
+    message = capsys.readouterr().err
+    assert message.startswith("dgrl_amigo.py: invalid arguments:")
+    return message
 
 
 @pytest.mark.parametrize(
@@ -645,18 +746,59 @@ def test_evaluate_counts_goals_on_the_frame_before_the_reset():
         ({"env_id": "CartPole-v1"}, ["--env-id 'CartPole-v1'", "choices: ", "MiniGrid-KeyCorridorS3R3-v0"]),
         ({"groups": 5}, ["--groups must be 0 (AMIGo) or divide --embed-dim 128", "got 5"]),
         ({"groups": 3, "embed_dim": 32}, ["divide --embed-dim 32: one of [1, 2, 4, 8, 16, 32]"]),
+        ({"groups": -1}, ["--groups must be 0 (AMIGo) or divide --embed-dim 128", "got -1"]),
         ({"num_envs": 16, "batch_envs": 3}, ["--batch-envs (3) must divide --num-envs (16)"]),
+        ({"num_envs": 8, "batch_envs": 16}, ["--batch-envs (16) must divide --num-envs (8)"]),
         ({"total_timesteps": 1599}, ["--total-timesteps (1599) must cover one collection", "(1600)"]),
         ({"t_star_start": 20, "t_star_max": 10}, ["--t-star-start (20) must be in [0, --t-star-max (10)]"]),
-        ({"teacher_batch_size": 0}, ["--teacher-batch-size must be >= 1"]),
+        ({"t_star_threshold": 1.5}, ["--t-star-threshold must be <= 1", "got 1.5"]),
+        ({"teacher_batch_size": 0}, ["--teacher-batch-size must be >= 1; got 0"]),
+        ({"num_envs": 0}, ["--num-envs must be >= 1; got 0"]),
+        ({"video_frequency": 0}, ["--video-frequency must be >= 1; got 0"]),
+        ({"seed": -1}, ["--seed must be >= 0; got -1"]),
+        ({"gamma": 0.0}, ["--gamma must be in (0, 1]; got 0.0"]),
+        ({"gamma": 1.5}, ["--gamma must be in (0, 1]; got 1.5"]),
+        ({"learning_rate": -1.0}, ["--learning-rate must be > 0; got -1.0"]),
+        ({"teacher_learning_rate": 0.0}, ["--teacher-learning-rate must be > 0; got 0.0"]),
+        ({"max_grad_norm": 0.0}, ["--max-grad-norm must be > 0; got 0.0"]),
+        ({"rmsprop_alpha": 1.0}, ["--rmsprop-alpha must be in [0, 1); got 1.0"]),
+        ({"intrinsic_coef": -1.0}, ["--intrinsic-coef must be >= 0; got -1.0"]),
+        ({"entropy_coef": math.inf}, ["--entropy-coef must be a finite number; got inf"]),
+        ({"vq_decay": 1.5}, ["--vq-decay must be in [0, 1); got 1.5"]),
+        ({"vq_decay": 1.0}, ["--vq-decay must be in [0, 1); got 1.0"]),
+        ({"vq_beta": -0.25}, ["--vq-beta must be >= 0; got -0.25"]),
+        ({"n_embed": 0}, ["--n-embed must be >= 1; got 0"]),
+        ({"vq_dead_code_steps": -1}, ["--vq-dead-code-steps must be >= 0; got -1"]),
         ({"checkpoint": "missing.pt"}, ["--checkpoint missing.pt: no such file"]),
     ],
 )
-def test_validate_names_the_flag(overrides, messages):
-    with pytest.raises(SystemExit) as error:
-        amigo.validate(amigo.Args(**overrides))
-    for message in messages:
-        assert message in str(error.value)
+def test_validate_names_the_flag(capsys, overrides, messages):
+    message = refusal(capsys, **overrides)
+    for expected in messages:
+        assert expected in message
+
+
+def test_validate_refuses_training_flags_with_a_checkpoint(capsys, tmp_path):
+    (tmp_path / "saved.pt").write_bytes(b"")
+    message = refusal(capsys, checkpoint=str(tmp_path / "saved.pt"), save_model=True)
+    assert "--save-model and --capture-video apply to training" in message
+
+
+def test_validate_refuses_a_minigrid_id_that_fails_to_build(capsys):
+    class Broken(gym.Env):  # e.g. minigrid's WFC envs when the package was installed without their pattern images
+        observation_space = action_space = gym.spaces.Discrete(2)
+
+        def reset(self, *, seed=None, options=None):
+            raise FileNotFoundError("patterns/SimpleMaze.png")
+
+    gym.register("MiniGrid-BrokenForTest-v0", entry_point=Broken)
+    try:
+        message = refusal(capsys, env_id="MiniGrid-BrokenForTest-v0")
+    finally:
+        del gym.registry["MiniGrid-BrokenForTest-v0"]
+    assert "--env-id MiniGrid-BrokenForTest-v0 fails to build or reset here (FileNotFoundError: patterns/SimpleMaze.png)" in (
+        message
+    )
 
 
 def test_validate_accepts_the_defaults_and_a_tiny_run():
@@ -673,15 +815,24 @@ TINY = [
 ]  # fmt: skip
 
 
+def assert_clean_refusal(result, *words: str) -> None:
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    for word in words:
+        assert word in result.stderr, (word, result.stderr)
+
+
 def test_smoke_run_amigo_saves_evaluates_and_refuses_other_settings(run_script, tmp_path):
     result = run_script("dgrl_amigo.py", *TINY, "--groups", "0", "--save-model")
     assert result.returncode == 0, result.stderr
-    assert re.search(r"step +80/160 .* t\* 7 ", result.stdout)
-    done = re.search(r"done: 160 frames, 20 student and (\d+) teacher updates, t\* 7", result.stdout)
+    assert re.search(r"frame +80/160  return .* t\* 7 .* SPS \d+", result.stdout)
+    done = re.search(r"done: 160 frames, 20 student and (\d+) teacher updates, t\* 7; \d+s; logs in runs/", result.stdout)
     assert done and int(done.group(1)) >= 1, result.stdout
     checkpoint = next(tmp_path.glob("runs/*/dgrl_amigo.cleanrl_model"))
-    saved = torch.load(checkpoint, weights_only=False)
+    saved = torch.load(checkpoint, weights_only=True)  # tensors and plain values only
+    assert saved["script"] == "dgrl_amigo.py" and saved["format"] == amigo.CHECKPOINT_FORMAT
     assert saved["t_star"] == 7 and saved["step"] == 160 and saved["args"]["groups"] == 0
+    assert {"student", "goal_encoder", "teacher"} <= set(saved)
     assert not any(key.startswith("vq.") for key in saved["goal_encoder"])
     events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
     for tag in (b"teacher/t_star", b"teacher/reward", b"losses/baseline_loss", b"charts/SPS"):
@@ -695,8 +846,10 @@ def test_smoke_run_amigo_saves_evaluates_and_refuses_other_settings(run_script, 
     assert re.search(
         r"2 episodes \(t\* 7 at save\): return [\d.]+, success \d+%, goals reached per episode [\d.]+", evaluation.stdout
     )
-    mismatched = run_script("dgrl_amigo.py", "--env-id", DOORKEY, "--groups", "16", "--checkpoint", str(checkpoint))
-    assert mismatched.returncode != 0 and "was saved with other settings: pass --groups 0" in mismatched.stderr
+    mismatched = run_script(
+        "dgrl_amigo.py", "--env-id", DOORKEY, "--groups", "16", "--no-goal-channel", "--checkpoint", str(checkpoint)
+    )
+    assert_clean_refusal(mismatched, "was saved with other settings: pass --groups 0 --goal-channel")
 
 
 def test_smoke_run_dgrl_with_video(run_script, tmp_path):
@@ -714,9 +867,45 @@ def test_smoke_run_dgrl_with_video(run_script, tmp_path):
         assert tag in events
 
 
-def test_bad_flag_fails_before_any_work(run_script, tmp_path):
-    result = run_script("dgrl_amigo.py", "--groups", "5", "--batch-envs", "3")
-    assert result.returncode != 0
-    assert "--groups must be 0 (AMIGo) or divide --embed-dim 128" in result.stderr
-    assert "--batch-envs (3) must divide --num-envs (16)" in result.stderr
+def test_bad_flags_fail_before_any_work(run_script, tmp_path):
+    result = run_script(
+        "dgrl_amigo.py", "--groups", "5", "--batch-envs", "3", "--gamma", "0", "--learning-rate", "-1", "--vq-decay", "1.5",
+        "--seed", "-1", "--total-timesteps", "100",
+    )  # fmt: skip
+    assert_clean_refusal(
+        result, "--groups must be 0 (AMIGo) or divide --embed-dim 128", "--batch-envs (3) must divide --num-envs (16)",
+        "--gamma must be in (0, 1]", "--learning-rate must be > 0", "--vq-decay must be in [0, 1)", "--seed must be >= 0",
+        "--total-timesteps (100) must cover one collection",
+    )  # fmt: skip
     assert not (tmp_path / "runs").exists()
+
+
+def test_ctrl_c_stops_the_run_with_its_checkpoint_and_logs(run_script, tmp_path):
+    model = ["--env-id", EMPTY, "--groups", "4", "--embed-dim", "16", "--n-embed", "8"]
+    flags = ["--num-envs", "2", "--batch-envs", "2", "--num-steps", "10", "--teacher-batch-size", "4", "--seed", "2"]
+    process = subprocess.Popen(
+        [sys.executable, str(ROOT / "dgrl_amigo.py"), *model, *flags, "--total-timesteps", "10000000",
+         "--progress-frequency", "100", "--save-model"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    watchdog = threading.Timer(120, process.kill)  # a run that never prints a progress line fails instead of hanging
+    watchdog.start()
+    try:
+        progress_line = next(line for line in process.stdout if line.startswith("frame"))
+        process.send_signal(signal.SIGINT)  # in training: a progress line comes after every 100 frames
+        out, err = process.communicate(timeout=60)
+    finally:
+        watchdog.cancel()
+    assert process.returncode == 0, err
+    assert re.match(r"frame +100/10000000 ", progress_line) and "Traceback" not in err
+    assert re.search(r"stopped: \d+ frames, \d+ student and \d+ teacher updates", out), out
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_amigo.cleanrl_model"))
+    assert 100 <= torch.load(checkpoint, weights_only=True)["step"] < 10_000_000
+    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
+    assert b"charts/SPS" in events  # logged at the progress line, flushed when the writer closed
+    evaluation = run_script(
+        "dgrl_amigo.py", *model, "--num-envs", "1", "--eval-episodes", "1", "--checkpoint", str(checkpoint)
+    )
+    assert evaluation.returncode == 0, evaluation.stderr
+    assert evaluation.stdout.startswith("1 episodes (t* 7 at save)")

@@ -463,6 +463,24 @@ def test_replay_ring_keeps_episode_suffixes_with_their_goals():
     assert ep.max() == len(lengths) - 1  # the latest episode is stored
 
 
+def test_the_replay_fills_to_a_batch_exactly_when_validate_accepts_its_size():
+    """Whole episodes and a restart at row 0: 256 rows hold only two 100-step episodes (204 rows), never a batch of 256
+    (validate refuses that); --batch-size + 101 rows reach a batch whatever the episode lengths."""
+
+    def fill(capacity: int, lengths) -> int:
+        replay = sawyer.ImageEpisodeReplay(capacity, (1, 1, 3), 2)
+        for length in lengths:
+            images, states = np.zeros((length + 1, 1, 1, 3), np.uint8), np.zeros((length + 1, 4), np.float32)
+            replay.add_episode(images, states, np.zeros((length, 2), np.float32), images[0], states[0])
+        return replay.size
+
+    assert fill(256, [100] * 20) == 204
+    rng = np.random.default_rng(0)
+    for batch in (1, 16, 100, 256):
+        for lengths in ([100] * 30, rng.integers(1, 101, 60), [50, 100] * 15, [99] * 30):
+            assert fill(batch + sawyer.EPISODE_STEPS + 1, lengths) >= batch, (batch, lengths)
+
+
 # --- one RIS update ---------------------------------------------------------------------------------------------------
 
 

@@ -1235,7 +1235,8 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "total_timesteps buffer_size batch_size hidden_dim adj_frequency adj_epochs", 1)
     errors += range_errors(args, "adj_batch_size eval_frequency eval_episodes", 1)
     errors += range_errors(args, "k", 2)  # a segment of one step has no pair of cells k - 1 steps apart to label adjacent
-    errors += range_errors(args, "actor_lr critic_lr adj_lr subgoal_scale adj_margin_pos adj_margin_neg", 0, low_open=True)
+    errors += range_errors(args, "actor_lr critic_lr adj_lr adj_margin_pos adj_margin_neg", 0, low_open=True)
+    errors += range_errors(args, "subgoal_scale", 0, 100, low_open=True)  # metres; the largest arena is 48 m across
     errors += range_errors(args, "tau", 0, 1, low_open=True)
     errors += range_errors(args, "n_embed embed_dim encoder_hidden_dim", 1)  # DGRL
     errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
@@ -1251,6 +1252,10 @@ def validate(args: Args) -> None:
         errors.append(f"--k must divide the episode length {EPISODE_STEPS} (whole segments): one of {divisors}; got {args.k}")
     if args.adj_margin_neg < args.adj_margin_pos:
         errors.append(f"--adj-margin-neg ({args.adj_margin_neg}) must be >= --adj-margin-pos ({args.adj_margin_pos})")
+    if args.k >= 1 and args.total_timesteps < args.k:
+        errors.append(
+            f"--total-timesteps ({args.total_timesteps}) must be >= --k ({args.k}): the manager learns from whole segments"
+        )
     if args.batch_size > args.buffer_size:
         errors.append(f"--batch-size ({args.batch_size}) must be <= --buffer-size ({args.buffer_size})")
     if args.checkpoint is not None and args.save_model:
@@ -1310,6 +1315,10 @@ if __name__ == "__main__":
 
     if args.checkpoint is not None:
         agent.load_state_dicts(load_checkpoint(args.checkpoint, args, MUST_MATCH, device))
+        print(
+            f"evaluating {args.checkpoint} over {args.eval_episodes} episodes (Ctrl-C ends it after the current one)",
+            flush=True,
+        )
         video = [] if args.capture_video else None
         result = evaluate(
             eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop

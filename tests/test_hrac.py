@@ -4,6 +4,7 @@ tests and AntGather's sensors), HRAC's computations (subgoal transition, control
 adjacency labels and losses, the TD3 step), the agent's updates under DGRL, evaluation, flag validation and smoke runs of
 every env id in both modes (train, checkpoint, evaluate, video, Ctrl-C)."""
 
+import inspect
 import re
 import signal
 import subprocess
@@ -15,9 +16,9 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_hrac as hrac
-from vq import make_target
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV_IDS = ("AntMaze", "AntMazeSparse", "AntPush", "AntFall", "AntGather")
@@ -319,84 +320,105 @@ def test_replay_is_a_ring_of_preallocated_arrays():
     assert batch["states"].shape == (7, 2) and set(batch["rewards"].tolist()) <= {2.0, 3.0, 4.0}
 
 
-def bandit_nets(max_action: float):
+def bandit_level(max_action: float) -> hrac.Level:
+    """A small TD3 level built as the script builds its levels (targets, fused Adam, critic weight decay)."""
     actor, critic = hrac.Actor(3, 2, 2, max_action, hidden_dim=64), hrac.TwinCritic(3, 2, 2, hidden_dim=64)
-    nets = {"actor": actor, "critic": critic, "actor_target": make_target(actor), "critic_target": make_target(critic)}
-    optimizers = {
-        "actor": torch.optim.Adam(actor.parameters(), lr=1e-3),
-        "critic": torch.optim.Adam(critic.parameters(), lr=1e-3, weight_decay=1e-4),
-    }
-    return nets, optimizers
+    return hrac.make_level(actor, critic, actor_lr=1e-3, critic_lr=1e-3, critic_weight_decay=1e-4)
+
+
+TD3 = {"gamma": 0.99, "tau": 0.005, "policy_noise": 0.2, "noise_clip": 0.5}
 
 
 def test_td3_update_learns_a_one_step_task_and_moves_the_targets_by_tau():
     """Reward -||a - g||^2 with every transition terminal: the actor must learn to output its goal."""
     rng = np.random.default_rng(0)
-    nets, optimizers = bandit_nets(max_action=1.0)
-    before = [p.detach().clone() for p in nets["actor_target"].parameters()]
-    online_before = [p.detach().clone() for p in nets["actor"].parameters()]
+    level = bandit_level(max_action=1.0)
+    before = [p.detach().clone() for p in level.actor_target.parameters()]
+    online_before = [p.detach().clone() for p in level.actor.parameters()]
     for step in range(600):
         states, goals = torch.randn(128, 3), torch.as_tensor(rng.uniform(-0.8, 0.8, (128, 2)), dtype=torch.float32)
         actions = torch.as_tensor(rng.uniform(-1, 1, (128, 2)), dtype=torch.float32)
         batch = dict(
-            states=states, goals=goals, actions=actions, rewards=-((actions - goals) ** 2).sum(1),
-            next_states=states, next_goals=goals, dones=torch.ones(128),
-        )  # fmt: skip
-        metrics = hrac.td3_update(nets, optimizers, batch, gamma=0.99, max_action=1.0, tau=0.05)
+            states=states,
+            goals=goals,
+            actions=actions,
+            rewards=-((actions - goals) ** 2).sum(1),
+            next_states=states,
+            next_goals=goals,
+            dones=torch.ones(128),
+        )
+        metrics = hrac.td3_update(level, batch, **TD3 | {"tau": 0.05})
         if step == 0:
-            online_after = list(nets["actor"].parameters())
+            online_after = list(level.actor.parameters())
             for target, old_target, old_online, new_online in zip(
-                nets["actor_target"].parameters(), before, online_before, online_after, strict=True
+                level.actor_target.parameters(), before, online_before, online_after, strict=True
             ):
                 # the actor stepped before the Polyak update: target = old_target + tau * (new_online - old_target)
                 torch.testing.assert_close(target, old_target + 0.05 * (new_online.detach() - old_target))
                 assert not torch.equal(new_online.detach(), old_online)
     goals = torch.tensor([[0.5, -0.3], [-0.6, 0.2]])
     with torch.no_grad():
-        actions = nets["actor"](torch.zeros(2, 3), goals)
+        actions = level.actor(torch.zeros(2, 3), goals)
     assert (actions - goals).abs().max() < 0.15, actions
     assert torch.isfinite(metrics["critic_loss"])
 
 
 def test_td3_update_adds_the_actor_extra_term():
     batch = dict(
-        states=torch.randn(8, 3), goals=torch.randn(8, 2), actions=torch.rand(8, 2), rewards=torch.randn(8),
-        next_states=torch.randn(8, 3), next_goals=torch.randn(8, 2), dones=torch.zeros(8),
-    )  # fmt: skip
+        states=torch.randn(8, 3),
+        goals=torch.randn(8, 2),
+        actions=torch.rand(8, 2),
+        rewards=torch.randn(8),
+        next_states=torch.randn(8, 3),
+        next_goals=torch.randn(8, 2),
+        dones=torch.zeros(8),
+    )
     losses = []
     for extra in (None, lambda actions: 7.0 + 0 * actions.sum()):
         torch.manual_seed(0)  # the same networks and the same target noise in both runs
-        nets, optimizers = bandit_nets(max_action=1.0)
-        losses.append(hrac.td3_update(nets, optimizers, batch, 0.99, 1.0, actor_extra=extra)["actor_loss"].item())
+        level = bandit_level(max_action=1.0)
+        losses.append(hrac.td3_update(level, batch, **TD3, actor_extra=extra)["actor_loss"].item())
     assert losses[1] == pytest.approx(losses[0] + 7.0, abs=1e-5)
 
 
 def test_td3_target_is_the_smaller_of_the_two_target_critics():
-    nets, optimizers = bandit_nets(max_action=1.0)
-    for head, value in ((nets["critic_target"].q1, 10.0), (nets["critic_target"].q2, -5.0)):
+    level = bandit_level(max_action=1.0)
+    for head, value in ((level.critic_target.q1, 10.0), (level.critic_target.q2, -5.0)):
         torch.nn.init.zeros_(head[-1].weight)
         torch.nn.init.constant_(head[-1].bias, value)
     batch = dict(
-        states=torch.randn(8, 3), goals=torch.randn(8, 2), actions=torch.rand(8, 2), rewards=torch.zeros(8),
-        next_states=torch.randn(8, 3), next_goals=torch.randn(8, 2), dones=torch.zeros(8),
-    )  # fmt: skip
-    assert hrac.td3_update(nets, optimizers, batch, 0.99, 1.0)["target_q"].item() == pytest.approx(-5.0)
+        states=torch.randn(8, 3),
+        goals=torch.randn(8, 2),
+        actions=torch.rand(8, 2),
+        rewards=torch.zeros(8),
+        next_states=torch.randn(8, 3),
+        next_goals=torch.randn(8, 2),
+        dones=torch.zeros(8),
+    )
+    assert hrac.td3_update(level, batch, **TD3)["target_q"].item() == pytest.approx(-5.0)
 
 
 # --- the agent: DGRL's controller update, the manager update, adjacency training, evaluation --------------------------
 
 
+def make_agent(args: hrac.Args, state_dim: int = 30, action_dim: int = 8) -> hrac.Agent:
+    """The script's make_agent with the flags of `args` (every keyword it takes is a flag of the same name)."""
+    bounds = hrac.subgoal_bounds(args.env_id, args.subgoal_scale)
+    flags = {name: getattr(args, name) for name in inspect.signature(hrac.make_agent).parameters if hasattr(args, name)}
+    return hrac.make_agent(
+        state_dim, action_dim, bounds, hrac.MANAGER_GOAL_DIMS[args.env_id], **flags, device=torch.device("cpu")
+    )
+
+
 def agent(groups: int, env_id: str = "AntMaze", **overrides):
-    """Both levels, the adjacency network and (DGRL) the subgoal encoder as the script builds them, small and seeded."""
+    """The script's agent, small and seeded: (args, subgoal bounds, agent)."""
     torch.manual_seed(0)
     args = hrac.Args(env_id=env_id, groups=groups, hidden_dim=32, batch_size=16, **overrides)
-    nets, _ = hrac.make_agent(args, 30, 8, torch.device("cpu"))
-    return args, hrac.subgoal_bounds(env_id, args.subgoal_scale), nets
+    return args, hrac.subgoal_bounds(env_id, args.subgoal_scale), make_agent(args)
 
 
-def optimizers_for(level: dict, extra=()) -> dict:
-    return {"actor": torch.optim.Adam(level["actor"].parameters(), lr=1e-3),
-            "critic": torch.optim.Adam([{"params": level["critic"].parameters()}, *extra], lr=1e-3)}  # fmt: skip
+def td3_flags(args: hrac.Args, gamma: float) -> dict:
+    return {"gamma": gamma, "tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
 
 
 def filled_controller_replay(rng, n=64, goal_dim=2):
@@ -409,20 +431,50 @@ def filled_controller_replay(rng, n=64, goal_dim=2):
     return replay
 
 
+def test_make_agent_builds_both_levels_the_adjacency_network_and_the_encoder_only_under_dgrl():
+    args, _, dgrl_agent = agent(groups=16)
+    assert dgrl_agent.controller.actor.net[0].in_features == 30 + args.embed_dim  # the controller sees z_q
+    assert dgrl_agent.manager.actor.net[0].in_features == 30 + 2  # the manager sees the state and the task's goal
+    critic_groups = dgrl_agent.controller.critic_optimizer.param_groups
+    assert [group["weight_decay"] for group in critic_groups] == [args.critic_weight_decay, 0.0]
+    assert critic_groups[1]["lr"] == args.encoder_lr
+    assert {id(p) for p in critic_groups[1]["params"]} == {id(p) for p in dgrl_agent.encoder.parameters()}
+    assert len(dgrl_agent.manager.critic_optimizer.param_groups) == 1
+    _, _, hrac_agent = agent(groups=0, env_id="AntFall")
+    assert hrac_agent.encoder is None
+    assert hrac_agent.controller.actor.net[0].in_features == 30 + 3  # AntFall's 3-d subgoal
+    assert len(hrac_agent.controller.critic_optimizer.param_groups) == 1
+    assert set(hrac_agent.state_dicts()) == {
+        "manager_actor",
+        "manager_critic",
+        "controller_actor",
+        "controller_critic",
+        "adjacency",
+    }
+    assert "vq.codebook" in dgrl_agent.state_dicts()["subgoal_encoder"]
+
+
 def test_controller_update_under_dgrl_moves_the_codebook_the_encoder_and_both_networks():
-    args, bounds, nets = agent(groups=16)
-    encoder, controller = nets["encoder"], nets["controller"]
+    args, bounds, dgrl_agent = agent(groups=16)
+    encoder, controller = dgrl_agent.encoder, dgrl_agent.controller
     rng = np.random.default_rng(0)
     buffers = {name: value.clone() for name, value in encoder.vq.named_buffers()}
-    hrac.controller_action(nets, rng.normal(size=30), np.array([3.0, -2.0]), 1.0, rng)  # acting: no codebook update
-    hrac.off_policy_correction(controller["actor"], rng.normal(size=(4, 11, 30)), rng.normal(size=(4, 10, 8)),
-                               rng.normal(size=(4, 2)), bounds, rng, goal_encoder=encoder)  # fmt: skip
+    hrac.controller_action(dgrl_agent, rng.normal(size=30), np.array([3.0, -2.0]), noise=1.0, rng=rng)  # no EMA update
+    hrac.off_policy_correction(
+        controller.actor,
+        rng.normal(size=(4, 11, 30)),
+        rng.normal(size=(4, 10, 8)),
+        rng.normal(size=(4, 2)),
+        bounds,
+        rng,
+        goal_encoder=encoder,
+    )
     for name, value in encoder.vq.named_buffers():
         torch.testing.assert_close(value, buffers[name])
-    watched = [*controller["actor"].named_parameters(), *controller["critic"].named_parameters(), *encoder.named_parameters()]
+    watched = [*controller.actor.named_parameters(), *controller.critic.named_parameters(), *encoder.named_parameters()]
     before = {name: p.detach().clone() for name, p in watched}
-    optimizer = optimizers_for(controller, ({"params": encoder.parameters()},))
-    metrics = hrac.controller_update(nets, optimizer, filled_controller_replay(rng), args, rng, "cpu")
+    sample = filled_controller_replay(rng).sample(args.batch_size, rng)
+    metrics = hrac.controller_update(dgrl_agent, sample, device="cpu", **td3_flags(args, args.ctrl_gamma))
     assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
     for name, p in watched:
         assert not torch.equal(p, before[name]), name  # the encoder's decoder too: the reconstruction loss reaches it
@@ -436,12 +488,12 @@ def test_the_controller_critic_loss_shapes_the_subgoal_encoder():
     differently."""
 
     def encoder_after_update(reward: float) -> list[torch.Tensor]:
-        args, _, nets = agent(groups=16)
+        args, _, dgrl_agent = agent(groups=16)
         replay = filled_controller_replay(np.random.default_rng(0))
         replay.fields["rewards"][:] = reward
-        optimizer = optimizers_for(nets["controller"], ({"params": nets["encoder"].parameters()},))
-        hrac.controller_update(nets, optimizer, replay, args, np.random.default_rng(1), "cpu")
-        return [p.detach().clone() for p in nets["encoder"].encoder.parameters()]
+        sample = replay.sample(args.batch_size, np.random.default_rng(1))
+        hrac.controller_update(dgrl_agent, sample, device="cpu", **td3_flags(args, args.ctrl_gamma))
+        return [p.detach().clone() for p in dgrl_agent.encoder.encoder.parameters()]
 
     same = [torch.equal(a, b) for a, b in zip(encoder_after_update(0.0), encoder_after_update(0.0), strict=True)]
     differ = [torch.equal(a, b) for a, b in zip(encoder_after_update(0.0), encoder_after_update(-50.0), strict=True)]
@@ -449,20 +501,20 @@ def test_the_controller_critic_loss_shapes_the_subgoal_encoder():
 
 
 def test_the_controller_sees_the_discrete_embedding_under_dgrl_and_the_raw_subgoal_under_hrac():
-    _, _, dgrl_nets = agent(groups=16)
+    _, _, dgrl_agent = agent(groups=16)
     subgoals = torch.tensor([[3.0, -2.0], [3.01, -2.0]])
-    z_q = hrac.controller_goal_input(dgrl_nets["encoder"], subgoals)
+    z_q = hrac.controller_goal_input(dgrl_agent.encoder, subgoals)
     assert z_q.shape == (2, 64)
-    codebook = dgrl_nets["encoder"].vq.codebook
+    codebook = dgrl_agent.encoder.vq.codebook
     assert all((codebook == segment).all(-1).any() for segment in z_q.reshape(-1, 4))  # every factor is a code
-    _, _, hrac_nets = agent(groups=0)
-    assert torch.equal(hrac.controller_goal_input(hrac_nets["encoder"], subgoals), subgoals)
+    _, _, hrac_agent = agent(groups=0)
+    assert torch.equal(hrac.controller_goal_input(hrac_agent.encoder, subgoals), subgoals)
 
 
 def test_manager_update_learns_from_corrected_subgoals_with_the_weighted_adjacency_term(monkeypatch):
     """The stored subgoals are stale; the controller took the actions it takes for the achieved offset, so the TD3 step
     must see the achieved offsets, and its actor term must be adj_weight x the adjacency loss."""
-    args, bounds, nets = agent(groups=0, adj_weight=7.0)
+    args, bounds, hrac_agent = agent(groups=0, adj_weight=7.0)
     rng = np.random.default_rng(1)
     n, k = args.batch_size, args.k
     states = np.cumsum(rng.normal(0, 0.3, (n, k + 1, 30)), axis=1)
@@ -472,37 +524,75 @@ def test_manager_update_learns_from_corrected_subgoals_with_the_weighted_adjacen
     for t in range(1, k):
         goals[:, t] = hrac.subgoal_transition(states[:, t - 1], goals[:, t - 1], states[:, t])
     with torch.no_grad():
-        actions = nets["controller"]["actor"](torch.as_tensor(hrac.controller_input(states[:, :k]), dtype=torch.float32),
-                                              torch.as_tensor(goals, dtype=torch.float32)).numpy()  # fmt: skip
-    replay = hrac.Replay(n, states=(30,), goals=(2,), actions=(2,), rewards=(), next_states=(30,), dones=(),
-                         state_seq=(k + 1, 30), action_seq=(k, 8))  # fmt: skip
+        actions = hrac_agent.controller.actor(
+            torch.as_tensor(hrac.controller_input(states[:, :k]), dtype=torch.float32),
+            torch.as_tensor(goals, dtype=torch.float32),
+        ).numpy()
+    replay = hrac.Replay(
+        n,
+        states=(30,),
+        goals=(2,),
+        actions=(2,),
+        rewards=(),
+        next_states=(30,),
+        dones=(),
+        state_seq=(k + 1, 30),
+        action_seq=(k, 8),
+    )
     for i in range(n):
-        replay.add(states=states[i, 0], goals=np.array([0.0, 16.0]), actions=np.array([-9.0, 9.0]), rewards=-1.0,
-                   next_states=states[i, -1], dones=0.0, state_seq=states[i], action_seq=actions[i])  # fmt: skip
+        replay.add(
+            states=states[i, 0],
+            goals=np.array([0.0, 16.0]),
+            actions=np.array([-9.0, 9.0]),
+            rewards=-1.0,
+            next_states=states[i, -1],
+            dones=0.0,
+            state_seq=states[i],
+            action_seq=actions[i],
+        )
     seen = {}
 
-    def spy(level, optimizer, batch, *rest, actor_extra=None, **kw):
-        seen["actions"], seen["states"], seen["extra"] = batch["actions"], batch["states"], actor_extra
+    def spy(level, batch, *, actor_extra=None, **hyper_parameters):
+        seen["level"], seen["actions"], seen["states"], seen["extra"] = level, batch["actions"], batch["states"], actor_extra
         return {"critic_loss": torch.tensor(0.0)}
 
     monkeypatch.setattr(hrac, "td3_update", spy)
     sampler = np.random.default_rng(2)
-    hrac.manager_update(nets, {}, replay, args, bounds, sampler, "cpu")
+    hrac.manager_update(
+        hrac_agent,
+        replay.sample(n, sampler),
+        rng=sampler,
+        device="cpu",
+        bounds=bounds,
+        correction_samples=args.correction_samples,
+        adj_weight=args.adj_weight,
+        adj_threshold=1.1,
+        **td3_flags(args, args.man_gamma),
+    )
+    assert seen["level"] is hrac_agent.manager
     index = np.random.default_rng(2).integers(n, size=n)
     np.testing.assert_allclose(seen["actions"].numpy(), achieved[index], atol=1e-5)
     proposals = torch.full((n, 2), 9.0)
-    expected = 7.0 * hrac.adjacency_loss(nets["anet"], seen["states"][:, :2], proposals, threshold=1.1)
+    expected = 7.0 * hrac.adjacency_loss(hrac_agent.adjacency, seen["states"][:, :2], proposals, threshold=1.1)
     torch.testing.assert_close(seen["extra"](proposals), expected)
 
 
 def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():
-    args = hrac.Args(adj_epochs=60, adj_lr=1e-3)
     memory = hrac.AdjacencyMemory(k=10)
     memory.add_trajectory(np.stack([np.arange(0, 30, 0.5), np.zeros(60)], 1))  # 1 m cells 0..29 along x
     torch.manual_seed(0)
     anet = hrac.AdjacencyNet(2)
-    loss, accuracy = hrac.train_adjacency(anet, torch.optim.Adam(anet.parameters(), lr=args.adj_lr), memory, args,
-                                          np.random.default_rng(0), "cpu")  # fmt: skip
+    loss, accuracy = hrac.train_adjacency(
+        anet,
+        torch.optim.Adam(anet.parameters(), lr=1e-3),
+        memory,
+        np.random.default_rng(0),
+        epochs=60,
+        batch_size=64,
+        margin_pos=1.0,
+        margin_neg=1.2,
+        device="cpu",
+    )
     assert accuracy > 0.9 and loss < 0.05
     with torch.no_grad():
         near = (anet(torch.tensor([[10.0, 0.0]])) - anet(torch.tensor([[13.0, 0.0]]))).norm()
@@ -510,19 +600,37 @@ def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():
     assert near < 1.1 < far
 
 
+def test_train_adjacency_stops_at_a_stop_request_and_reports_nan_without_pairs():
+    memory = hrac.AdjacencyMemory(k=10)
+    memory.add_trajectory(np.stack([np.arange(0, 30, 0.5), np.zeros(60)], 1))
+    anet = hrac.AdjacencyNet(2)
+    before = [p.detach().clone() for p in anet.parameters()]
+    settings = {"epochs": 5, "batch_size": 64, "margin_pos": 1.0, "margin_neg": 1.2, "device": "cpu"}
+    optimizer = torch.optim.Adam(anet.parameters(), lr=1e-3)
+    result = hrac.train_adjacency(anet, optimizer, memory, np.random.default_rng(0), **settings, stop=[2])
+    assert np.isnan(result).all() and all(torch.equal(a, b) for a, b in zip(before, anet.parameters(), strict=True))
+    single_cell = hrac.AdjacencyMemory(k=10)
+    single_cell.add_trajectory(np.zeros((20, 2)))
+    assert np.isnan(hrac.train_adjacency(anet, optimizer, single_cell, np.random.default_rng(0), **settings)).all()
+
+
 def test_evaluate_ends_an_episode_at_the_first_success(monkeypatch):
     """With the evaluation goal put at the start, the first step passes the distance test and ends the episode: success
     1, and the return is that one step's reward."""
     monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (1.0, 0.0))
-    args, bounds, nets = agent(groups=16)
+    args, bounds, dgrl_agent = agent(groups=16)
     env = hrac.HiroAntEnv("AntMaze", evaluate=True)
     env.reset(seed=0)
-    result = hrac.evaluate(env, nets, args, bounds, np.random.default_rng(0), episodes=2)
-    assert result["success"] == 1.0 and env.steps == 1
+    result = hrac.evaluate(env, dgrl_agent, k=args.k, bounds=bounds, rng=np.random.default_rng(0), episodes=2)
+    assert result["success"] == 1.0 and env.steps == 1 and result["episodes"] == 2
     assert result["return"] == pytest.approx(-result["distance"]) and result["distance"] < 5.0
     monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (0.0, 16.0))
-    result = hrac.evaluate(env, nets, args, bounds, np.random.default_rng(0), episodes=1)
+    result = hrac.evaluate(env, dgrl_agent, k=args.k, bounds=bounds, rng=np.random.default_rng(0), episodes=1)
     assert result["success"] == 0.0 and env.steps == hrac.EPISODE_STEPS and result["distance"] > 10
+    # A stop request ends the evaluation after its first episode.
+    monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (1.0, 0.0))
+    result = hrac.evaluate(env, dgrl_agent, k=args.k, bounds=bounds, rng=np.random.default_rng(0), episodes=50, stop=[2])
+    assert result["episodes"] == 1
 
 
 def test_manager_goal_and_subgoal_bounds_per_env():
@@ -540,6 +648,14 @@ def test_manager_goal_and_subgoal_bounds_per_env():
 # --- flags and smoke runs ---------------------------------------------------------------------------------------------
 
 
+def assert_clean_refusal(result, *messages: str) -> None:
+    """Exit status 2 before any work, every message in stderr, no traceback."""
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    for message in messages:
+        assert message in result.stderr, (message, result.stderr)
+
+
 @pytest.mark.parametrize(
     ("overrides", "messages"),
     [
@@ -549,22 +665,72 @@ def test_manager_goal_and_subgoal_bounds_per_env():
         ),
         ({"groups": 5}, ["--groups must be 0 (HRAC) or divide --embed-dim 64: one of [1, 2, 4, 8, 16, 32, 64]; got 5"]),
         ({"k": 7}, ["--k must divide the episode length 500", "got 7"]),
-        ({"ctrl_gamma": 1.0}, ["--ctrl-gamma must be in [0, 1); got 1.0"]),
-        ({"margin_pos": 2.0}, ["--margin-neg (1.2) must be >= --margin-pos (2.0)"]),
+        ({"k": 1}, ["--k must be >= 2; got 1"]),
+        ({"k": 0}, ["--k must be >= 2; got 0"]),  # no ZeroDivisionError from the episode-length check
+        ({"ctrl_gamma": 1.0, "man_gamma": 0.0}, ["--ctrl-gamma must be in (0, 1)", "--man-gamma must be in (0, 1)"]),
+        ({"adj_margin_pos": 2.0}, ["--adj-margin-neg (1.2) must be >= --adj-margin-pos (2.0)"]),
+        ({"adj_margin_pos": -1.0}, ["--adj-margin-pos must be > 0; got -1.0"]),
         ({"batch_size": 0, "man_noise": -1.0}, ["--batch-size must be >= 1; got 0", "--man-noise must be >= 0; got -1.0"]),
+        ({"batch_size": 300_000}, ["--batch-size (300000) must be <= --buffer-size (200000)"]),
+        ({"subgoal_scale": 0.0}, ["--subgoal-scale must be in (0, 100]; got 0.0"]),
+        ({"subgoal_scale": 1e30}, ["--subgoal-scale must be in (0, 100]; got 1e+30"]),
+        ({"vq_decay": 1.0, "vq_beta": -1.0}, ["--vq-decay must be in [0, 1); got 1.0", "--vq-beta must be >= 0; got -1.0"]),
+        ({"tau": 0.0, "seed": -1}, ["--tau must be in (0, 1]; got 0.0", "--seed must be >= 0; got -1"]),
+        ({"total_timesteps": 5}, ["--total-timesteps (5) must be >= --k (10)"]),
         ({"checkpoint": "missing.pt"}, ["--checkpoint missing.pt: no such file"]),
     ],
 )
-def test_validate_names_the_flag(overrides, messages):
+def test_validate_names_the_flag(overrides, messages, capsys):
     with pytest.raises(SystemExit) as error:
         hrac.validate(hrac.Args(**overrides))
+    assert error.value.code == 2
+    stderr = capsys.readouterr().err
     for message in messages:
-        assert message in str(error.value)
+        assert message in stderr, (message, stderr)
 
 
 def test_validate_accepts_the_defaults():
     hrac.validate(hrac.Args())
     hrac.validate(hrac.Args(env_id="AntGather", groups=0, k=25))
+
+
+def test_bad_flags_fail_before_any_work(run_script, tmp_path):
+    """What used to reach MuJoCo or a constructor after runs/ was created (a NaN subgoal scale drove NaN torques into the
+    simulator; a negative learning rate and a codebook decay above 1 raised inside torch and vq.py) is refused at once,
+    every bad flag named in one message."""
+    result = run_script(
+        "dgrl_hrac.py",
+        "--env-id",
+        "AntMaze2",
+        "--groups",
+        "5",
+        "--subgoal-scale",
+        "nan",
+        "--actor-lr",
+        "-1",
+        "--vq-decay",
+        "1.5",
+        "--ctrl-gamma",
+        "1.5",
+        "--batch-size",
+        "500",
+        "--buffer-size",
+        "100",
+    )
+    assert_clean_refusal(
+        result,
+        "--env-id 'AntMaze2' is unknown: use one of AntMaze, AntMazeSparse",
+        "--groups must be 0 (HRAC) or divide",
+        "--subgoal-scale must be a finite number; got nan",
+        "--actor-lr must be > 0; got -1.0",
+        "--vq-decay must be in [0, 1); got 1.5",
+        "--ctrl-gamma must be in (0, 1)",
+        "--batch-size (500) must be <= --buffer-size (100)",
+    )
+    assert not (tmp_path / "runs").exists()
+    unrenderable = run_script("dgrl_hrac.py", "--capture-video", env={"MUJOCO_GL": "glfw"})  # glfw without a display
+    assert_clean_refusal(unrenderable, "--capture-video cannot render with MUJOCO_GL=glfw")
+    assert not (tmp_path / "runs").exists()
 
 
 TINY = ["--total-timesteps", "30", "--ctrl-updates", "4", "--man-updates", "2", "--batch-size", "8", "--eval-episodes", "1",
@@ -586,44 +752,104 @@ def test_smoke_run_every_env_in_both_modes(run_script, tmp_path, env_id, groups)
     assert (b"vq/perplexity" in events) == (groups > 0)
 
 
-def test_smoke_run_saves_evaluates_refuses_other_settings_and_records_video(run_script, tmp_path):
-    gl = {"MUJOCO_GL": "egl"}
-    result = run_script(
-        "dgrl_hrac.py", "--env-id", "AntPush", "--groups", "16", *TINY, "--save-model", "--capture-video", env=gl
-    )
+def test_smoke_run_saves_evaluates_refuses_other_settings_and_records_video_headless(run_script, tmp_path):
+    """--capture-video in an environment without MUJOCO_GL and without DISPLAY (the script defaults to EGL there)."""
+    result = run_script("dgrl_hrac.py", "--env-id", "AntPush", "--groups", "16", *TINY, "--save-model", "--capture-video")
     assert result.returncode == 0, result.stderr
     assert list(tmp_path.glob("videos/*/eval_30.mp4"))
     checkpoint = next(tmp_path.glob("runs/*/dgrl_hrac.cleanrl_model"))
-    saved = torch.load(checkpoint, weights_only=False)
-    assert "vq.codebook" in saved["subgoal_encoder"] and saved["args"]["groups"] == 16
-    assert set(saved) >= {"manager_actor", "manager_critic", "controller_actor", "controller_critic", "adjacency"}
-    evaluation = run_script("dgrl_hrac.py", "--env-id", "AntPush", "--hidden-dim", "32", "--eval-episodes", "1",
-                            "--checkpoint", str(checkpoint))  # fmt: skip
+    saved = torch.load(checkpoint, weights_only=True)  # tensors and plain values only
+    assert saved["script"] == "dgrl_hrac.py" and saved["format"] == hrac.CHECKPOINT_FORMAT
+    assert saved["args"]["groups"] == 16 and saved["args"]["adj_margin_pos"] == 1.0
+    assert set(saved) == {
+        "script",
+        "format",
+        "args",
+        "manager_actor",
+        "manager_critic",
+        "controller_actor",
+        "controller_critic",
+        "adjacency",
+        "subgoal_encoder",
+    }
+    assert "vq.codebook" in saved["subgoal_encoder"] and "vq.ema_count" in saved["subgoal_encoder"]
+    evaluation = run_script(
+        "dgrl_hrac.py", "--env-id", "AntPush", "--hidden-dim", "32", "--eval-episodes", "1", "--checkpoint", str(checkpoint)
+    )
     assert evaluation.returncode == 0, evaluation.stderr
     assert re.search(r"1 evaluation episodes: success \d+%, distance [\d.]+, return -?[\d.]+", evaluation.stdout)
     mismatched = run_script("dgrl_hrac.py", "--env-id", "AntPush", "--groups", "0", "--checkpoint", str(checkpoint))
-    assert mismatched.returncode != 0
-    assert "was saved with other settings: pass --groups 16 --hidden-dim 32" in mismatched.stderr
+    assert_clean_refusal(mismatched, "was saved with other settings: pass --groups 16 --hidden-dim 32")
 
 
-def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved(tmp_path):
-    flags = ["--total-timesteps", "100000", "--ctrl-updates", "2", "--man-updates", "1", "--batch-size", "8",
-             "--eval-episodes", "1", "--hidden-dim", "32", "--save-model", "--groups", "0"]  # fmt: skip
+def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved_and_the_logs_flushed(run_script, tmp_path):
+    """SIGINT after the first progress line: exit status 0, a checkpoint that --checkpoint evaluates, the scalars logged
+    so far in the TensorBoard file. Then SIGTERM during a long --checkpoint evaluation ends it after its current
+    episode."""
+    flags = [
+        "--total-timesteps",
+        "100000",
+        "--ctrl-updates",
+        "2",
+        "--man-updates",
+        "1",
+        "--batch-size",
+        "8",
+        "--eval-frequency",
+        "500",
+        "--eval-episodes",
+        "1",
+        "--hidden-dim",
+        "32",
+        "--save-model",
+        "--groups",
+        "0",
+    ]
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen([sys.executable, str(ROOT / "dgrl_hrac.py"), *flags], cwd=tmp_path, env=env,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
-    assert "AntMaze__G0__" in process.stdout.readline()  # the run has started
-    time.sleep(3)
+    process = subprocess.Popen(
+        [sys.executable, str(ROOT / "dgrl_hrac.py"), *flags],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    lines = []
+    while not lines or "eval success" not in lines[-1]:  # the first progress line: an episode trained and evaluated
+        lines.append(process.stdout.readline())
+        assert lines[-1], "the run ended before its first progress line"
     process.send_signal(signal.SIGINT)
     out, err = process.communicate(timeout=120)
     assert process.returncode == 0, err
+    assert "Traceback" not in err
     assert re.search(r"stopped: \d+ steps", out), out
-    assert list(tmp_path.glob("runs/*/dgrl_hrac.cleanrl_model"))
-
-
-def test_bad_flag_fails_before_any_work(run_script, tmp_path):
-    result = run_script("dgrl_hrac.py", "--env-id", "AntMaze2", "--groups", "5")
-    assert result.returncode != 0
-    assert "--env-id 'AntMaze2' is unknown: use one of AntMaze, AntMazeSparse" in result.stderr
-    assert "--groups must be 0 (HRAC) or divide --embed-dim 64" in result.stderr
-    assert not (tmp_path / "runs").exists()
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_hrac.cleanrl_model"))
+    events = EventAccumulator(str(checkpoint.parent))
+    events.Reload()
+    assert {"eval/final_distance", "charts/episodic_return", "losses/controller_critic_loss"} <= set(events.Tags()["scalars"])
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            str(ROOT / "dgrl_hrac.py"),
+            "--groups",
+            "0",
+            "--hidden-dim",
+            "32",
+            "--eval-episodes",
+            "1000",
+            "--checkpoint",
+            str(checkpoint),
+        ],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert process.stdout.readline().startswith("evaluating")  # the checkpoint is loaded, the first episode under way
+    time.sleep(1)
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err
+    episodes = int(re.search(r"(\d+) evaluation episodes: success", out).group(1))
+    assert 1 <= episodes < 1000

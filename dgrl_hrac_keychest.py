@@ -465,7 +465,7 @@ def make_agent(args: Args, device: torch.device) -> Agent:
         ).to(device)  # DGRL
     goal_input_dim = args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
     controller = Controller(goal_input_dim, args.hidden_dim).to(device)
-    adjacency = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device)
+    adjacency = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device).requires_grad_(False)  # train_adjacency only
     return Agent(
         actor=actor,
         critic=critic,
@@ -1061,7 +1061,7 @@ if __name__ == "__main__":
     evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}
 
     if args.checkpoint is not None:
-        must_match = MUST_MATCH if dgrl else tuple(key for key in MUST_MATCH if key not in DGRL_MUST_MATCH)  # DGRL
+        must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: the autoencoder's flags only matter under DGRL
         saved = load_checkpoint(args.checkpoint, args, must_match, device)
         agent.load_state_dicts(saved)
         for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):

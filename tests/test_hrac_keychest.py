@@ -1,15 +1,23 @@
-"""dgrl_hrac_keychest.py: Key-Chest layout and dynamics, BFS and adjacency labels, HRAC's losses, the subgoal
-autoencoder, subgoal proposals, smoke runs."""
+"""dgrl_hrac_keychest.py: Key-Chest layout and dynamics, BFS and adjacency labels, HRAC's losses, the agent and its
+updates, the subgoal autoencoder, subgoal proposals, smoke runs, checkpoints, Ctrl-C and flag validation."""
 
+import os
 import re
+import signal
+import subprocess
+import sys
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_hrac_keychest as kc
 
-# The reference layout (shared/reference/hrac-keychest.md): K key, B chest, S nominal start.
+# HRAC's Key-Chest layout as its authors' code draws it: 13 rows x 17 columns, `w` wall, K key at (row 6, col 1), B chest
+# at (2, 1), S the nominal start (11, 7); 128 free cells. The state is (row, col, has_key); the high level's goal space is
+# the cell (row, col). Rewards: +1 on first entering K, +5 on entering B with the key (the episode ends); 500 steps at most.
 REFERENCE_LAYOUT = """\
 wwwwwwwwwwwwwwwww
 w               w
@@ -92,12 +100,37 @@ def test_chest_pays_and_terminates_only_with_the_key():
     _, reward, terminated, truncated, _ = env.step([DOWN])
     assert reward[0] == 0.0 and not terminated[0] and tuple(env.position[0]) == kc.CHEST_CELL
     place(env, 1, 1, has_key=True)
-    env.episode_return[:] = 1.0
     observations, reward, terminated, truncated, infos = env.step([DOWN])
     assert reward[0] == kc.CHEST_REWARD == 5.0 and terminated[0] and not truncated[0]
     np.testing.assert_array_equal(infos["final_obs"][0], [2, 1, 1])  # the true last state, with the key
-    assert infos["_final_obs"][0] and infos["episode"]["r"][0] == 6.0 and infos["episode"]["l"][0] == 2
+    assert infos["_final_obs"][0] and "episode" not in infos  # episode statistics are the wrapper's (next test)
     assert observations[0, 2] == 0 and env.elapsed[0] == 0  # reset in the same step (SAME_STEP autoreset)
+
+
+def test_record_episode_statistics_wraps_the_env():
+    """gymnasium's vector RecordEpisodeStatistics refuses an env that writes infos["episode"] itself; this one does not,
+    so the wrapper reports the episodes' returns and lengths, SAME_STEP autoreset included."""
+    env = kc.KeyChestVecEnv(2, max_episode_steps=4, random_action_prob=0.0)
+    wrapped = gym.wrappers.vector.RecordEpisodeStatistics(env)
+    wrapped.reset(seed=0)
+    env.position[:] = [(7, 1), (4, 5)]  # env 0 below the key
+    wrapped.step(np.array([UP, LEFT]))  # env 0 takes the key: +1
+    env.position[0] = (1, 1)
+    _, _, terminated, _, infos = wrapped.step(np.array([DOWN, LEFT]))  # env 0 opens the chest: +5 in 2 steps
+    assert terminated.tolist() == [True, False] and infos["_episode"].tolist() == [True, False]
+    assert infos["episode"]["r"][0] == 6.0 and infos["episode"]["l"][0] == 2
+    for _ in range(2):
+        _, _, _, truncated, infos = wrapped.step(np.array([LEFT, LEFT]))
+    assert truncated.tolist() == [False, True]  # env 1 reached its 4-step limit; env 0's new episode is 2 steps old
+    assert infos["episode"]["r"][1] == 0.0 and infos["episode"]["l"][1] == 4
+
+
+@pytest.mark.parametrize("actions", [[4], [-1], [1.0], [0, 1]])
+def test_invalid_actions_are_refused(actions):
+    env = make_env()
+    with pytest.raises(ValueError, match=r"expected 1 integer actions in \[0, 3\]"):
+        env.step(np.array(actions))
+    env.step(np.array([UP], dtype=np.int32))  # any integer dtype is fine
 
 
 def test_pure_exploration_mode_does_not_end_at_the_chest():
@@ -113,7 +146,7 @@ def test_truncation_at_the_step_limit():
         _, _, terminated, truncated, infos = env.step([LEFT, RIGHT])
         assert not terminated.any()
         assert truncated.all() == (step == 4)
-    assert (infos["episode"]["l"] == 5).all()
+    assert infos["_final_obs"].all() and (env.elapsed == 0).all()
 
 
 def test_start_cells_are_uniform_over_all_free_cells():
@@ -272,16 +305,13 @@ def test_contrastive_loss_matches_its_formula():
 
 def test_goal_autoencoder_round_trip_separates_cells():
     torch.manual_seed(0)
-    ae = kc.GoalAutoencoder(embed_dim=64, hidden_dim=128, groups=16, n_embed=64, beta=0.25, decay=0.99, dead=0)
-    optimizer = torch.optim.Adam(ae.parameters(), lr=1e-3)
-    scale = torch.as_tensor(kc.GOAL_SCALE)
-    for _ in range(2000):  # the script's --ae-init-steps
-        goals = torch.rand(256, 2) * scale
+    agent = kc.make_agent(kc.Args(groups=16, hidden_dim=8), torch.device("cpu"))  # the paper's G = 16, L = 64, m = 64
+    ae = agent.goal_ae
+    for _ in range(2000):  # the script's --ae-init-steps, at its --ae-batch-size
+        goals = kc.uniform_subgoals(256, torch.device("cpu"))
         _, vq_loss, _, reconstruction = ae(goals, update=True)
-        loss = torch.nn.functional.mse_loss(reconstruction, goals / scale) + vq_loss
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        kc.goal_autoencoder_step(agent, goals, reconstruction, vq_loss)
+    scale = torch.as_tensor(kc.GOAL_SCALE)
     cells = torch.as_tensor(kc.FREE_CELLS, dtype=torch.float32)
     codebook = ae.vq.codebook.clone()
     with torch.no_grad():
@@ -297,7 +327,7 @@ def test_goal_autoencoder_round_trip_separates_cells():
 
 def test_controller_goals_in_each_mode():
     torch.manual_seed(0)
-    ae = kc.GoalAutoencoder(embed_dim=16, hidden_dim=32, groups=4, n_embed=8, beta=0.25, decay=0.99, dead=0)
+    ae = kc.GoalAutoencoder(embed_dim=16, hidden_dim=32, groups=4, n_embed=8, beta=0.25, decay=0.99, dead_code_steps=0)
     goals = torch.tensor([[3.0, 4.0], [11.0, 15.0]])
     inputs, targets, extra = kc.controller_goals(None, goals, "decoded")
     assert inputs is goals and targets is goals and extra is None  # HRAC: the raw subgoal, rewarded as it is
@@ -316,7 +346,7 @@ def test_controller_goals_in_each_mode():
 
 def test_propose_subgoals_filters_by_adjacency():
     torch.manual_seed(0)
-    args = kc.Args(n_noisy_goals=20, man_noise_sigma=5.0)
+    noise = {"threshold": 1.1, "n_noisy_goals": 20, "noise": 5.0}
     actor = kc.ManagerActor(16)
     states = torch.tensor([[11.0, 7.0, 0.0], [1.0, 1.0, 1.0]])
 
@@ -325,8 +355,8 @@ def test_propose_subgoals_filters_by_adjacency():
             return cells
 
     raw = actor(states)
-    assert torch.equal(kc.propose_subgoals(actor, Coordinates(), states, args, 1.1, explore=False), raw)
-    goals = kc.propose_subgoals(actor, Coordinates(), states, args, 1.1, explore=True)
+    assert torch.equal(kc.propose_subgoals(actor, Coordinates(), states, explore=False, **noise), raw)
+    goals = kc.propose_subgoals(actor, Coordinates(), states, explore=True, **noise)
     assert goals.shape == (2, 2) and (goals >= 0).all() and (goals <= torch.as_tensor(kc.GOAL_SCALE)).all()
     chosen_near = (goals - states[:, :2]).norm(dim=1) < 1.1
     assert (chosen_near | (goals == raw).all(1)).all()  # a reachable candidate, or else the noiseless output
@@ -335,7 +365,7 @@ def test_propose_subgoals_filters_by_adjacency():
         def forward(self, cells):
             return cells * 100
 
-    assert torch.equal(kc.propose_subgoals(actor, Far(), states, args, 1.1, explore=True), raw)
+    assert torch.equal(kc.propose_subgoals(actor, Far(), states, explore=True, **noise), raw)
 
 
 def test_manager_replay_is_a_ring():
@@ -351,54 +381,221 @@ def test_manager_replay_is_a_ring():
     assert torch.equal(states[:, 0], rewards) and torch.equal(goals[:, 1], rewards)
 
 
-# --- smoke runs -------------------------------------------------------------------------------------------------------
+# --- the agent and its updates ----------------------------------------------------------------------------------------
 
-TINY = [
-    "--total-timesteps", "3000", "--num-envs", "4", "--max-episode-steps", "100", "--adj-init-steps", "800",
-    "--adj-init-epochs", "1", "--adj-training-freq", "1200", "--adj-training-epochs", "1", "--man-buffer-size", "200",
-    "--eval-frequency", "4", "--eval-episodes", "4", "--hidden-dim", "32", "--ae-init-steps", "5",
-]  # fmt: skip
+SMALL = {"hidden_dim": 16, "adj_hidden_dim": 8, "adj_embed_dim": 4, "embed_dim": 16, "ae_hidden_dim": 8}
+
+
+def parameters(module: torch.nn.Module) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in module.parameters()]).clone()
+
+
+@pytest.mark.parametrize(
+    ("groups", "dgrl_goal", "goal_inputs"), [(0, "embedding", 2), (4, "decoded", 2), (4, "embedding", 16)]
+)
+def test_make_agent_wires_the_flags(groups, dgrl_goal, goal_inputs):
+    agent = kc.make_agent(kc.Args(groups=groups, dgrl_goal=dgrl_goal, **SMALL), torch.device("cpu"))
+    assert (agent.goal_ae is None) == (agent.ae_optimizer is None) == (groups == 0)
+    assert agent.controller.policy[0].in_features == 3 + goal_inputs  # the embedding replaces the 2-d subgoal
+    assert agent.actor.net[0].out_features == 16 and agent.adjacency.net[-1].out_features == 4
+    assert agent.actor_target is not agent.actor and torch.equal(parameters(agent.actor_target), parameters(agent.actor))
+    assert not any(p.requires_grad for p in agent.actor_target.parameters())
+    assert not any(p.requires_grad for p in agent.adjacency.parameters())  # only train_adjacency trains it
+    for optimizer, module in [
+        (agent.actor_optimizer, agent.actor),
+        (agent.critic_optimizer, agent.critic),
+        (agent.controller_optimizer, agent.controller),
+        (agent.adjacency_optimizer, agent.adjacency),
+        *([(agent.ae_optimizer, agent.goal_ae)] if groups else []),
+    ]:
+        assert {id(p) for group in optimizer.param_groups for p in group["params"]} == {id(p) for p in module.parameters()}
+    if groups:
+        assert "vq.codebook" in agent.state_dicts()["goal_autoencoder"]  # the checkpoint keeps the codebook
+    else:
+        assert agent.state_dicts()["goal_autoencoder"] is None
+
+
+def test_manager_update_trains_both_nets_and_moves_the_targets_but_not_the_adjacency_net():
+    agent = kc.make_agent(kc.Args(groups=0, **SMALL), torch.device("cpu"))
+    replay = kc.ManagerReplay(64, np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    replay.add(rng.random((64, 3)) * 10, rng.random((64, 2)) * 10, rng.random(64), rng.random((64, 3)) * 10, np.zeros(64))
+    before = {name: parameters(getattr(agent, name)) for name in ("actor", "critic", "actor_target", "critic_target")}
+    adjacency = parameters(agent.adjacency)
+    figures = kc.manager_update(
+        agent, replay.sample(32, torch.device("cpu")), gamma=0.99, tau=0.5, adj_weight=20.0, threshold=0.0, policy_term=True
+    )
+    for name, values in before.items():
+        assert not torch.equal(parameters(getattr(agent, name)), values), name
+    assert torch.equal(parameters(agent.adjacency), adjacency)
+    assert all(p.grad is None for p in agent.adjacency.parameters())
+    assert figures["losses/man_goal_loss"] > 0  # threshold 0: every proposal is "too far", so the adjacency term acts
+    assert set(figures) == {"losses/man_critic_loss", "losses/man_goal_loss", "losses/man_q_values"}
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_controller_update_trains_the_low_level_and_under_dgrl_the_autoencoder(groups):
+    agent = kc.make_agent(kc.Args(groups=groups, n_embed=8, **SMALL), torch.device("cpu"))
+    states = torch.tensor([[11.0, 7.0, 0.0]] * 12)
+    goals = torch.tensor([[11.0, 8.0]] * 12)
+    next_states = torch.tensor([[11.0, 8.0, 0.0]] * 12)  # every step ends on the raw subgoal
+    controller = parameters(agent.controller)
+    autoencoder = None if agent.goal_ae is None else (parameters(agent.goal_ae), agent.goal_ae.vq.codebook.clone())
+    figures = kc.controller_update(
+        agent, states, goals, torch.zeros(12, dtype=torch.long), next_states,
+        k=5, gamma=0.9, entropy_coef=0.01, reward_scale=1.0, goal_threshold=0.5,
+    )  # fmt: skip
+    assert not torch.equal(parameters(agent.controller), controller)
+    if groups:  # the autoencoder's step, and the EMA update of its codebook
+        assert not torch.equal(parameters(agent.goal_ae), autoencoder[0])
+        assert not torch.equal(agent.goal_ae.vq.codebook, autoencoder[1])
+        assert {"vq/perplexity", "vq/active_codes", "vq/commit_loss", "losses/goal_reconstruction"} <= set(figures)
+    else:  # HRAC's reward: every step reaches the raw subgoal, so every 5-step segment counts as reached
+        assert figures["charts/intrinsic_reward"] == 1.0 and figures["charts/subgoal_reach_rate"] == 1.0
+        assert not any(key.startswith("vq/") for key in figures)
+
+
+# --- smoke runs, checkpoints, Ctrl-C ----------------------------------------------------------------------------------
+
+TINY = {
+    "total_timesteps": 3000, "num_envs": 4, "max_episode_steps": 100, "adj_init_steps": 800, "adj_init_epochs": 1,
+    "adj_frequency": 1200, "adj_epochs": 1, "man_buffer_size": 200, "eval_frequency": 400, "log_frequency": 400,
+    "eval_episodes": 4, "hidden_dim": 32, "ae_init_steps": 5,
+}  # fmt: skip
+
+
+def tiny(**changes) -> list[str]:
+    """The flags of a few-second run: exploration to frame 800, updates from 1800, evaluations every 400 frames."""
+    return [text for key, value in (TINY | changes).items() for text in (f"--{key.replace('_', '-')}", str(value))]
+
+
+def scalars(run_dir) -> dict[str, list[float]]:
+    accumulator = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    accumulator.Reload()
+    return {tag: [event.value for event in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}
 
 
 @pytest.mark.parametrize(("groups", "dgrl_goal"), [("0", "decoded"), ("16", "decoded"), ("16", "embedding")])
 def test_smoke_run_trains_evaluates_and_reloads(run_script, tmp_path, groups, dgrl_goal):
     flags = ("--groups", groups, "--dgrl-goal", dgrl_goal)
-    result = run_script("dgrl_hrac_keychest.py", *TINY, *flags, "--save-model", "--capture-video")
+    result = run_script("dgrl_hrac_keychest.py", *tiny(), *flags, "--save-model", "--capture-video")
     assert result.returncode == 0, result.stderr
     assert "adjacency pre-training" in result.stdout and "eval return" in result.stdout
     assert ("distinct cells" in result.stdout) == (groups != "0")
     checkpoint = next(tmp_path.glob("runs/*/dgrl_hrac_keychest.cleanrl_model"))
-    saved = torch.load(checkpoint, weights_only=False)
+    saved = torch.load(checkpoint, weights_only=True)
+    assert saved["script"] == "dgrl_hrac_keychest.py" and saved["format"] == kc.CHECKPOINT_FORMAT
+    assert saved["args"]["hidden_dim"] == 32
     assert (saved["goal_autoencoder"] is None) == (groups == "0")
     if groups != "0":
         assert "vq.codebook" in saved["goal_autoencoder"] and "vq.ema_count" in saved["goal_autoencoder"]
     assert list(tmp_path.glob("videos/*/eval_*.mp4"))
-    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
-    for tag in (b"eval/return", b"eval/return_random_subgoals", b"charts/SPS", b"charts/adjacency_accuracy"):
-        assert tag in events
-    assert (b"vq/perplexity" in events) == (groups != "0")
-    reloaded = run_script(
-        "dgrl_hrac_keychest.py", *flags, "--hidden-dim", "32", "--eval-episodes", "3", "--checkpoint", str(checkpoint)
-    )
+    logged = scalars(checkpoint.parent)
+    assert len(logged["eval/return"]) == 5  # frames 1200, 1600, ..., 2800: every 400 frames after the exploration
+    for tag in ("eval/return_random_subgoals", "charts/SPS", "charts/adjacency_accuracy", "losses/man_critic_loss"):
+        assert tag in logged
+    assert ("vq/perplexity" in logged) == (groups != "0")
+    # Flags that leave the networks and what evaluation measures alone (here --n-noisy-goals) may differ.
+    reload_flags = (*flags, "--hidden-dim", "32", "--max-episode-steps", "100", "--eval-episodes", "3", "--n-noisy-goals", "3")
+    reloaded = run_script("dgrl_hrac_keychest.py", *reload_flags, "--checkpoint", str(checkpoint))
     assert reloaded.returncode == 0, reloaded.stderr
     assert re.search(r"3 episodes: return [\d.]+", reloaded.stdout)
     assert re.search(r"3 episodes with uniform random subgoals: return [\d.]+", reloaded.stdout)
-    mismatched = run_script("dgrl_hrac_keychest.py", "--groups", "8", "--checkpoint", str(checkpoint))
-    assert mismatched.returncode != 0 and "was saved with other networks: pass --groups" in mismatched.stderr
+    if dgrl_goal == "embedding":  # a checkpoint saved with other settings names the flags to pass
+        changed = run_script("dgrl_hrac_keychest.py", "--groups", "8", "--checkpoint", str(checkpoint))
+        assert changed.returncode == 2 and "Traceback" not in changed.stderr
+        pass_flags = "pass --max-episode-steps 100 --hidden-dim 32 --groups 16 --dgrl-goal embedding"
+        assert f"was saved with other settings: {pass_flags}" in changed.stderr
 
 
-@pytest.mark.parametrize(
-    ("flags", "message"),
-    [
-        (["--groups", "5"], "--groups must be 0 (HRAC) or divide --embed-dim 64"),
-        (["--num-envs", "0"], "--num-envs must be >= 1"),
-        (["--random-action-prob", "1.5"], "--random-action-prob must be in [0, 1]"),
-        (["--man-buffer-size", "100"], "--man-batch-size (64) must be <= half of --man-buffer-size (100)"),
-        (["--checkpoint", "missing.pt"], "--checkpoint missing.pt: no such file"),
-    ],
-)
-def test_bad_flags_fail_before_any_work(run_script, tmp_path, flags, message):
-    result = run_script("dgrl_hrac_keychest.py", *flags)
-    assert result.returncode != 0
-    assert message in result.stderr
+def test_ctrl_c_stops_with_the_checkpoint_written_and_the_logs_flushed(run_script, tmp_path):
+    flags = [*tiny(total_timesteps=10_000_000), "--save-model"]
+    environment = {"PATH": "/usr/bin:/bin", "PYTHONPATH": os.path.dirname(kc.__file__), "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen(
+        [sys.executable, kc.__file__, *flags], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=environment,
+    )  # fmt: skip
+    lines = []
+    try:
+        for line in process.stdout:  # wait until training runs: the third evaluation (frame 2000) follows the first updates
+            lines.append(line)
+            if sum("eval return" in text for text in lines) == 3:
+                break
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    stdout = "".join(lines) + stdout
+    assert process.returncode == 0, stderr
+    assert "Traceback" not in stderr and "stopped:" in stdout
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_hrac_keychest.cleanrl_model"))
+    assert f"checkpoint: {os.path.relpath(checkpoint, tmp_path)}" in stdout
+    logged = scalars(checkpoint.parent)
+    assert len(logged["eval/return"]) == stdout.count("eval return") >= 3  # every evaluation's scalars reached the disk
+    reloaded = run_script(
+        "dgrl_hrac_keychest.py", "--max-episode-steps", "100", "--hidden-dim", "32", "--eval-episodes", "2",
+        "--checkpoint", str(checkpoint),
+    )  # fmt: skip
+    assert reloaded.returncode == 0, reloaded.stderr
+    assert "2 episodes: return" in reloaded.stdout
+
+
+# --- bad flags: a clean exit 2 before any work, naming the flag -------------------------------------------------------
+
+
+def assert_refused(result, tmp_path, *messages: str) -> None:
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    for message in messages:
+        assert message in result.stderr, (message, result.stderr)
     assert not (tmp_path / "runs").exists()
+
+
+def test_out_of_range_flags_are_refused(run_script, tmp_path):
+    result = run_script(
+        "dgrl_hrac_keychest.py", "--man-gamma", "1.5", "--ctrl-gamma", "0", "--man-tau", "0", "--goal-threshold", "-1",
+        "--ctrl-lr", "-1", "--vq-decay", "1.5", "--seed", "-1", "--num-envs", "0", "--random-action-prob", "1.5",
+        "--man-noise", "nan", "--adj-weight", "-1", "--adj-margin-neg", "0", "--log-frequency", "0",
+    )  # fmt: skip
+    assert_refused(
+        result,
+        tmp_path,
+        "--man-gamma must be in (0, 1]; got 1.5",
+        "--ctrl-gamma must be in (0, 1]; got 0.0",
+        "--man-tau must be in (0, 1]; got 0.0",
+        "--goal-threshold must be > 0; got -1.0",
+        "--ctrl-lr must be > 0; got -1.0",  # Adam's own ValueError came after runs/ was created
+        "--vq-decay must be in [0, 1); got 1.5",  # so did the codebook's
+        "--seed must be >= 0; got -1",  # numpy's seeding raised a ValueError
+        "--num-envs must be >= 1; got 0",
+        "--random-action-prob must be in [0, 1]; got 1.5",
+        "--man-noise must be a finite number; got nan",
+        "--adj-weight must be >= 0; got -1.0",
+        "--adj-margin-neg must be > 0; got 0.0",
+        "--log-frequency must be >= 1; got 0",
+    )
+
+
+def test_inconsistent_flags_are_refused(run_script, tmp_path):
+    result = run_script(
+        "dgrl_hrac_keychest.py", "--groups", "5", "--k", "200", "--max-episode-steps", "100", "--man-buffer-size", "100",
+        "--adj-margin-pos", "2",
+    )  # fmt: skip
+    assert_refused(
+        result,
+        tmp_path,
+        "--groups must be 0 (HRAC) or divide --embed-dim 64",
+        "--k (200) must be <= --max-episode-steps (100)",  # evaluation found no complete segment and crashed
+        "--man-batch-size (64) must be <= half of --man-buffer-size (100)",
+        "--adj-margin-pos (2.0) must be <= --adj-margin-neg (1.2)",
+    )
+
+
+def test_a_budget_without_updates_or_evaluations_is_refused(run_script, tmp_path):
+    # 800 frames of exploration, then half of 200 transitions at one per 10 frames: the first update comes at 1800.
+    assert_refused(
+        run_script("dgrl_hrac_keychest.py", *tiny(total_timesteps=1500, eval_frequency=2000)),
+        tmp_path,
+        "--total-timesteps (1500) must be >= 1800, or no update runs",
+        "--eval-frequency (2000) leaves no evaluation: the first would be at frame 2000, after --total-timesteps (1500)",
+    )

@@ -10,6 +10,7 @@ likely cell written in the title. The env id comes from the checkpoint. Prints, 
 its mean largest cell probability and how often that cell is a wall.
 """
 
+import inspect
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +25,8 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import dgrl_amigo as amigo
+
+AGENT_FLAGS = [name for name, p in inspect.signature(amigo.make_agent).parameters.items() if p.kind is p.KEYWORD_ONLY]
 
 
 @dataclass
@@ -41,17 +44,18 @@ class Args:
 def teacher_maps(checkpoint: str, seeds: int) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], str]:
     """One checkpoint's teacher on the layouts of env seeds 0 .. seeds - 1: a list of (rendered frame, goal
     probabilities as (W, H), wall mask as (W, H)), and a label for the checkpoint."""
-    saved = torch.load(checkpoint, map_location="cpu")
-    envs = amigo.MiniGridVecEnv(saved["args"]["env_id"], 1, render_env0=True)
-    teacher = amigo.Teacher(envs.width, envs.height)
-    teacher.load_state_dict(saved["teacher"])
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    flags = saved["args"]
+    envs = amigo.MiniGridVecEnv(flags["env_id"], 1, render_env0=True)
+    agent = amigo.make_agent(envs.width, envs.height, envs.n_actions, "cpu", **{name: flags[name] for name in AGENT_FLAGS})
+    agent.load_state_dicts(saved)
     maps = []
     for seed in range(seeds):
-        grids, _ = envs.reset(seed=seed)
+        grids = envs.reset(seed=seed)[0]["grid"]
         with torch.no_grad():
-            logits, _ = teacher(torch.as_tensor(grids))
+            logits, _ = agent.teacher(torch.as_tensor(grids))
         probs = torch.softmax(logits, -1).view(envs.width, envs.height).numpy()
-        maps.append((envs.render(), probs, grids[0, ..., 0] == amigo.OBJECT_TO_IDX["wall"]))
+        maps.append((envs.render()[0], probs, grids[0, ..., 0] == amigo.OBJECT_TO_IDX["wall"]))
     return maps, f"G{saved['args']['groups']} seed {saved['args']['seed']}, t* {saved['t_star']}"
 
 

@@ -5,11 +5,13 @@
 Prints one line per measurement:
 - env: 16 fully observed envs stepped with random actions, as gymnasium's SyncVectorEnv of
   ImgObsWrapper(FullyObsWrapper(env)) and as the script's MiniGridVecEnv (no egocentric view);
-- update: one student learner step (8 rollouts of 100 steps, V-trace, RMSProp) with --groups 0 and 16;
+- update: one student learner step (8 rollouts of 100 steps, V-trace, RMSProp) with --groups 0 and 16, on the agent
+  the script's make_agent builds with its default flags;
 - training: the script itself for 160,000 frames, one process on one thread, its final SPS (frames per second with
   acting, goal bookkeeping and all updates; the first collection's start-up included).
 """
 
+import inspect
 import re
 import subprocess
 import sys
@@ -27,6 +29,7 @@ import dgrl_amigo as amigo
 ROOT = Path(__file__).resolve().parents[1]
 
 ENVS = ("MiniGrid-DoorKey-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-KeyCorridorS3R3-v0")
+AGENT_FLAGS = [name for name, p in inspect.signature(amigo.make_agent).parameters.items() if p.kind is p.KEYWORD_ONLY]
 
 
 def sync_vector_speed(env_id: str, n: int = 16, steps: int = 500) -> float:
@@ -55,10 +58,11 @@ def update_time(env_id: str, groups: int, repeats: int = 10) -> float:
     args = amigo.Args(env_id=env_id, groups=groups)
     envs = amigo.MiniGridVecEnv(env_id, args.batch_envs)
     w, h, t, b = envs.width, envs.height, args.num_steps, args.batch_envs
-    student = amigo.Student(w, h, envs.n_actions, args.goal_channel, args.embed_dim)
-    encoder = amigo.GoalEncoder(w, h, args.embed_dim, args)
-    optimizer = torch.optim.RMSprop([*student.parameters(), *encoder.parameters()], lr=1e-3, alpha=0.99, eps=0.01)
-    grids, carry = envs.reset(seed=0)
+    cpu = torch.device("cpu")
+    agent = amigo.make_agent(w, h, envs.n_actions, cpu, **{name: getattr(args, name) for name in AGENT_FLAGS})
+    hyper = {name: getattr(args, name) for name in ("gamma", "baseline_coef", "entropy_coef", "max_grad_norm")}
+    obs, _ = envs.reset(seed=0)
+    grids, carry = obs["grid"], obs["carried"]
     rng = np.random.default_rng(0)
     rollout = {
         "grids": np.repeat(grids[None], t, 0),
@@ -71,10 +75,10 @@ def update_time(env_id: str, groups: int, repeats: int = 10) -> float:
         "dones": (rng.random((t, b)) < 0.01).astype(np.float32),
     }
     last = {"grids": grids, "carried": carry, "goal_frames": grids, "goals": rng.integers(w * h, size=b)}
-    amigo.student_update(student, encoder, optimizer, rollout, last, args, torch.device("cpu"))
+    amigo.student_update(agent, rollout, last, cpu, **hyper)
     start = time.perf_counter()
     for _ in range(repeats):
-        amigo.student_update(student, encoder, optimizer, rollout, last, args, torch.device("cpu"))
+        amigo.student_update(agent, rollout, last, cpu, **hyper)
     return (time.perf_counter() - start) / repeats
 
 

@@ -40,11 +40,31 @@ class Args:
     """steps of the whole-script measurement (0 skips it)"""
 
 
-def build(groups: int, device: str):
-    """The script's agent on AntMaze (30-d state, 8 torques), as its training loop builds it."""
+def build(groups: int, device: str) -> tuple[hrac.Args, np.ndarray, hrac.Agent]:
+    """The script's agent on AntMaze (30-d state, 8 torques) with the script's default flags, built by its make_agent."""
     args = hrac.Args(groups=groups)
-    nets, optimizers = hrac.make_agent(args, 30, 8, torch.device(device))
-    return args, hrac.subgoal_bounds("AntMaze", args.subgoal_scale), nets, optimizers["manager"], optimizers["controller"]
+    bounds = hrac.subgoal_bounds(args.env_id, args.subgoal_scale)
+    agent = hrac.make_agent(
+        30,
+        8,
+        bounds,
+        hrac.MANAGER_GOAL_DIMS[args.env_id],
+        hidden_dim=args.hidden_dim,
+        actor_lr=args.actor_lr,
+        critic_lr=args.critic_lr,
+        critic_weight_decay=args.critic_weight_decay,
+        adj_lr=args.adj_lr,
+        groups=args.groups,
+        n_embed=args.n_embed,
+        embed_dim=args.embed_dim,
+        encoder_hidden_dim=args.encoder_hidden_dim,
+        encoder_lr=args.encoder_lr,
+        vq_beta=args.vq_beta,
+        vq_decay=args.vq_decay,
+        vq_dead_code_steps=args.vq_dead_code_steps,
+        device=torch.device(device),
+    )
+    return args, bounds, agent
 
 
 def timed(fn, repeats: int) -> float:
@@ -61,7 +81,7 @@ def timed(fn, repeats: int) -> float:
 
 
 def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
-    args, bounds, nets, man_opt, ctrl_opt = build(groups, cli.device)
+    args, bounds, agent = build(groups, cli.device)
     ctrl_replay = hrac.Replay(20_000, states=(30,), goals=(2,), actions=(8,), rewards=(), next_states=(30,),
                               next_goals=(2,), dones=())  # fmt: skip
     man_replay = hrac.Replay(2_000, states=(30,), goals=(2,), actions=(2,), rewards=(), next_states=(30,), dones=(),
@@ -70,9 +90,31 @@ def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
         for array in replay.fields.values():
             array[:] = rng.normal(size=array.shape)
         replay.size = replay.capacity
-    act = timed(lambda: hrac.controller_action(nets, rng.normal(size=30), rng.normal(size=2), 1.0, rng), 500)
-    ctrl = timed(lambda: hrac.controller_update(nets, ctrl_opt, ctrl_replay, args, rng, cli.device), 100)
-    man = timed(lambda: hrac.manager_update(nets, man_opt, man_replay, args, bounds, rng, cli.device), 20)
+    td3 = {"tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
+    threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2
+
+    def controller_step():
+        sample = ctrl_replay.sample(args.batch_size, rng)
+        hrac.controller_update(agent, sample, device=cli.device, gamma=args.ctrl_gamma, **td3)
+
+    def manager_step():
+        sample = man_replay.sample(args.batch_size, rng)
+        hrac.manager_update(
+            agent,
+            sample,
+            rng=rng,
+            device=cli.device,
+            bounds=bounds,
+            gamma=args.man_gamma,
+            **td3,
+            correction_samples=args.correction_samples,
+            adj_weight=args.adj_weight,
+            adj_threshold=threshold,
+        )
+
+    act = timed(lambda: hrac.controller_action(agent, rng.normal(size=30), rng.normal(size=2), noise=1.0, rng=rng), 500)
+    ctrl = timed(controller_step, 100)
+    man = timed(manager_step, 20)
     episode = 500 * act + 500 * ctrl + 50 * man
     print(
         f"G{groups:<2} ({cli.device}, {cli.threads} thread): act {act * 1e6:.0f} us, "

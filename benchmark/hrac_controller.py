@@ -2,7 +2,7 @@
 
     python benchmark/hrac_controller.py runs/AntMaze__G*__cpu__1__*/cpu.cleanrl_model   # the study's checkpoints
 
-For each checkpoint (and an untrained controller of the same architecture) the ant starts from a reset of AntMaze's open
+For each checkpoint (and an untrained agent of the same flags, seed 0) the ant starts from a reset of AntMaze's open
 start cell and is given, for 5 segments of k = 10 steps, the relative subgoal that points at one fixed point 4 m away
 (re-targeted after every step, re-issued at every segment start, as the manager would), in 8 directions, with
 deterministic actions. Prints the mean final distance to the point (4.0 = the ant did not get closer) and the mean
@@ -19,24 +19,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import dgrl_hrac as hrac
 
 
-def controller_from(path: str | None, saved_args: dict) -> dict:
-    args = hrac.Args(
-        **{key: saved_args[key] for key in ("groups", "embed_dim", "n_embed", "encoder_hidden_dim", "hidden_dim")}
-    )
-    bounds = hrac.subgoal_bounds("AntMaze", saved_args["subgoal_scale"])
-    goal_input = args.embed_dim if args.groups else len(bounds)
+def agent_from(saved_args: dict) -> hrac.Agent:
+    """An untrained agent (seed 0) with a checkpoint's flags, built by the script's make_agent (a 30-d state)."""
     torch.manual_seed(0)
-    actor = hrac.Actor(30, goal_input, 8, 30.0, args.hidden_dim)
-    encoder = hrac.SubgoalEncoder(len(bounds), bounds, args) if args.groups else None
-    if path is not None:
-        saved = torch.load(path, map_location="cpu", weights_only=False)
-        actor.load_state_dict(saved["controller_actor"])
-        if encoder is not None:
-            encoder.load_state_dict(saved["subgoal_encoder"])
-    return {"controller": {"actor": actor}, "encoder": encoder}
+    bounds = hrac.subgoal_bounds(saved_args["env_id"], saved_args["subgoal_scale"])
+    flags = ("hidden_dim", "actor_lr", "critic_lr", "critic_weight_decay", "adj_lr", "groups", "n_embed", "embed_dim",
+             "encoder_hidden_dim", "encoder_lr", "vq_beta", "vq_decay", "vq_dead_code_steps")  # fmt: skip
+    manager_goal_dim = hrac.MANAGER_GOAL_DIMS[saved_args["env_id"]]
+    return hrac.make_agent(
+        30, 8, bounds, manager_goal_dim, **{name: saved_args[name] for name in flags}, device=torch.device("cpu")
+    )
 
 
-def probe(nets: dict, radius: float = 4.0, segments: int = 5, k: int = 10) -> tuple[float, float]:
+def probe(agent: hrac.Agent, radius: float = 4.0, segments: int = 5, k: int = 10) -> tuple[float, float]:
     env, rng, final = hrac.HiroAntEnv("AntMaze"), np.random.default_rng(0), []
     for direction in range(8):
         state, _ = env.reset(seed=100 + direction)
@@ -45,8 +40,9 @@ def probe(nets: dict, radius: float = 4.0, segments: int = 5, k: int = 10) -> tu
         for t in range(segments * k):
             if t % k == 0:
                 subgoal = target - state[:2]
-            next_state, *_ = env.step(hrac.controller_action(nets, state, subgoal, 0.0, rng))
-            subgoal, state = hrac.subgoal_transition(state, subgoal, next_state), next_state
+            next_state, *_ = env.step(hrac.controller_action(agent, state, subgoal, noise=0.0, rng=rng))
+            subgoal = hrac.subgoal_transition(state, subgoal, next_state)
+            state = next_state
         final.append(np.linalg.norm(target - state[:2]))
     return float(np.mean(final)), radius - float(np.mean(final))
 
@@ -55,10 +51,20 @@ if __name__ == "__main__":
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
     for path in sys.argv[1:]:
-        saved_args = torch.load(path, map_location="cpu", weights_only=False)["args"]
-        untrained = probe(controller_from(None, saved_args))
-        trained = probe(controller_from(path, saved_args))
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(saved, dict) or saved.get("script") != "dgrl_hrac.py":
+            print(f"{path}: skipped, not a checkpoint of dgrl_hrac.py", file=sys.stderr)
+            continue
+        if saved["args"]["env_id"] == "AntFall":
+            print(
+                f"{path}: skipped, an AntFall controller takes 3-d (xyz) subgoals; this probe gives 2-d ones", file=sys.stderr
+            )
+            continue
+        untrained = probe(agent_from(saved["args"]))
+        trained_agent = agent_from(saved["args"])
+        trained_agent.load_state_dicts(saved)
+        trained = probe(trained_agent)
         print(
-            f"{path}: G{saved_args['groups']}: final distance to a point 4 m away after 50 steps: untrained "
+            f"{path}: G{saved['args']['groups']}: final distance to a point 4 m away after 50 steps: untrained "
             f"{untrained[0]:.2f} (covered {untrained[1]:+.2f} m), trained {trained[0]:.2f} (covered {trained[1]:+.2f} m)"
         )

@@ -1,10 +1,10 @@
 """The HIRO Ant suite of dgrl_hrac.py: a top-down render of every env and its random-action speed.
 
-    MUJOCO_GL=egl python benchmark/hrac_envs.py --out docs/img/hrac_envs.png
+    python benchmark/hrac_envs.py --out docs/img/hrac_envs.png   # headless Linux: dgrl_hrac sets MUJOCO_GL=egl
 
 Prints env steps/s (one env, random actions, 2,000 steps after a reset) and writes one image with the five envs after a
 reset and ten zero-action steps (AntMaze, AntMazeSparse, AntPush, AntFall, AntGather from left to right; y points up,
-so the structures appear flipped top to bottom with respect to the reference's row listing).
+so the structures appear flipped top to bottom with respect to the row listing of `STRUCTURES` in dgrl_hrac.py).
 """
 
 import sys

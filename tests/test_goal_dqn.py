@@ -1,7 +1,13 @@
-"""dgrl_goal_dqn.py: maze layouts and dynamics, rendering, goal split, bonuses, InfoNCE, evaluation, smoke runs."""
+"""dgrl_goal_dqn.py: maze layouts and dynamics, rendering, goal split, bonuses, InfoNCE, evaluation, the agent's
+updates, smoke runs, checkpoints, Ctrl-C and bad flags."""
 
+import itertools
 import math
 import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -11,8 +17,10 @@ import torch.nn.functional as F
 
 import dgrl_goal_dqn as gdqn
 
+ROOT = Path(__file__).resolve().parents[1]
+
 SPIRAL_ORDER = [0, 6, 12, 18, 24, 30, 31, 32, 33, 34, 35, 29, 23, 17, 11, 5, 4, 3, 2, 1, 7, 13, 19, 25, 26, 27, 28, 22, 16, 10]
-SPIRAL_ORDER += [9, 8, 14, 20, 21, 15]  # the corridor of the reference layout, from the start corner to the centre
+SPIRAL_ORDER += [9, 8, 14, 20, 21, 15]  # one corridor, from the start corner to the centre
 
 
 def undirected_edges(layout: gdqn.MazeLayout) -> set[tuple[int, int]]:
@@ -206,15 +214,30 @@ def test_evaluate_with_an_optimal_q_function_takes_shortest_paths(name):
         return -distances[next_cell[cells], goals.unsqueeze(1)].float()
 
     goals = np.array([1, 15, 28, 35])
-    reached, steps = gdqn.evaluate(_identity_rep, optimal_q, _OneHotEmbedder(), layout, goals, max_steps=100)
+    reached, steps, path = gdqn.evaluate(_identity_rep, optimal_q, _OneHotEmbedder(), layout, goals, max_steps=100)
     assert reached.all()
     np.testing.assert_array_equal(steps, layout.distances[gdqn.START_CELL, goals])
+    assert path.shape == (steps.max() + 1, len(goals)) and (path[0] == gdqn.START_CELL).all()
+    for index, goal in enumerate(goals):  # each path walks the maze's moves and stops at its goal
+        walk = path[: steps[index] + 1, index]
+        assert walk[-1] == goal and (path[steps[index] :, index] == goal).all()
+        assert all(b in layout.next_cell[a] for a, b in itertools.pairwise(walk))
 
     def stuck_q(state_features, goal_features):
         return torch.tensor([[1.0, 0.0, 0.0, 0.0]]).expand(len(state_features), 4)  # always left: never moves
 
-    reached, steps = gdqn.evaluate(_identity_rep, stuck_q, _OneHotEmbedder(), layout, goals, max_steps=7)
-    assert not reached.any() and (steps == 7).all()
+    reached, steps, path = gdqn.evaluate(_identity_rep, stuck_q, _OneHotEmbedder(), layout, goals, max_steps=7)
+    assert not reached.any() and (steps == 7).all() and path.shape == (8, 4) and (path == gdqn.START_CELL).all()
+
+
+def test_episode_frames_show_the_observation_beside_the_goal():
+    layout = gdqn.MazeLayout("SpiralWorld")
+    path = np.array([[0, 0], [6, 0], [12, 0]])  # goal 12 reached in 2 steps; the other goal never
+    frames = gdqn.episode_frames(layout, path, np.array([2, 2]), np.array([12, 1]))
+    assert len(frames) == 6 and all(frame.shape == (160, 324, 3) and frame.dtype == np.uint8 for frame in frames)
+    np.testing.assert_array_equal(frames[1][::2, :160:2], layout.images[6])
+    np.testing.assert_array_equal(frames[1][::2, 164::2], layout.images[12])
+    np.testing.assert_array_equal(frames[5][::2, 164::2], layout.images[1])
 
 
 def test_cell_embedder_matches_encoding_the_batch():
@@ -231,49 +254,280 @@ def test_cell_embedder_matches_encoding_the_batch():
     torch.testing.assert_close(grad_shortcut, grad_direct)
 
 
-# --- the script, end to end -------------------------------------------------------------------------------------------
+# --- the agent: wiring and updates --------------------------------------------------------------------------------------
+
+CPU = torch.device("cpu")
+
+
+def small_agent(groups: int = 4, finetune: bool = False, objective: str = "infomax") -> gdqn.Agent:
+    return gdqn.make_agent(
+        embed_dim=16,
+        hidden_dim=32,
+        objective=objective,
+        groups=groups,
+        n_embed=8,
+        vq_beta=0.25,
+        vq_decay=0.9,
+        vq_dead_code_steps=0,
+        learning_rate=1e-2,
+        rep_learning_rate=1e-2,
+        finetune=finetune,
+        device=CPU,
+    )
+
+
+def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {name: value.clone() for name, value in module.state_dict().items()}
+
+
+def changed(before: dict[str, torch.Tensor], module: torch.nn.Module) -> set[str]:
+    return {name for name, value in module.state_dict().items() if not torch.equal(value, before[name])}
+
+
+def test_make_agent_wires_bottleneck_targets_and_optimizers():
+    baseline = small_agent(groups=0)
+    assert baseline.rep.vq is None and baseline.target_rep is None
+    dgrl = small_agent(groups=4)
+    assert dgrl.rep.vq.groups == 4 and dgrl.rep.vq.n_embed == 8 and dgrl.rep.vq.decay == 0.9
+    assert not any(p.requires_grad for p in dgrl.target_q_network.parameters()) and not dgrl.target_q_network.training
+    torch.testing.assert_close(snapshot(dgrl.target_q_network), snapshot(dgrl.q_network))
+    q_only = {id(p) for group in dgrl.q_optimizer.param_groups for p in group["params"]}
+    assert q_only == {id(p) for p in dgrl.q_network.parameters()}
+    finetune = small_agent(groups=4, finetune=True)
+    assert "vq.codebook" in finetune.target_rep.state_dict() and not finetune.target_rep.training
+    with_encoder = {id(p) for group in finetune.q_optimizer.param_groups for p in group["params"]}
+    assert with_encoder == {id(p) for p in [*finetune.q_network.parameters(), *finetune.rep.encoder.parameters()]}
+
+
+@pytest.mark.parametrize("objective", ["infomax", "autoencoder"])
+def test_pretrain_step_trains_phi_and_moves_the_codebook(objective):
+    layout = gdqn.MazeLayout("SpiralWorld")
+    walks = tuple(torch.as_tensor(c) for c in gdqn.random_walks(layout, 200, 20, np.random.default_rng(0)))
+    embedder = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))
+    rows = torch.arange(32)
+    agent = small_agent(groups=4, objective=objective)
+    before = snapshot(agent.rep)
+    rep_loss, vq_loss, codes = gdqn.pretrain_step(agent, embedder, walks, rows)
+    assert rep_loss > 0 and vq_loss > 0 and codes.shape == (64, 4)
+    moved = changed(before, agent.rep)
+    assert {"encoder.0.weight", "vq.codebook", "vq.ema_count"} <= moved
+    head = "psi_next.weight" if objective == "infomax" else "decoder.0.weight"
+    assert head in moved
+    baseline = small_agent(groups=0, objective=objective)
+    _, vq_loss, codes = gdqn.pretrain_step(baseline, embedder, walks, rows)
+    assert vq_loss == 0 and codes is None
+
+
+def transitions_batch() -> gdqn.Batch:
+    """Two SpiralWorld transitions: 0 -> 6 towards goal 12, and 6 -> 12 reaching it (terminal)."""
+    return gdqn.Batch(
+        cells=torch.tensor([[0, 6, 12], [6, 12, 12]]),
+        actions=torch.tensor([3, 3]),
+        rewards=torch.tensor([-1.0, 5.0]),
+        terminated=torch.tensor([0.0, 1.0]),
+    )
+
+
+@pytest.mark.parametrize("double_dqn", [True, False])
+def test_td_update_minimises_the_double_dqn_loss_with_the_bonus_and_leaves_a_frozen_phi_alone(double_dqn):
+    layout = gdqn.MazeLayout("SpiralWorld")
+    embedder = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))
+    agent = small_agent(groups=4)
+    agent.rep.eval()
+    agent.rep.requires_grad_(False)
+    table = gdqn.cell_table(agent.rep, embedder)
+    with torch.no_grad():
+        for parameter in agent.target_q_network.parameters():  # a target that differs from the online network
+            parameter.add_(torch.randn_like(parameter))
+    batch = transitions_batch()
+    gamma, bonus_coef = 0.9, 0.5
+    with torch.no_grad():  # the loss by hand, from the cell table
+        features, codes = table.features, table.codes
+        state, next_state, goal = batch.cells.T
+        bonus = (codes[next_state] == codes[goal]).float().mean(1)
+        target_q = agent.target_q_network(features[next_state], features[goal])
+        if double_dqn:
+            chosen = agent.q_network(features[next_state], features[goal]).argmax(1)
+        else:
+            chosen = target_q.argmax(1)
+        next_value = target_q[torch.arange(2), chosen]
+        target = batch.rewards + bonus_coef * bonus + gamma * (1 - batch.terminated) * next_value
+        q_taken = agent.q_network(features[state], features[goal])[torch.arange(2), batch.actions]
+        expected_loss = F.smooth_l1_loss(q_taken, target)
+    assert bonus[1] == 1.0  # at the goal every factor matches
+    rep_before, q_before, target_before = snapshot(agent.rep), snapshot(agent.q_network), snapshot(agent.target_q_network)
+    metrics = gdqn.td_update(agent, batch, embedder, table, gamma=gamma, bonus_coef=bonus_coef, double_dqn=double_dqn)
+    torch.testing.assert_close(metrics["td_loss"], expected_loss)
+    torch.testing.assert_close(metrics["bonus"], bonus.mean())
+    assert changed(rep_before, agent.rep) == set()  # frozen phi and codebook
+    assert changed(target_before, agent.target_q_network) == set()
+    assert changed(q_before, agent.q_network) == set(q_before)
+
+
+def test_td_update_with_finetune_trains_the_encoder_and_the_codebook_but_not_the_targets():
+    layout = gdqn.MazeLayout("SpiralWorld")
+    embedder = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))
+    agent = small_agent(groups=4, finetune=True)
+    rep_before, target_before = snapshot(agent.rep), snapshot(agent.target_rep)
+    metrics = gdqn.td_update(agent, transitions_batch(), embedder, None, gamma=0.9, bonus_coef=0.5, double_dqn=True)
+    assert metrics["vq_loss"] > 0
+    assert {"encoder.0.weight", "vq.codebook", "vq.ema_sum"} <= changed(rep_before, agent.rep)
+    assert not any(name.startswith("psi") for name in changed(rep_before, agent.rep))  # the heads are not in the TD loss
+    assert changed(target_before, agent.target_rep) == set()
+
+
+def test_greedy_actions_agree_with_the_table_and_never_update_the_codebook():
+    layout = gdqn.MazeLayout("LoopWorld")
+    env = gdqn.VisualMazeEnv(layout, np.array([22]), True, 0.0)
+    observation, info = env.reset(seed=3)
+    observations = {key: value[None] for key, value in observation.items()}
+    infos = {key: np.array([value]) for key, value in info.items()}
+    agent = small_agent(groups=4)
+    table = gdqn.cell_table(agent.rep, gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0)))
+    agent.rep.train()  # even in training mode, acting must not move the codebook
+    before = snapshot(agent.rep)
+    encoded = gdqn.greedy_actions(agent, None, observations, infos)
+    assert changed(before, agent.rep) == set()
+    np.testing.assert_array_equal(encoded, gdqn.greedy_actions(agent, table, observations, infos))
+    expected = agent.q_network(table.features[[info["cell"]]], table.features[[22]]).argmax(1).numpy()
+    np.testing.assert_array_equal(encoded, expected)
+
+
+def test_replay_buffer_wraps_around_and_samples_only_stored_rows():
+    replay = gdqn.ReplayBuffer(3)
+    replay.add(1, 2, 9, 0, -1.0, False)
+    rows = replay.sample(50, np.random.default_rng(0), CPU)
+    assert (rows.cells == torch.tensor([1, 2, 9])).all() and rows.rewards.dtype == torch.float32
+    for cell in range(2, 6):
+        replay.add(cell, cell + 1, 9, cell % 4, 5.0, cell == 5)
+    assert replay.count == 3
+    np.testing.assert_array_equal(replay.cells[:, 0], [4, 5, 3])  # 4 and 5 overwrote the two oldest rows
+    np.testing.assert_array_equal(replay.terminated, [0.0, 1.0, 0.0])
+    assert (replay.sample(50, np.random.default_rng(0), CPU).cells[:, 2] == 9).all()
+
+
+# --- the script, end to end ---------------------------------------------------------------------------------------------
 
 TINY = ["--total-timesteps", "400", "--learning-starts", "100", "--rep-steps", "5", "--rep-transitions", "500"]
 TINY += ["--eval-frequency", "200", "--batch-size", "16", "--buffer-size", "1000", "--max-episode-steps", "30"]
+PROGRESS_LINE = re.compile(r"^step +(\d+)/(\d+)  train .* novel .* SPS", re.M)
+
+
+def checkpoint_of(tmp_path):
+    (checkpoint,) = (tmp_path / "runs").glob("*/dgrl_goal_dqn.cleanrl_model")
+    return checkpoint
+
+
+def assert_checkpoint_refused_with_other_flags_or_goals(tmp_path, run_script, checkpoint: str) -> None:
+    """A TINY --groups 8 checkpoint: other flags of MUST_MATCH are named; a different goal split is refused."""
+    other = run_script("dgrl_goal_dqn.py", "--env-id", "LoopWorld", "--n-train-goals", "4", "--checkpoint", checkpoint)
+    assert other.returncode == 2 and "Traceback" not in other.stderr, other.stderr
+    expected = "was saved with other settings: pass --env-id SpiralWorld --n-train-goals 8 --max-episode-steps 30 --groups 8"
+    assert expected in other.stderr, other.stderr
+    saved = torch.load(checkpoint, weights_only=True)
+    saved["novel_goals"] = [3, 5, 31, 35]  # as if another version of goal_split had chosen the goals
+    torch.save(saved, tmp_path / "moved.pt")
+    moved = run_script("dgrl_goal_dqn.py", "--groups", "8", "--max-episode-steps", "30", "--checkpoint", "moved.pt")
+    assert moved.returncode == 2 and "Traceback" not in moved.stderr, moved.stderr
+    assert "was trained on the goal split" in moved.stderr and "[3, 5, 31, 35]" in moved.stderr
 
 
 @pytest.mark.parametrize(
     "flags",
     [
-        ["--groups", "0"],
+        ["--groups", "0", "--rep-steps", "0"],
         ["--groups", "8", "--save-model"],
         ["--groups", "4", "--finetune", "--noise", "0.3", "--rep", "autoencoder", "--no-double-dqn"],
         ["--groups", "0", "--finetune", "--env-id", "LoopWorld", "--random-start", "--capture-video"],
     ],
-    ids=["baseline", "dgrl-checkpoint", "dgrl-finetune-noise-ae", "baseline-finetune-video"],
+    ids=["baseline-untrained-phi", "dgrl-checkpoint", "dgrl-finetune-noise-ae", "baseline-finetune-video"],
 )
 def test_smoke_run(tmp_path, run_script, flags):
     result = run_script("dgrl_goal_dqn.py", *TINY, *flags)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert result.stdout.count("step ") == 2 and "novel" in result.stdout
+    assert [int(step) for step, _ in PROGRESS_LINE.findall(result.stdout)] == [200, 400]
+    assert "\ndone: " in result.stdout
     assert len(list((tmp_path / "runs").glob("*/events.out.tfevents.*"))) == 1
     if "--save-model" in flags:
-        (checkpoint,) = (tmp_path / "runs").glob("*/dgrl_goal_dqn.cleanrl_model")
-        saved = torch.load(checkpoint)
+        saved = torch.load(checkpoint_of(tmp_path), weights_only=True)
+        assert (saved["script"], saved["format"], saved["args"]["groups"]) == ("dgrl_goal_dqn.py", 1, 8)
         assert "vq.codebook" in saved["representation"] and "vq.ema_count" in saved["representation"]
-        evaluated = run_script("dgrl_goal_dqn.py", "--groups", "8", "--checkpoint", str(checkpoint))
+        assert (saved["train_goals"], saved["novel_goals"]) == ([1, 2, 4, 12, 19, 21, 22, 27], [3, 5, 31, 34])
+        evaluated = run_script(
+            "dgrl_goal_dqn.py", "--groups", "8", "--max-episode-steps", "30", "--checkpoint", str(checkpoint_of(tmp_path))
+        )
         assert evaluated.returncode == 0, evaluated.stderr[-3000:]
-        assert "train goals" in evaluated.stdout and "novel goals" in evaluated.stdout
+        final = re.search(r"step +400/400  (train .*\))  (novel .*\))  SPS", result.stdout)
+        assert evaluated.stdout.splitlines() == [
+            final[1].replace("train", "train goals", 1),
+            final[2].replace("novel", "novel goals", 1),
+        ]
+        assert_checkpoint_refused_with_other_flags_or_goals(tmp_path, run_script, str(checkpoint_of(tmp_path)))
     if "--capture-video" in flags:
-        assert list((tmp_path / "videos").glob("*/*.mp4"))
+        assert sorted(path.name for path in (tmp_path / "videos").glob("*/*.mp4")) == ["eval_step200.mp4", "eval_step400.mp4"]
+
+
+def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path, run_script):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    flags = [*TINY, "--total-timesteps", "1000000", "--groups", "4", "--save-model"]
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen(
+        [sys.executable, str(ROOT / "dgrl_goal_dqn.py"), *flags],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    for line in process.stdout:  # the first progress line: the DQN phase is running
+        if PROGRESS_LINE.match(line):
+            break
+    process.send_signal(signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 0 and "Traceback" not in stderr, stderr[-3000:]
+    assert "stopped: " in stdout and "checkpoint: " in stdout
+    events = EventAccumulator(str(next((tmp_path / "runs").glob("*/events.out.tfevents.*"))))
+    events.Reload()
+    assert events.Scalars("eval/novel_success_rate")[0].step == 199
+    evaluated = run_script(
+        "dgrl_goal_dqn.py", "--groups", "4", "--max-episode-steps", "30", "--checkpoint", str(checkpoint_of(tmp_path))
+    )
+    assert evaluated.returncode == 0 and "novel goals" in evaluated.stdout, evaluated.stderr[-3000:]
 
 
 @pytest.mark.parametrize(
-    ("flags", "message"),
+    ("flags", "messages"),
     [
-        (["--groups", "5"], r"--groups must be 0 \(baseline\) or divide --embed-dim 64: one of \[1, 2, 4, 8, 16, 32, 64\]"),
-        (["--n-train-goals", "40"], r"--n-train-goals must be in \[1, 31\]"),
-        (["--noise", "2"], r"--noise must be in \[0, 1\]"),
-        (["--env-id", "Nowhere"], "SpiralWorld"),
+        (
+            ["--exploration-fraction", "0", "--gamma", "1.5", "--start-e", "0.01", "--end-e", "0.5"],
+            ["--exploration-fraction must be in (0, 1]; got 0.0", "--gamma must be in (0, 1]; got 1.5",
+             "--start-e 0.01 must be >= --end-e 0.5"],
+        ),
+        (
+            ["--gamma", "0", "--batch-size", "64", "--buffer-size", "32", "--total-timesteps", "500"],
+            ["--gamma must be in (0, 1]; got 0.0", "--batch-size 64 must be <= --buffer-size 32",
+             "--total-timesteps 500 must exceed --learning-starts 1000"],
+        ),
+        (
+            ["--learning-rate", "-1", "--vq-decay", "1.5", "--bonus-coef", "nan", "--seed", "-1", "--vq-beta", "-0.1"],
+            ["--learning-rate must be > 0; got -1.0", "--vq-decay must be in [0, 1); got 1.5",
+             "--bonus-coef must be a finite number; got nan", "--seed must be >= 0; got -1", "--vq-beta must be >= 0"],
+        ),
+        (
+            ["--groups", "5", "--n-train-goals", "40", "--noise", "2", "--rep-batch-size", "1", "--train-frequency", "0"],
+            ["--groups must be 0 (baseline) or divide --embed-dim 64: one of [1, 2, 4, 8, 16, 32, 64]; got 5",
+             "--n-train-goals must be in [1, 31]", "--noise must be in [0, 1]; got 2.0",
+             "--rep-batch-size must be >= 2 with --rep infomax", "--train-frequency must be >= 1; got 0"],
+        ),
+        (["--env-id", "Nowhere"], ["SpiralWorld"]),
     ],
-)
-def test_bad_flags_fail_before_any_work(tmp_path, run_script, flags, message):
+    ids=["exploration-gamma-epsilon", "gamma0-batch-warmup", "lr-decay-nan-seed", "groups-goals-noise-batch", "env-id"],
+)  # fmt: skip
+def test_bad_flags_fail_before_any_work(tmp_path, run_script, flags, messages):
     result = run_script("dgrl_goal_dqn.py", *flags)
-    assert result.returncode != 0
-    assert re.search(message, result.stderr), result.stderr[-2000:]
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    for message in messages:
+        assert message in result.stderr, (message, result.stderr)
     assert not (tmp_path / "runs").exists()

@@ -385,7 +385,8 @@ class GridEmbedding(nn.Module):
 
 def conv_stack(in_channels: int, width: int, height: int) -> tuple[nn.Sequential, int]:
     """AMIGo's student trunk: five [3x3 conv, stride 2, padding 1, 32 channels, ELU] blocks, orthogonal init."""
-    layers, channels = [], in_channels
+    layers = []
+    channels = in_channels
     for _ in range(5):
         conv = nn.Conv2d(channels, 32, 3, stride=2, padding=1)
         nn.init.orthogonal_(conv.weight, nn.init.calculate_gain("relu"))

@@ -1076,6 +1076,7 @@ if __name__ == "__main__":
     device = seed_and_device(args)
     saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
     rng = np.random.default_rng(args.seed)  # replay sampling
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly (rc 0), at the next check of `stop`
 
     envs = make_vector_env(args.num_envs, args.seed, test=False)
     eval_envs = make_vector_env(args.eval_episodes, args.seed + 10_000, test=True)
@@ -1087,7 +1088,10 @@ if __name__ == "__main__":
     if saved is not None:
         agent.load_checkpoint_entries(saved)
         video = [] if args.capture_video else None
-        result = evaluate(eval_envs, agent, device, args.eval_deterministic, video)
+        result = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
+        if result is None:
+            print("stopped before every test episode ended")
+            raise SystemExit(0)
         print(
             f"{args.eval_episodes} test episodes: success {result['success_rate']:.0%}, hand success "
             f"{result['hand_success_rate']:.0%}, final hand distance {result['final_hand_distance']:.3f}, "
@@ -1101,7 +1105,6 @@ if __name__ == "__main__":
     print(f"{run_name}: {image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}")
     if device.type == "cpu" and args.batch_size >= 128:
         print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
-    stop = stop_on_signals()
     progress = Progress(args.total_timesteps)
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
 

@@ -7,8 +7,8 @@ Prints one line per measurement:
   ImgObsWrapper(FullyObsWrapper(env)) and as the script's MiniGridVecEnv (no egocentric view);
 - update: one student learner step (8 rollouts of 100 steps, V-trace, RMSProp) with --groups 0 and 16, on the agent
   the script's make_agent builds with its default flags;
-- training: the script itself for 160,000 frames, one process on one thread, its final SPS (frames per second with
-  acting, goal bookkeeping and all updates; the first collection's start-up included).
+- training: the script itself for 160,000 frames, one process on one CPU thread (--no-cuda), its final SPS (frames
+  per second with acting, goal bookkeeping and all updates; the first collection's start-up included).
 """
 
 import inspect
@@ -85,7 +85,7 @@ def update_time(env_id: str, groups: int, repeats: int = 10) -> float:
 def training_sps(env_id: str, groups: int, frames: int = 160_000) -> int:
     out = subprocess.run(
         [sys.executable, str(ROOT / "dgrl_amigo.py"), "--env-id", env_id, "--groups", str(groups), "--total-timesteps",
-         str(frames), "--progress-frequency", str(frames), "--exp-name", "bench_amigo"],
+         str(frames), "--progress-frequency", str(frames), "--exp-name", "bench_amigo", "--no-cuda"],
         capture_output=True, text=True, check=True, cwd="/tmp", env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"},
     )  # fmt: skip
     return int(re.findall(r"SPS (\d+)", out.stdout)[-1])

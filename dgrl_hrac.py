@@ -140,22 +140,22 @@ class Args:
     """deterministic evaluation episodes (AntMaze: on the fixed evaluation goal)"""
 
     # DGRL
-    groups: int = 16
-    """G: factors of the subgoal embedding; 0 runs HRAC"""
-    n_embed: int = 64
-    """L: codes in the shared codebook"""
-    vq_beta: float = 0.25
-    """commitment-loss weight"""
-    vq_decay: float = 0.99
-    """EMA decay of the codebook"""
-    vq_dead_code_steps: int = 0
-    """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
-    embed_dim: int = 64
-    """size of the subgoal embedding (m); must be divisible by groups"""
-    encoder_hidden_dim: int = 128
-    """hidden units of the subgoal encoder and decoder"""
-    encoder_lr: float = 1e-4
-    """Adam learning rate of the subgoal encoder and decoder (a parameter group of the controller's critic optimizer)"""
+    groups: int = 16  # DGRL
+    """G: factors of the subgoal embedding; 0 runs HRAC"""  # DGRL
+    n_embed: int = 64  # DGRL
+    """L: codes in the shared codebook"""  # DGRL
+    vq_beta: float = 0.25  # DGRL
+    """commitment-loss weight"""  # DGRL
+    vq_decay: float = 0.99  # DGRL
+    """EMA decay of the codebook"""  # DGRL
+    vq_dead_code_steps: int = 0  # DGRL
+    """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""  # DGRL
+    embed_dim: int = 64  # DGRL
+    """size of the subgoal embedding (m); must be divisible by groups"""  # DGRL
+    encoder_hidden_dim: int = 128  # DGRL
+    """hidden units of the subgoal encoder and decoder"""  # DGRL
+    encoder_lr: float = 1e-4  # DGRL
+    """Adam learning rate of the subgoal encoder and decoder (a parameter group of the controller's critic Adam)"""  # DGRL
 
 
 # --- Environments -----------------------------------------------------------------------------------------------------
@@ -844,6 +844,7 @@ def controller_goal_input(goal_encoder: SubgoalEncoder | None, subgoals: torch.T
 
 
 def as_tensors(sample: dict[str, np.ndarray], device: torch.device | str) -> dict[str, torch.Tensor]:
+    """A replay sample (numpy arrays by field) as tensors on `device`."""
     return {name: torch.as_tensor(value, device=device) for name, value in sample.items()}
 
 
@@ -869,10 +870,10 @@ def controller_action(
     +-30."""
     actor = agent.controller.actor
     device = actor.max_action.device
-    masked_state, subgoal = (
-        torch.as_tensor(x, dtype=torch.float32, device=device)[None] for x in (controller_input(state), subgoal)
-    )
-    action = actor(masked_state, controller_goal_input(agent.encoder, subgoal))[0].cpu().numpy()  # DGRL: z_q under DGRL
+    masked_state = torch.as_tensor(controller_input(state), dtype=torch.float32, device=device)[None]
+    goal_input = torch.as_tensor(subgoal, dtype=torch.float32, device=device)[None]
+    goal_input = controller_goal_input(agent.encoder, goal_input)  # DGRL: z_q of the subgoal
+    action = actor(masked_state, goal_input)[0].cpu().numpy()
     if noise > 0:
         action = np.clip(action + rng.normal(0.0, noise, action.shape), -actor.max_action.item(), actor.max_action.item())
     return action

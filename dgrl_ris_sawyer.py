@@ -849,8 +849,8 @@ MUST_MATCH = (
     "hidden_dim",
     "driml_dim",
     "groups",  # DGRL
-    "n_embed",  # DGRL
 )
+DGRL_MUST_MATCH = ("n_embed",)  # DGRL: the codebook's size, which matters only under --groups > 0
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1074,7 +1074,8 @@ if __name__ == "__main__":
     dgrl = args.groups > 0  # DGRL
     run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     device = seed_and_device(args)
-    saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL
+    saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, must_match, device)
     rng = np.random.default_rng(args.seed)  # replay sampling
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly (rc 0), at the next check of `stop`
 

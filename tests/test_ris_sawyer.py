@@ -677,9 +677,10 @@ PROGRESS += r" +SPS \d+ +\d+s elapsed, \d+s left"
 
 @pytest.mark.parametrize("groups", ["0", "16"])
 def test_smoke_run(run_script, tmp_path, groups):
-    """RIS with a video, rendered headless with no MUJOCO_GL and no DISPLAY set (the script's default); DGRL with a
-    checkpoint, then evaluated from it (with a video) and refused with other network flags."""
-    extra = ["--save-model"] if groups == "16" else ["--capture-video"]
+    """RIS with a video, rendered headless with no MUJOCO_GL and no DISPLAY set (the script's default), and a checkpoint
+    that evaluates whatever the DGRL-only flags say; DGRL with a checkpoint, then evaluated from it (with a video) and
+    refused with other network flags."""
+    extra = ["--save-model"] if groups == "16" else ["--capture-video", "--save-model"]
     result = run_script("dgrl_ris_sawyer.py", *TINY, "--groups", groups, *extra)
     assert result.returncode == 0, result.stderr[-3000:]
     assert re.search(PROGRESS.format(step=300, total=300), result.stdout), result.stdout
@@ -693,8 +694,13 @@ def test_smoke_run(run_script, tmp_path, groups):
     if groups == "0":
         videos = list(tmp_path.glob("videos/*/eval_300.mp4"))
         assert len(videos) == 1 and videos[0].stat().st_size > 1000
-        return
     checkpoint = next(tmp_path.glob("runs/*/dgrl_ris_sawyer.cleanrl_model"))
+    if groups == "0":
+        flags = ["--groups", "0", "--n-embed", "7", "--eval-episodes", "1", "--checkpoint", str(checkpoint)]
+        reloaded = run_script("dgrl_ris_sawyer.py", *flags)  # the codebook's size means nothing to RIS
+        assert reloaded.returncode == 0 and "1 test episodes: success" in reloaded.stdout, reloaded.stderr[-3000:]
+        assert torch.load(checkpoint, weights_only=True)["vq"] is None
+        return
     saved = torch.load(checkpoint, weights_only=True)
     assert saved["script"] == "dgrl_ris_sawyer.py" and saved["format"] == sawyer.CHECKPOINT_FORMAT
     assert saved["args"]["groups"] == 16 and saved["args"]["batch_size"] == 16

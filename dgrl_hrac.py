@@ -1218,8 +1218,9 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 
 
 # The flags a checkpoint must have been saved with to be evaluated: the networks' shapes, the env, the subgoal range
-# and the manager's period (what evaluation measures).
-MUST_MATCH = ("env_id", "groups", "n_embed", "embed_dim", "hidden_dim", "encoder_hidden_dim", "subgoal_scale", "k")
+# and the manager's period (what evaluation measures); under DGRL also the subgoal encoder's and codebook's shapes.
+MUST_MATCH = ("env_id", "groups", "hidden_dim", "subgoal_scale", "k")
+DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")  # DGRL
 
 
 def validate(args: Args) -> None:
@@ -1315,7 +1316,8 @@ if __name__ == "__main__":
     stop = stop_on_signals()
 
     if args.checkpoint is not None:
-        agent.load_state_dicts(load_checkpoint(args.checkpoint, args, MUST_MATCH, device))
+        must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: HRAC has no codebook to match
+        agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
         print(
             f"evaluating {args.checkpoint} over {args.eval_episodes} episodes (Ctrl-C ends it after the current one)",
             flush=True,

@@ -780,6 +780,9 @@ def test_smoke_run_saves_evaluates_refuses_other_settings_and_records_video_head
     assert re.search(r"1 evaluation episodes: success \d+%, distance [\d.]+, return -?[\d.]+", evaluation.stdout)
     mismatched = run_script("dgrl_hrac.py", "--env-id", "AntPush", "--groups", "0", "--checkpoint", str(checkpoint))
     assert_clean_refusal(mismatched, "was saved with other settings: pass --groups 16 --hidden-dim 32")
+    flags = ["--env-id", "AntPush", "--hidden-dim", "32", "--n-embed", "32", "--checkpoint", str(checkpoint)]
+    other_codebook = run_script("dgrl_hrac.py", *flags)
+    assert_clean_refusal(other_codebook, "was saved with other settings: pass --n-embed 64")
 
 
 def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved_and_the_logs_flushed(run_script, tmp_path):
@@ -837,6 +840,8 @@ def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved_and_the_logs_flushed(run
             "32",
             "--eval-episodes",
             "1000",
+            "--n-embed",
+            "32",  # a codebook flag: no part of an HRAC (--groups 0) checkpoint
             "--checkpoint",
             str(checkpoint),
         ],

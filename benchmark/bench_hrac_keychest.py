@@ -9,9 +9,10 @@ Whole-run speed, one run alone on the machine (the SPS of each progress line, an
 
 Prints one line per measurement (median of 5 blocks): the environment alone (random actions, 8 envs in one batch),
 a full acting step (low-level forward + sampling + env step, per frame), one HRAC high-level TD3 update (batch 64,
-2x300 networks, adjacency loss), one low-level A2C update on a 500-step episode, and the DGRL autoencoder step, each
-with 1 and 2 torch threads. HRAC does one TD3 update per k = 10 frames, so frames/s in training is bounded by
-10 / (TD3 update time) whatever else is made fast.
+2x300 networks, adjacency loss), one low-level A2C update on a 500-step episode (with DGRL, the autoencoder step it
+includes), each with 1 and 2 torch threads. Every network, optimizer and update is the script's own (`make_agent`,
+`manager_update`, `controller_update`) at its default flags. HRAC does one TD3 update per k = 10 frames, so frames/s in
+training is bounded by 10 / (TD3 update time) whatever else is made fast.
 """
 
 import sys
@@ -25,55 +26,72 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from timing import median_time  # benchmark/timing.py
 
 import dgrl_hrac_keychest as kc
-from vq import make_target
+
+CPU = torch.device("cpu")
 
 
 def td3_seconds(rng: np.random.Generator) -> float:
     """One HRAC high-level update: twin critics, then the actor (critic term every other update) and Polyak targets."""
     torch.manual_seed(0)
-    actor, critic, anet = kc.ManagerActor(300), kc.TwinCritic(300), kc.AdjacencyNet(128, 32).requires_grad_(False)
-    actor_target, critic_target = make_target(actor), make_target(critic)
-    actor_opt = torch.optim.Adam(actor.parameters(), lr=1e-4, fused=True)
-    critic_opt = torch.optim.Adam(critic.parameters(), lr=1e-3, fused=True)
-    replay = kc.ManagerReplay(20000, rng)
-    replay.add(*(rng.random((20000, d)).astype(np.float32) * 10 for d in (3, 2)), np.zeros(20000, np.float32),
-               rng.random((20000, 3)).astype(np.float32) * 10, np.zeros(20000, np.float32))  # fmt: skip
+    args = kc.Args(groups=0)
+    agent = kc.make_agent(args, CPU)
+    replay = kc.ManagerReplay(args.man_buffer_size, rng)
+    size = args.man_buffer_size
+    replay.add(
+        rng.random((size, 3)).astype(np.float32) * 10,
+        rng.random((size, 2)).astype(np.float32) * 10,
+        np.zeros(size, np.float32),
+        rng.random((size, 3)).astype(np.float32) * 10,
+        np.zeros(size, np.float32),
+    )
     counter = [0]
-    args = kc.Args()
 
     def update():
-        batch = replay.sample(64, torch.device("cpu"))
-        kc.manager_update(actor, critic, actor_target, critic_target, actor_opt, critic_opt, anet, batch, args, 1.1,
-                          policy_term=counter[0] % 2 == 0)  # fmt: skip
+        kc.manager_update(
+            agent,
+            replay.sample(args.man_batch_size, CPU),
+            gamma=args.man_gamma,
+            tau=args.man_tau,
+            adj_weight=args.adj_weight,
+            threshold=(args.adj_margin_pos + args.adj_margin_neg) / 2,
+            policy_term=counter[0] % args.man_policy_delay == 0,
+        )
         counter[0] += 1
 
     return median_time(update, 100)
 
 
 def controller_seconds(groups: int, envs: kc.KeyChestVecEnv, rng: np.random.Generator) -> tuple[float, float]:
-    """(acting time per frame, one A2C update on a 500-step episode) for HRAC (groups 0) or DGRL."""
+    """(acting time per frame, one A2C update on a 500-step episode) for HRAC (groups 0) or DGRL (the default decoded
+    subgoal for the low level)."""
     torch.manual_seed(0)
-    goal_ae = kc.GoalAutoencoder(64, 128, groups, 64, 0.25, 0.99, 0) if groups else None
-    controller = kc.Controller(2, 300)  # DGRL's default: the low level gets the decoded discretized subgoal
-    ctrl_opt = torch.optim.Adam(controller.parameters(), lr=1e-4, fused=True)
+    args = kc.Args(groups=groups)
+    agent = kc.make_agent(args, CPU)
     states = torch.as_tensor(rng.random((500, 3)) * 10, dtype=torch.float32)
     goals = torch.as_tensor(rng.random((500, 2)) * 10, dtype=torch.float32)
-    actions, returns = torch.as_tensor(rng.integers(4, size=500)), torch.rand(500)
+    next_states = torch.as_tensor(rng.random((500, 3)) * 10, dtype=torch.float32)
+    actions = torch.as_tensor(rng.integers(4, size=500))
 
     def a2c_update():
-        goal_inputs = kc.controller_goals(goal_ae, goals, "decoded", update=True)[0]
-        logits, values = controller(states, goal_inputs)
-        loss = kc.a2c_loss(logits, values, actions, returns, 0.01)[0]
-        ctrl_opt.zero_grad()
-        loss.backward()
-        ctrl_opt.step()
+        kc.controller_update(
+            agent,
+            states,
+            goals,
+            actions,
+            next_states,
+            k=args.k,
+            gamma=args.ctrl_gamma,
+            entropy_coef=args.ctrl_entropy,
+            reward_scale=args.ctrl_reward_scale,
+            goal_threshold=args.goal_threshold,
+        )
 
     acting_states = torch.as_tensor(envs._observe())
-    acting_goals = kc.controller_goals(goal_ae, torch.rand(envs.num_envs, 2) * 10, "decoded")[0]
+    acting_goals = kc.controller_goals(agent.goal_ae, torch.rand(envs.num_envs, 2) * 10, agent.dgrl_goal)[0]
 
     def act():
         with torch.no_grad():
-            logits, _ = controller(acting_states, acting_goals)
+            logits, _ = agent.controller(acting_states, acting_goals)
             chosen = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).numpy()
         envs.step(chosen)
 
@@ -90,11 +108,15 @@ def main() -> None:
         torch.set_num_threads(threads)
         for groups in (0, 16):
             acting, a2c = controller_seconds(groups, envs, rng)
-            print(f"threads {threads}, G{groups:<2}: acting {acting * 1e6:.0f} us/frame, A2C update (500 steps) "
-                  f"{a2c * 1e3:.1f} ms = {a2c / 500 * 1e6:.0f} us/frame")  # fmt: skip
+            print(
+                f"threads {threads}, G{groups:<2}: acting {acting * 1e6:.0f} us/frame, A2C update (500 steps) "
+                f"{a2c * 1e3:.1f} ms = {a2c / 500 * 1e6:.0f} us/frame"
+            )
         td3 = td3_seconds(rng)
-        print(f"threads {threads}: TD3 update {td3 * 1e3:.2f} ms = {td3 / 10 * 1e6:.0f} us/frame at one update per "
-              f"10 frames: at most {10 / td3:,.0f} frames/s while both levels train")  # fmt: skip
+        print(
+            f"threads {threads}: TD3 update {td3 * 1e3:.2f} ms = {td3 / 10 * 1e6:.0f} us/frame at one update per "
+            f"10 frames: at most {10 / td3:,.0f} frames/s while both levels train"
+        )
 
 
 if __name__ == "__main__":

@@ -4,6 +4,8 @@
 #   bash benchmark/hrac_keychest.sh                                   # the whole study: 12 runs (about 2.5 h on 2 cores)
 #   SEEDS=1 GROUPS_LIST="0 16" TAG=cpu bash benchmark/hrac_keychest.sh  # the CPU runs of the docs (about 30 min)
 #   JOBS=12 TAG=devstudy bash benchmark/hrac_keychest.sh              # all 12 at once on a 16-core machine
+# Every run evaluates every 25,000 frames (--eval-frequency, the published 50 full-length episodes of 8 envs); the docs
+# say which commit and machine made each published arm.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-.venv/bin/python}

@@ -18,7 +18,7 @@ import dgrl_hrac_keychest as kc
 # HRAC's Key-Chest layout as its authors' code draws it: 13 rows x 17 columns, `w` wall, K key at (row 6, col 1), B chest
 # at (2, 1), S the nominal start (11, 7); 128 free cells. The state is (row, col, has_key); the high level's goal space is
 # the cell (row, col). Rewards: +1 on first entering K, +5 on entering B with the key (the episode ends); 500 steps at most.
-REFERENCE_LAYOUT = """\
+HRAC_LAYOUT = """\
 wwwwwwwwwwwwwwwww
 w               w
 wB              w
@@ -49,8 +49,8 @@ def place(env: kc.KeyChestVecEnv, row: int, col: int, has_key: bool = False) -> 
 # --- layout and dynamics ----------------------------------------------------------------------------------------------
 
 
-def test_layout_matches_the_reference():
-    lines = REFERENCE_LAYOUT.splitlines()
+def test_layout_matches_hracs():
+    lines = HRAC_LAYOUT.splitlines()
     assert kc.WALLS.shape == (13, 17)
     np.testing.assert_array_equal(kc.WALLS, np.array([[c == "w" for c in line] for line in lines]))
     assert lines[kc.KEY_CELL[0]][kc.KEY_CELL[1]] == "K" and kc.KEY_CELL == (6, 1)

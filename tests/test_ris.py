@@ -1,25 +1,31 @@
 """dgrl_ris.py: the four Ant mazes (walls, collisions, physics, resets), the 31-d state and goals, HER relabelling in the
 episode replay, RIS's losses (advantage weights, subgoal cost, prior KL), one RIS update with and without DGRL, the
-gymnasium-robotics wrapper, smoke runs of every env id, bad flags."""
+gymnasium-robotics wrapper, smoke runs of every env id, checkpoints, Ctrl-C, bad flags."""
 
+import ast
 import math
 import os
 import re
+import signal
+import subprocess
+import sys
+import threading
+import warnings
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
 import torch
+from gymnasium.utils.env_checker import check_env
 
 import dgrl_ris as ris
-from vq import make_target
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# The reference table (shared/reference/ris.md, "The four Ant mazes"), typed in independently of the script:
+# RIS's table of its four mazes (the authors' multiworld code; docs/dgrl_ris.md), typed in independently of the script:
 # interior ((x0, x1), (y0, y1)), inner walls (cx, cy, hx, hy), test start box and goal box ((x0, x1), (y0, y1)).
-REFERENCE = {
+RIS_MAZES = {
     "AntU": (
         ((-3.75, 3.75), (-9.0, 9.0)),
         [(0.0, 1.5, 0.75, 7.5)],
@@ -51,7 +57,7 @@ REFERENCE = {
         ((2.0, 2.5), (-6.75, -6.25)),
     ),
 }
-MAZES = list(REFERENCE)
+MAZES = list(RIS_MAZES)
 REST_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))
 ALLOWED_YAWS = (0.0, math.pi, math.pi / 2, -math.pi / 2)
 
@@ -92,8 +98,8 @@ def inside(xy: np.ndarray, box) -> bool:
 
 
 @pytest.mark.parametrize("name", MAZES)
-def test_maze_boxes_match_the_reference_table(name):
-    interior, inner, test_start, test_goal = REFERENCE[name]
+def test_maze_boxes_match_ris_table(name):
+    interior, inner, test_start, test_goal = RIS_MAZES[name]
     assert ris.ANT_MAZES[name]["interior"] == interior
     assert ris.ANT_MAZES[name]["test_start"] == test_start and ris.ANT_MAZES[name]["test_goal"] == test_goal
     boxes = ris.maze_boxes(name)
@@ -244,7 +250,7 @@ def test_goal_state(yaw):
 def test_training_resets_are_free_space_with_clearance(name):
     env = ris.AntMazeEnv(name)
     boxes = ris.maze_boxes(name)
-    (x0, x1), (y0, y1) = REFERENCE[name][0]
+    (x0, x1), (y0, y1) = RIS_MAZES[name][0]
     starts, goals, yaws = [], [], set()
     for seed in range(150):
         observation, _ = env.reset(seed=seed)
@@ -272,8 +278,8 @@ def test_training_resets_are_free_space_with_clearance(name):
 
 
 @pytest.mark.parametrize("name", MAZES)
-def test_test_resets_use_the_reference_boxes(name):
-    _, _, start_box, goal_box = REFERENCE[name]
+def test_test_resets_use_ris_test_boxes(name):
+    _, _, start_box, goal_box = RIS_MAZES[name]
     env = ris.AntMazeEnv(name, test=True)
     starts = []
     for seed in range(60):
@@ -492,67 +498,95 @@ def test_prior_kl_is_finite_where_the_density_underflows():
 
 # --- one RIS update ---------------------------------------------------------------------------------------------------
 
+RIS_SETTINGS = dict(gamma=0.99, tau=0.25, alpha=0.1, h_lambda=0.1, n_subgoals=3, prior_epsilon=1e-16)  # tau: visible steps
+STATE_DIM_UPDATE, GOAL_DIM_UPDATE, ACTION_DIM_UPDATE, BATCH = 6, 2, 2, 32
 
-def tiny_agent(groups: int, state_dim: int = 6, goal_dim: int = 2, action_dim: int = 2, **kwargs):
-    args = ris.Args(
-        groups=groups, embed_dim=8, n_embed=8, hidden_dim=16, n_subgoals=3, batch_size=32, tau=0.25, threads=1, **kwargs
+
+def tiny_agent(groups: int) -> tuple[ris.Agent, ris.EpisodeReplay]:
+    """The script's own make_agent at a tiny size, and a replay of 8 random walks (each with its last point as goal)."""
+    agent = ris.make_agent(
+        STATE_DIM_UPDATE,
+        GOAL_DIM_UPDATE,
+        ACTION_DIM_UPDATE,
+        hidden_dim=16,
+        q_lr=1e-3,
+        actor_lr=1e-3,
+        h_lr=1e-4,
+        groups=groups,
+        embed_dim=8,
+        n_embed=8,
+        vq_beta=0.25,
+        vq_decay=0.99,
+        vq_dead_code_steps=0,
+        encoder_lr=1e-4,
+        device=torch.device("cpu"),
     )
-    goal_input_dim = args.embed_dim if groups else goal_dim
-    actor = ris.Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim)
-    critic = ris.TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim)
-    high = ris.HighLevelPolicy(state_dim, goal_dim, args.hidden_dim)
-    encoder = ris.GoalEncoder(goal_dim, args.embed_dim, args.hidden_dim, args) if groups else None
-    nets = dict(actor=actor, critic=critic, high=high, goal_encoder=encoder)
-    nets.update(actor_target=make_target(actor), critic_target=make_target(critic))
-    critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
-    if groups:
-        critic_groups.append({"params": encoder.parameters(), "lr": args.encoder_lr})
-    optimizers = {
-        "critic": torch.optim.Adam(critic_groups),
-        "actor": torch.optim.Adam(actor.parameters(), lr=args.actor_lr),
-        "high": torch.optim.Adam(high.parameters(), lr=args.h_lr),
-    }
-    replay = ris.EpisodeReplay(500, state_dim, action_dim, goal_dim, torch.device("cpu"))
+    replay = ris.EpisodeReplay(500, STATE_DIM_UPDATE, ACTION_DIM_UPDATE, GOAL_DIM_UPDATE, torch.device("cpu"))
     rng = np.random.default_rng(0)
-    for _ in range(8):  # random walks, each with its last point as the goal
-        states = np.cumsum(rng.normal(size=(21, state_dim)), 0).astype(np.float32)
-        actions = rng.uniform(-1, 1, (20, action_dim)).astype(np.float32)
-        replay.add_episode(states[:-1], actions, states[1:], np.tile(states[-1, :goal_dim], (20, 1)))
-    return args, nets, optimizers, replay
+    for _ in range(8):
+        states = np.cumsum(rng.normal(size=(21, STATE_DIM_UPDATE)), 0).astype(np.float32)
+        actions = rng.uniform(-1, 1, (20, ACTION_DIM_UPDATE)).astype(np.float32)
+        replay.add_episode(states[:-1], actions, states[1:], np.tile(states[-1, :GOAL_DIM_UPDATE], (20, 1)))
+    return agent, replay
+
+
+def update(agent: ris.Agent, replay: ris.EpisodeReplay) -> dict[str, torch.Tensor]:
+    batch = replay.sample(BATCH, GOAL_DIM_UPDATE, 0.45, 0.2, 0.4)
+    return ris.ris_update(agent, batch, goal_dim=GOAL_DIM_UPDATE, **RIS_SETTINGS)
+
+
+def test_make_agent_wiring():
+    for groups in (0, 4):
+        agent, _ = tiny_agent(groups)
+        assert (agent.goal_encoder is None) == (groups == 0)
+        goal_input_dim = 8 if groups else GOAL_DIM_UPDATE  # DGRL: the networks take z_q(g) (embed_dim 8)
+        assert agent.actor.net[0].in_features == STATE_DIM_UPDATE + goal_input_dim
+        assert agent.critic.q1[0].in_features == STATE_DIM_UPDATE + ACTION_DIM_UPDATE + goal_input_dim
+        assert agent.high.net[0].in_features == STATE_DIM_UPDATE + GOAL_DIM_UPDATE  # the high level sees raw goals
+        for target, online in ((agent.actor_target, agent.actor), (agent.critic_target, agent.critic)):
+            assert target is not online and all(
+                torch.equal(a, b) for a, b in zip(target.parameters(), online.parameters(), strict=True)
+            )
+        critic_groups = agent.critic_optimizer.param_groups
+        assert [group["lr"] for group in critic_groups] == ([1e-3, 1e-4] if groups else [1e-3])  # the encoder's own lr
+        if groups:
+            assert {id(p) for p in critic_groups[1]["params"]} == {id(p) for p in agent.goal_encoder.parameters()}
+            assert agent.goal_encoder.vq.groups == 4 and agent.goal_encoder.vq.n_embed == 8
+        assert agent.actor_optimizer.param_groups[0]["lr"] == 1e-3 and agent.high_optimizer.param_groups[0]["lr"] == 1e-4
 
 
 @pytest.mark.parametrize("groups", [0, 4])
 def test_ris_update_runs_and_moves_targets_by_polyak(groups):
-    args, nets, optimizers, replay = tiny_agent(groups)
-    goal_dim = 2
+    agent, replay = tiny_agent(groups)
     # Targets that differ from the online nets, so that the Polyak step is visible.
-    for target in (nets["actor_target"], nets["critic_target"]):
+    for target in (agent.actor_target, agent.critic_target):
         with torch.no_grad():
             for parameter in target.parameters():
                 parameter.add_(torch.randn_like(parameter))
-    before = {name: [p.clone() for p in nets[name].parameters()] for name in ("actor_target", "critic_target")}
-    online_before = {name: [p.clone() for p in nets[name].parameters()] for name in ("actor", "critic", "high")}
-    batch = replay.sample(args.batch_size, goal_dim, 0.45, 0.2, 0.4)
-    metrics = ris.ris_update(nets, optimizers, batch, args, goal_dim)
+    pairs = {"actor": (agent.actor_target, agent.actor), "critic": (agent.critic_target, agent.critic)}
+    before = {name: [p.clone() for p in target.parameters()] for name, (target, _) in pairs.items()}
+    online = {"actor": agent.actor, "critic": agent.critic, "high": agent.high}
+    online_before = {name: [p.clone() for p in net.parameters()] for name, net in online.items()}
+    metrics = update(agent, replay)
     for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values", "high_weight_max", "subgoal_distance"):
         assert metrics[name].shape == () and torch.isfinite(metrics[name]), name
         assert not metrics[name].requires_grad
     assert 0 < metrics["high_weight_max"] <= 1
     assert ("codes" in metrics) == (groups > 0) and ("reconstruction_loss" in metrics) == (groups > 0)
     if groups:
-        assert metrics["codes"].shape == (4 * args.batch_size, groups)
+        assert metrics["codes"].shape == (4 * BATCH, groups)
         assert torch.isfinite(metrics["vq_loss"]) and torch.isfinite(metrics["reconstruction_loss"])
-    for name in ("actor", "critic", "high"):  # every online net took a step
-        assert any(not torch.equal(p, q) for p, q in zip(nets[name].parameters(), online_before[name], strict=True)), name
-    for target, online in (("actor_target", "actor"), ("critic_target", "critic")):
-        for old, new, source in zip(before[target], nets[target].parameters(), nets[online].parameters(), strict=True):
-            torch.testing.assert_close(new, old + args.tau * (source - old))
+    for name, net in online.items():  # every online net took a step
+        assert any(not torch.equal(p, q) for p, q in zip(net.parameters(), online_before[name], strict=True)), name
+    for name, (target, source_net) in pairs.items():
+        for old, new, source in zip(before[name], target.parameters(), source_net.parameters(), strict=True):
+            torch.testing.assert_close(new, old + RIS_SETTINGS["tau"] * (source - old))
             assert not torch.equal(new, source)
 
 
 def test_dgrl_update_moves_the_codebook_and_acting_does_not():
-    args, nets, optimizers, replay = tiny_agent(4)
-    encoder = nets["goal_encoder"]
+    agent, replay = tiny_agent(4)
+    encoder = agent.goal_encoder
     encoder_weights = [p.clone() for p in encoder.encoder.parameters()]
     goals = torch.randn(16, 2)
     buffers = {name: b.clone() for name, b in encoder.vq.named_buffers()}
@@ -560,7 +594,7 @@ def test_dgrl_update_moves_the_codebook_and_acting_does_not():
     assert z_q.shape == (16, 8)
     with torch.no_grad():
         assert torch.equal(z_q, ris.goal_input(encoder, goals))
-    actions = ris.act(nets["actor"], encoder, {"state": torch.randn(16, 6).numpy(), "goal": goals.numpy()}, "cpu", True)
+    actions = ris.act(agent.actor, encoder, {"state": torch.randn(16, 6).numpy(), "goal": goals.numpy()}, "cpu", True)
     assert actions.shape == (16, 2) and np.abs(actions).max() <= 1
     for name, buffer in encoder.vq.named_buffers():
         assert torch.equal(buffer, buffers[name]), name  # acting never moves the codebook
@@ -568,24 +602,35 @@ def test_dgrl_update_moves_the_codebook_and_acting_does_not():
     codes = encoder.vq.codebook
     segments = z_q.detach().reshape(-1, codes.shape[1])
     assert ((segments[:, None, :] == codes[None]).all(-1)).any(1).all()
-    batch = replay.sample(args.batch_size, 2, 0.45, 0.2, 0.4)
-    ris.ris_update(nets, optimizers, batch, args, 2)
+    update(agent, replay)
     assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
     assert not torch.equal(encoder.vq.ema_count, buffers["ema_count"])
     assert any(not torch.equal(p, q) for p, q in zip(encoder.encoder.parameters(), encoder_weights, strict=True))
 
 
+def test_dgrl_representation_loss_is_the_sum_of_the_four_commitment_losses():
+    """ris_update passes s, s', g and s_g through the bottleneck in one call and adds 4 x its commitment loss (a mean over
+    the union): the sum of the four separate commitment losses of the paper's snippet."""
+    agent, _ = tiny_agent(4)
+    encoder = agent.goal_encoder.eval()  # no EMA step, so the separate calls see the same codebook
+    parts = [torch.randn(BATCH, GOAL_DIM_UPDATE) for _ in range(4)]
+    with torch.no_grad():
+        pooled = encoder(torch.cat(parts))[1]
+        separate = sum(encoder(part)[1] for part in parts)
+    torch.testing.assert_close(4 * pooled, separate)
+
+
 def test_act_mean_action_is_tanh_of_the_mean():
-    _, nets, _, _ = tiny_agent(0)
+    agent, _ = tiny_agent(0)
     observations = {
         "state": np.random.default_rng(0).normal(size=(5, 6)).astype(np.float32),
         "goal": np.zeros((5, 2), np.float32),
     }
-    actions = ris.act(nets["actor"], None, observations, "cpu", deterministic=True)
+    actions = ris.act(agent.actor, None, observations, "cpu", deterministic=True)
     with torch.no_grad():
-        mean = nets["actor"](torch.as_tensor(observations["state"]), torch.as_tensor(observations["goal"]))[0]
+        mean = agent.actor(torch.as_tensor(observations["state"]), torch.as_tensor(observations["goal"]))[0]
     np.testing.assert_allclose(actions, torch.tanh(mean).numpy(), rtol=1e-6)
-    sampled = ris.act(nets["actor"], None, observations, "cpu", deterministic=False)
+    sampled = ris.act(agent.actor, None, observations, "cpu", deterministic=False)
     assert sampled.shape == (5, 2) and np.abs(sampled).max() <= 1 and not np.allclose(sampled, actions)
 
 
@@ -602,6 +647,26 @@ def test_robotics_maze_state_is_achieved_goal_then_observation():
     np.testing.assert_array_equal(converted["state"], [1, 2, 3, 4, 5, 6])
     np.testing.assert_array_equal(converted["goal"], [7, 8])
     assert converted["state"].dtype == np.float32 and converted["goal"].dtype == np.float32
+
+
+@pytest.mark.parametrize("test", [False, True])
+def test_robotics_maze_passes_gymnasium_env_checker(test):
+    env = ris.make_env("PointMaze_UMaze-v3", 0, test, 0, ris.ROBOTICS_THRESHOLD)()
+    wrapper = env.env
+    assert isinstance(wrapper, ris.RoboticsMaze)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the checker's advice on unbounded Boxes and on checking a wrapped env
+        check_env(wrapper, skip_render_check=True)
+        check_env(env, skip_render_check=True)  # with RecordEpisodeStatistics on top, as the script steps it
+    recorded = [spec for spec in wrapper.spec.additional_wrappers if spec.name == "RoboticsMaze"]
+    assert len(recorded) == 1 and recorded[0].kwargs == {"test": test}  # gymnasium can re-create the wrapper
+
+
+@pytest.mark.parametrize("test", [False, True])
+def test_ant_maze_env_passes_gymnasium_env_checker(test):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the checker's advice on unbounded Boxes
+        check_env(ris.AntMazeEnv("AntFb", test=test), skip_render_check=True)
 
 
 def test_point_umaze_test_resets_use_the_two_ends_of_the_u():
@@ -626,13 +691,19 @@ def test_point_umaze_test_resets_use_the_two_ends_of_the_u():
     assert any(far)  # training resets are not confined to the test cells
 
 
-# --- smoke runs and flags ---------------------------------------------------------------------------------------------
+# --- smoke runs, checkpoints, videos, Ctrl-C ---------------------------------------------------------------------------
 
 TINY = [
     "--total-timesteps", "150", "--start-timesteps", "100", "--batch-size", "32", "--eval-frequency", "150",
     "--eval-episodes", "2", "--max-episode-steps", "50", "--buffer-size", "10000", "--hidden-dim", "32",
 ]  # fmt: skip
 ENV_IDS = ["AntU", "AntFb", "AntMaze", "AntFg", "PointMaze_UMaze-v3", "AntMaze_UMaze-v5"]
+
+
+def script_env(**extra: str) -> dict[str, str]:
+    """The environment of a script run by hand: no MUJOCO_GL and no DISPLAY (a headless machine), one thread."""
+    base = {key: value for key, value in os.environ.items() if key not in ("MUJOCO_GL", "DISPLAY", "PYOPENGL_PLATFORM")}
+    return base | {"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"} | extra
 
 
 @pytest.mark.parametrize("groups", ["0", "16"])
@@ -648,7 +719,10 @@ def test_smoke_run(run_script, tmp_path, env_id, groups):
     assert b"eval/success_rate" in events and b"charts/episodic_length" in events
     if save:
         checkpoint = next(tmp_path.glob("runs/*/dgrl_ris.cleanrl_model"))
-        saved = torch.load(checkpoint)
+        saved = torch.load(checkpoint, weights_only=True)
+        assert saved["script"] == "dgrl_ris.py" and saved["format"] == ris.CHECKPOINT_FORMAT
+        assert saved["args"]["groups"] == int(groups) and saved["args"]["goal_threshold"] == 0.5  # the resolved radius
+        assert set(saved) == {"script", "format", "args", "actor", "critic", "high", "goal_encoder"}
         assert (saved["goal_encoder"] is None) == (groups == "0")
         if groups != "0":
             assert "vq.codebook" in saved["goal_encoder"] and "vq.ema_count" in saved["goal_encoder"]
@@ -660,14 +734,63 @@ def test_smoke_run(run_script, tmp_path, env_id, groups):
         assert re.search(r"2 test episodes: success \d+%, final distance [\d.]+", reloaded.stdout), reloaded.stdout
 
 
-def test_capture_video_writes_an_mp4(run_script, tmp_path):
-    flags = ["--env-id", "AntFb", "--groups", "0", "--total-timesteps", "40", "--start-timesteps", "40"]
-    flags += ["--batch-size", "8", "--buffer-size", "1000", "--eval-frequency", "40", "--eval-episodes", "1"]
+def test_capture_video_writes_an_mp4_without_mujoco_gl_or_display(tmp_path):
+    """Headless rendering needs MUJOCO_GL=egl (or osmesa); the script sets egl when no display is set, so a plain run on
+    a server records its video instead of crashing at the first evaluation."""
+    flags = ["--env-id", "AntFb", "--groups", "0", "--total-timesteps", "48", "--start-timesteps", "40"]
+    flags += ["--batch-size", "8", "--buffer-size", "1000", "--eval-frequency", "48", "--eval-episodes", "1"]
     flags += ["--max-episode-steps", "8", "--hidden-dim", "32", "--capture-video"]
-    result = run_script("dgrl_ris.py", *flags, env={"MUJOCO_GL": "egl"})
+    env = script_env()
+    assert "MUJOCO_GL" not in env and "DISPLAY" not in env
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "dgrl_ris.py"), *flags], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     videos = list(tmp_path.glob("videos/*/eval_*.mp4"))
     assert len(videos) == 1 and os.path.getsize(videos[0]) > 1000
+
+
+def test_ctrl_c_saves_a_loadable_checkpoint_and_flushes_the_logs(run_script, tmp_path):
+    """SIGINT part-way through training: the run stops after the current step with exit status 0, writes its checkpoint
+    and closes its TensorBoard file; the checkpoint evaluates; loading it under other networks names the flags to pass."""
+    flags = ["--env-id", "AntU", "--groups", "4", "--embed-dim", "8", "--n-embed", "8", "--hidden-dim", "16"]
+    flags += ["--max-episode-steps", "50", "--eval-episodes", "1"]
+    training = ["--total-timesteps", "1000000", "--start-timesteps", "100", "--batch-size", "16", "--eval-frequency", "200"]
+    process = subprocess.Popen(
+        [sys.executable, str(ROOT / "dgrl_ris.py"), *flags, *training, "--buffer-size", "5000", "--save-model"],
+        cwd=tmp_path, env=script_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    watchdog = threading.Timer(240, process.kill)
+    watchdog.start()
+    try:
+        first_line = next((line for line in process.stdout if line.startswith("step")), "")
+        assert re.match(r"step +200/1000000 +eval success", first_line), first_line  # an evaluation: updates are running
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate()
+    finally:
+        watchdog.cancel()
+    assert process.returncode == 0, stderr[-3000:]
+    assert "Traceback" not in stderr and re.search(r"stopped: \d+ steps, \d+ updates", stdout), stdout
+    checkpoint = next(tmp_path.glob("runs/*/dgrl_ris.cleanrl_model"))
+    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
+    assert b"eval/success_rate" in events and b"charts/episodic_return" in events
+    reloaded = run_script("dgrl_ris.py", *flags, "--checkpoint", str(checkpoint))
+    assert reloaded.returncode == 0, reloaded.stderr[-3000:]
+    assert re.search(r"1 test episodes: success \d+%, final distance [\d.]+", reloaded.stdout), reloaded.stdout
+    changed = [*flags, "--max-episode-steps", "60", "--groups", "8", "--hidden-dim", "32", "--vq-beta", "0.5"]
+    refused = run_script("dgrl_ris.py", *changed, "--checkpoint", str(checkpoint))
+    assert_clean_refusal(refused, "was saved with other settings: pass --max-episode-steps 50 --groups 4 --hidden-dim 16")
+
+
+# --- flags ------------------------------------------------------------------------------------------------------------
+
+
+def assert_clean_refusal(result: subprocess.CompletedProcess, *messages: str) -> None:
+    """Exit status 2, every message in stderr, no traceback."""
+    assert result.returncode == 2, result.stdout[-2000:] + result.stderr[-2000:]
+    assert "Traceback" not in result.stderr, result.stderr[-3000:]
+    for message in messages:
+        assert message in result.stderr, (message, result.stderr[-3000:])
 
 
 @pytest.mark.parametrize(
@@ -678,31 +801,83 @@ def test_capture_video_writes_an_mp4(run_script, tmp_path):
         ({"groups": 5}, r"--groups must be 0 \(RIS\) or divide --embed-dim 64: one of \[1, 2, 4, 8, 16, 32, 64\]; got 5"),
         ({"her_goal_frac": 0.8, "her_random_frac": 0.4}, r"--her-goal-frac \(0.8\) and --her-random-frac \(0.4\)"),
         ({"batch_size": 64, "buffer_size": 32}, r"--buffer-size \(32\) must be >= --batch-size \(64\)"),
+        ({"gamma": 0.0}, r"--gamma must be in \(0, 1\]; got 0.0"),
+        ({"gamma": 1.5}, r"--gamma must be in \(0, 1\]; got 1.5"),
+        ({"tau": 2.0}, r"--tau must be in \(0, 1\]; got 2.0"),
+        ({"tau": 0.0}, r"--tau must be in \(0, 1\]; got 0.0"),
+        ({"goal_threshold": -0.5}, r"--goal-threshold must be >= 0; got -0.5"),
+        ({"vq_decay": 1.5}, r"--vq-decay must be in \[0, 1\); got 1.5"),
+        ({"vq_decay": 1.0}, r"--vq-decay must be in \[0, 1\); got 1.0"),
+        ({"vq_beta": -1.0}, r"--vq-beta must be >= 0; got -1.0"),
+        ({"q_lr": -1.0}, r"--q-lr must be > 0; got -1.0"),
+        ({"seed": -1}, r"--seed must be in \[0, 2\*\*64 - 1\]"),
+        ({"alpha": math.nan}, r"--alpha must be a finite number; got nan"),
+        ({"tau": math.inf}, r"--tau must be a finite number; got inf"),
+        ({"total_timesteps": 10_000}, r"--total-timesteps \(10000\) must exceed --start-timesteps \(10000\)"),
+        ({"total_timesteps": 1000, "start_timesteps": 0, "batch_size": 2048}, r"must exceed --start-timesteps \(0\) and "),
     ],
 )
-def test_validate_names_the_bad_flag(overrides, message):
+def test_validate_names_the_bad_flag(overrides, message, capsys):
     with pytest.raises(SystemExit) as error:
         ris.validate(ris.Args(**overrides))
-    assert re.search(message, str(error.value.code)), error.value.code
+    assert error.value.code == 2
+    assert re.search(message, capsys.readouterr().err)
     ris.validate(ris.Args(env_id="AntU", groups=16))  # the defaults pass
 
 
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        # EpisodeReplay writes whole episodes into one contiguous slice: an episode longer than the buffer crashed with a
+        # torch shape error in add_episode at the end of the first episode, after the envs and networks were built.
+        ({"buffer_size": 64, "batch_size": 32}, r"--buffer-size \(64\) must hold one whole episode: >= 100"),
+        # 100 transitions hold one whole 60-step episode: the replay never reached a batch of 100 (zero updates, silently).
+        ({"buffer_size": 100, "batch_size": 100, "max_episode_steps": 60}, r"holds 1 whole 60-step episodes, fewer "),
+        # No episode ends before step 100 unless by luck, so the replay stays empty: zero updates, silently.
+        ({"total_timesteps": 99, "start_timesteps": 10, "batch_size": 16}, r"--total-timesteps \(99\) must exceed 115"),
+        ({"total_timesteps": 400, "start_timesteps": 10, "batch_size": 16, "num_envs": 4}, r"exceed 412: .*--num-envs 4"),
+    ],
+)
+def test_validate_refuses_runs_whose_replay_never_holds_a_batch(overrides, message, capsys):
+    with pytest.raises(SystemExit) as error:
+        ris.validate(ris.Args(**{"env_id": "AntU", "max_episode_steps": 100, **overrides}))
+    assert error.value.code == 2
+    assert re.search(message, capsys.readouterr().err)
+    ris.validate(ris.Args(env_id="AntU", max_episode_steps=100, buffer_size=100, batch_size=32))  # one episode fits
+    ris.validate(ris.Args(env_id="AntU", total_timesteps=116, start_timesteps=10, batch_size=16, max_episode_steps=100))
+
+
 def test_bad_flags_fail_before_any_work(run_script, tmp_path):
-    """Every bad flag is reported at once, by name, before any env, network or log directory is made."""
-    flags = ["--env-id", "AntX", "--groups", "5", "--her-goal-frac", "0.8", "--her-random-frac", "0.4"]
+    """Every bad flag is reported at once, by name, before any env, network or log directory is made: exit status 2."""
+    flags = ["--env-id", "AntX", "--groups", "5", "--her-goal-frac", "0.8", "--her-random-frac", "0.4", "--gamma", "1.5"]
+    flags += ["--tau", "0", "--vq-decay", "1.5", "--vq-beta", "-1", "--goal-threshold", "-1", "--seed", "-1"]
+    flags += ["--q-lr", "-1", "--alpha", "nan", "--total-timesteps", "100", "--start-timesteps", "100"]
     result = run_script("dgrl_ris.py", *flags)
-    assert result.returncode != 0
-    for message in ("--env-id 'AntX' is unknown: use one of AntU, AntFb, AntMaze, AntFg", "--groups must be 0 (RIS)"):
-        assert message in result.stderr, result.stderr[-2000:]
-    assert "--her-goal-frac (0.8) and --her-random-frac (0.4)" in result.stderr
+    assert_clean_refusal(
+        result, "--env-id 'AntX' is unknown: use one of AntU, AntFb, AntMaze, AntFg", "--groups must be 0 (RIS)",
+        "--her-goal-frac (0.8) and --her-random-frac (0.4)", "--gamma must be in (0, 1]; got 1.5",
+        "--tau must be in (0, 1]; got 0.0", "--vq-decay must be in [0, 1); got 1.5", "--vq-beta must be >= 0; got -1.0",
+        "--goal-threshold must be >= 0; got -1.0", "--seed must be in [0, 2**64 - 1]", "--q-lr must be > 0; got -1.0",
+        "--alpha must be a finite number; got nan", "--total-timesteps (100) must exceed --start-timesteps (100)",
+    )  # fmt: skip
     assert "state 31-d" not in result.stdout and not (tmp_path / "runs").exists()
 
 
-def test_a_buffer_smaller_than_an_episode_is_rejected_before_any_work():
-    """EpisodeReplay writes whole episodes into one contiguous slice, so an episode longer than --buffer-size cannot be
-    stored: such a run crashes with a torch shape error in add_episode at the end of its first episode, after the envs
-    and networks are built. validate() must reject the flags first, naming --buffer-size."""
-    args = ris.Args(env_id="AntU", buffer_size=64, batch_size=32, max_episode_steps=100)
-    with pytest.raises(SystemExit, match="--buffer-size"):
-        ris.validate(args)
-    ris.validate(ris.Args(env_id="AntU", buffer_size=100, batch_size=32, max_episode_steps=100))  # one episode fits
+def test_a_replay_too_large_for_memory_is_refused_before_the_logs(run_script, tmp_path):
+    flags = ["--env-id", "AntU", "--total-timesteps", "200", "--start-timesteps", "100", "--batch-size", "16"]
+    result = run_script("dgrl_ris.py", *flags, "--max-episode-steps", "50", "--buffer-size", str(10**11))
+    assert_clean_refusal(result, f"--buffer-size {10**11}: the replay does not fit in cpu memory")
+    assert not (tmp_path / "runs").exists()
+
+
+def test_args_docstrings_are_one_line():
+    """tyro wraps --help text itself; a line break inside a field's docstring breaks its wrapping."""
+    tree = ast.parse((ROOT / "dgrl_ris.py").read_text())
+    args_class = next(node for node in tree.body if isinstance(node, ast.ClassDef) and node.name == "Args")
+    docstrings = [
+        node.value.value
+        for node in args_class.body
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str)
+    ]
+    assert len(docstrings) == len([node for node in args_class.body if isinstance(node, ast.AnnAssign)])
+    assert [text for text in docstrings if "\n" in text] == []

@@ -22,12 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from timing import median_time  # benchmark/timing.py
 
 import dgrl_ris as ris
-from vq import make_target
 
 
 def env_speed(env_id: str, steps: int = 1000) -> float:
-    args = ris.Args(env_id=env_id)
-    envs = ris.make_vector_env(env_id, 1, 0, False, args)
+    threshold = ris.ANT_THRESHOLD if env_id in ris.ANT_MAZES else ris.ROBOTICS_THRESHOLD
+    envs = ris.make_vector_env(env_id, 1, 0, False, 0, threshold)
     envs.reset(seed=0)
     start = time.perf_counter()
     for _ in range(steps):
@@ -37,22 +36,25 @@ def env_speed(env_id: str, steps: int = 1000) -> float:
 
 
 def update_time(state_dim: int, goal_dim: int, action_dim: int, groups: int, batch: int, device: torch.device) -> float:
-    args = ris.Args(groups=groups, batch_size=batch, goal_threshold=0.5)
-    goal_input_dim = args.embed_dim if groups else goal_dim
-    actor = ris.Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
-    critic = ris.TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
-    high = ris.HighLevelPolicy(state_dim, goal_dim, args.hidden_dim).to(device)
-    encoder = ris.GoalEncoder(goal_dim, args.embed_dim, args.hidden_dim, args).to(device) if groups else None
-    nets = dict(actor=actor, critic=critic, high=high, goal_encoder=encoder)
-    nets.update(actor_target=make_target(actor), critic_target=make_target(critic))
-    critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
-    if encoder is not None:
-        critic_groups.append({"params": encoder.parameters(), "lr": args.encoder_lr})
-    optimizers = {
-        "critic": torch.optim.Adam(critic_groups, fused=True),
-        "actor": torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=True),
-        "high": torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=True),
-    }
+    """Median seconds of one ris_update at the script's default hyper-parameters, on the agent the script builds."""
+    args = ris.Args(groups=groups, batch_size=batch)
+    agent = ris.make_agent(
+        state_dim,
+        goal_dim,
+        action_dim,
+        hidden_dim=args.hidden_dim,
+        q_lr=args.q_lr,
+        actor_lr=args.actor_lr,
+        h_lr=args.h_lr,
+        groups=args.groups,
+        embed_dim=args.embed_dim,
+        n_embed=args.n_embed,
+        vq_beta=args.vq_beta,
+        vq_decay=args.vq_decay,
+        vq_dead_code_steps=args.vq_dead_code_steps,
+        encoder_lr=args.encoder_lr,
+        device=device,
+    )
     replay = ris.EpisodeReplay(60_000, state_dim, action_dim, goal_dim, device)
     rng = np.random.default_rng(0)
     for _ in range(100):
@@ -62,8 +64,18 @@ def update_time(state_dim: int, goal_dim: int, action_dim: int, groups: int, bat
         )  # fmt: skip
 
     def step():
-        sample = replay.sample(batch, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
-        ris.ris_update(nets, optimizers, sample, args, goal_dim)
+        sample = replay.sample(batch, goal_dim, ris.ANT_THRESHOLD, args.her_goal_frac, args.her_random_frac)
+        ris.ris_update(
+            agent,
+            sample,
+            goal_dim=goal_dim,
+            gamma=args.gamma,
+            tau=args.tau,
+            alpha=args.alpha,
+            h_lambda=args.h_lambda,
+            n_subgoals=args.n_subgoals,
+            prior_epsilon=args.prior_epsilon,
+        )
         if device.type == "cuda":
             torch.cuda.synchronize()
 

@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
-# The RIS study (docs/dgrl_ris.md): RIS (--groups 0) against RIS+DGRL (--groups 16) on one env, JOBS runs at a time (one
-# torch thread each on CPU), then curves and a table from the TensorBoard logs. The default is the CPU preset on
-# PointMaze_UMaze-v3; ENV, STEPS, BATCH and EXTRA select other settings.
-#   bash benchmark/ris.sh                                              # CPU preset: PointMaze U, 2 modes x 1 seed
-#   SEEDS="1 2 3" bash benchmark/ris.sh                                # the same with 3 seeds
-#   ENV=AntU STEPS=60000 BATCH=256 START=10000 EVAL_EVERY=5000 TAG=antu_cpu bash benchmark/ris.sh   # AntU on a CPU
+# The RIS study (docs/dgrl_ris.md): RIS (--groups 0) against RIS+DGRL (--groups 16; GROUPS_LIST picks others) on one
+# env, JOBS runs at a time (one torch thread each on CPU), then curves and a table from the TensorBoard logs. The
+# defaults are the CPU preset: ENV=PointMaze_UMaze-v3 STEPS=30000 BATCH=128 START=2000 EVAL_EVERY=2000 EVAL_EPISODES=10
+# SEEDS=1; every variable below can be set on the command line. The runs of docs/dgrl_ris.md:
+#   SEEDS="1 2 3" bash benchmark/ris.sh                                # the CPU preset, 3 seeds (the docs' table)
+#   GROUPS_LIST="4 8" SEEDS=1 bash benchmark/ris.sh                    # G = 4 and G = 8, one seed
+#   ENV=AntU STEPS=40000 BATCH=256 START=10000 EVAL_EVERY=5000 TAG=antu_cpu bash benchmark/ris.sh   # AntU on a CPU
+# The paper's setting, one run at a time on a GPU (not run yet):
 #   ENV=AntMaze STEPS=5000000 BATCH=2048 START=10000 EVAL_EVERY=1000 EVAL_EPISODES=5 JOBS=1 TAG=paper EXTRA=--cuda \
-#     bash benchmark/ris.sh                                            # the paper's setting, one run at a time on a GPU
+#     bash benchmark/ris.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-.venv/bin/python}
@@ -33,4 +35,4 @@ done | xargs -P "$JOBS" -L 1 bash -c 'log="logs/ris_$2_$3_G$9_s${10}.log"
   tail -n 1 "$log"' _ "$PYTHON" "$ENV" "$TAG" "$STEPS" "$BATCH" "$START" "$EVAL_EVERY" "$EVAL_EPISODES"
 "$PYTHON" benchmark/plot.py --runs-dir runs --match "${ENV}__G.*__${TAG}__" --out "results/ris_${ENV}_${TAG}" \
   --bins 15 --tags eval/success_rate eval/final_distance charts/success_rate charts/subgoal_distance \
-  --title "${ENV}: RIS (G0) vs RIS+DGRL (G16), ${STEPS} steps, batch ${BATCH}"
+  --title "${ENV}: RIS vs RIS+DGRL (G in ${GROUPS_LIST}), ${STEPS} steps, batch ${BATCH}"

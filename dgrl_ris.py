@@ -273,7 +273,10 @@ class AntMazeEnv(gym.Env):
     frame_skip = 5
 
     def __init__(self, name: str, test: bool = False, threshold: float = ANT_THRESHOLD, render_mode: str | None = None):
-        self.name, self.test, self.threshold, self.render_mode = name, test, threshold, render_mode
+        self.name = name
+        self.test = test
+        self.threshold = threshold
+        self.render_mode = render_mode
         self.model = mujoco.MjModel.from_xml_string(ant_maze_xml(name))
         self.data = mujoco.MjData(self.model)
         box = gym.spaces.Box(-np.inf, np.inf, (31,), np.float32)
@@ -475,10 +478,10 @@ class GoalEncoder(nn.Module):  # DGRL
         return self.vq(self.encoder(goals), update=update)  # DGRL
 
 
-def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:
+def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:  # DGRL
     """What the actor and critics see of a goal: the raw goal (RIS) or its discrete embedding (DGRL), codebook untouched."""
-    if goal_encoder is None:
-        return goals
+    if goal_encoder is None:  # DGRL
+        return goals  # DGRL
     return goal_encoder(goals, update=False)[0]  # DGRL
 
 
@@ -668,7 +671,8 @@ def ris_update(
     `batch` is EpisodeReplay.sample's (s, a, s', g, r, done, s_g); goal_dim: the goal-space projection of a state is
     its first goal_dim entries.
     """
-    actor, critic, high, goal_encoder = agent.actor, agent.critic, agent.high, agent.goal_encoder
+    actor, critic, high = agent.actor, agent.critic, agent.high
+    goal_encoder = agent.goal_encoder  # DGRL
     states, actions, next_states, goals, rewards, done, subgoals = batch
     batch_size = len(states)
     metrics = {}
@@ -683,7 +687,7 @@ def ris_update(
         metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)  # DGRL
     else:
         goal_z = goals
-        representation_loss = 0.0
+        representation_loss = 0.0  # DGRL: RIS has none
     with torch.no_grad():
         next_actions = actor.sample(next_states, goal_z.detach())
         next_q = agent.critic_target(next_states, next_actions, goal_z.detach()).min(0).values
@@ -753,7 +757,7 @@ def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, devi
 def evaluate(
     envs: gym.vector.SyncVectorEnv,
     actor: Actor,
-    goal_encoder: GoalEncoder | None,
+    goal_encoder: GoalEncoder | None,  # DGRL
     device: torch.device,
     deterministic: bool,
     frames: list | None = None,
@@ -970,7 +974,9 @@ def validate(args: Args) -> None:
     counts = "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals eval_frequency eval_episodes"
     errors += range_errors(args, counts, 1)
     errors += range_errors(args, "n_embed embed_dim", 1)  # DGRL
-    errors += range_errors(args, "seed max_episode_steps start_timesteps goal_threshold", 0)
+    errors += range_errors(args, "max_episode_steps start_timesteps goal_threshold", 0)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64 - 1] (what gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
     errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr", 0, low_open=True)
     errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
@@ -1058,6 +1064,12 @@ if __name__ == "__main__":
         print(f"{args.eval_episodes} test episodes: success {success:.0%}, final distance {distance:.2f}")
         raise SystemExit(0)
 
+    try:
+        replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
+    except RuntimeError as error:  # out of memory (torch.OutOfMemoryError on a GPU is a RuntimeError too)
+        exit_on_errors(
+            [f"--buffer-size {args.buffer_size}: the replay does not fit in {device.type} memory ({type(error).__name__})"]
+        )
     writer = make_writer(args, run_name)
     print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
     if device.type == "cpu" and args.batch_size >= 1024:
@@ -1065,7 +1077,6 @@ if __name__ == "__main__":
             f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
         )
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
     n_envs = args.num_envs
     episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
     stop = stop_on_signals()
@@ -1078,6 +1089,7 @@ if __name__ == "__main__":
     next_loss_log = LOSS_LOG_UPDATES
     recent_success = []
     eval_success = eval_distance = float("nan")
+    diverged = False
     while step < args.total_timesteps and not stop:
         # Act: uniform random actions during the warm-up, then the actor's samples.
         if step < args.start_timesteps:
@@ -1123,14 +1135,23 @@ if __name__ == "__main__":
                 updates += 1
             if updates >= next_loss_log:
                 next_loss_log += LOSS_LOG_UPDATES
-                for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values", "high_weight_max"):
-                    writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
+                losses = {name: metrics[name].item() for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values")}
+                for name, value in losses.items():
+                    writer.add_scalar(f"losses/{name}", value, step)
+                writer.add_scalar("losses/high_weight_max", metrics["high_weight_max"].item(), step)
                 writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), step)
                 if dgrl:  # DGRL
                     writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), step)  # DGRL
                     writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
                     writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
                     writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                diverged = not all(map(math.isfinite, losses.values()))
+                if diverged:  # every later update would be NaN too: stop rather than train garbage
+                    message = (
+                        f"training diverged: non-finite losses {losses} at step {step}; lower the learning rates or --alpha"
+                    )
+                    print(message, file=sys.stderr)
+                    break
         progress.heartbeat(step, f"{updates} updates")
 
         # Evaluate on the test configuration, log, print progress, checkpoint.
@@ -1158,7 +1179,9 @@ if __name__ == "__main__":
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
         print(f"checkpoint: {checkpoint_path}")
-    progress.finish(bool(stop), run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
+    progress.finish(bool(stop) or diverged, run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
     envs.close()
     eval_envs.close()
     writer.close()
+    if diverged:
+        raise SystemExit(1)

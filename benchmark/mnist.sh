@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The Color-MNIST factorization study behind docs/dgrl_mnist.md: DGRL (G=2, 256 codes) and the continuous
-# autoencoder (--groups 0), seeds 1, 2, 3, at the paper's defaults; two single-threaded runs at a time.
+# autoencoder (--groups 0), seeds 1, 2, 3, at the paper's defaults; two runs at a time, each on one thread (--threads 1,
+# the default). Each log ends with the factor tables and the run's `done:` line (printed below).
 # Tables (mean +- std over seeds) go to docs/img/mnist_factors.md; each run's figure to runs/<run>/factors.png.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,7 +15,7 @@ for seed in 1 2 3; do
     echo "$groups $seed"
   done
 done | xargs -P 2 -L 1 sh -c '"$PYTHON" dgrl_mnist.py --groups $0 --seed $1 --exp-name '"$tag"' \
-  > logs/'"$tag"'/G$0_s$1.log 2>&1 && tail -n 7 logs/'"$tag"'/G$0_s$1.log'
+  > logs/'"$tag"'/G$0_s$1.log 2>&1 && tail -n 9 logs/'"$tag"'/G$0_s$1.log'
 echo "study: 6 runs in $(( $(date +%s) - start )) s of wall-clock"
 "$PYTHON" benchmark/plot.py --runs-dir runs --match "__${tag}__" --out docs/img/mnist_factors \
   --tags factor/factor1/digit_acc factor/factor1/colour_acc factor/factor2/digit_acc factor/factor2/colour_acc \

@@ -188,8 +188,9 @@ def test_the_defaults_pass_validate():
         ({"groups": -1}, r"--groups must be 0 \(baseline\) or divide --latent-dim 30"),
         ({"latent_dim": 31, "groups": 0}, r"--latent-dim must be even, so that the latent splits into two factors; got 31"),
         ({"n_colours": 3}, r"--n-colours must be in \[6, 8\]; got 3"),
-        ({"learning_rate": -1.0}, r"--learning-rate must be > 0; got -1.0"),
-        ({"learning_rate": 0.0}, r"--learning-rate must be > 0; got 0.0"),
+        ({"learning_rate": -1.0}, r"--learning-rate must be in \(0, 1\]; got -1.0"),
+        ({"learning_rate": 0.0}, r"--learning-rate must be in \(0, 1\]; got 0.0"),
+        ({"learning_rate": 1e300}, r"--learning-rate must be in \(0, 1\]; got 1e\+300"),  # overflowed inside Adam
         ({"learning_rate": math.inf}, r"--learning-rate must be a finite number; got inf"),
         ({"vq_decay": 1.5}, r"--vq-decay must be in \[0, 1\); got 1.5"),
         ({"vq_decay": 1.0}, r"--vq-decay must be in \[0, 1\); got 1.0"),
@@ -226,7 +227,10 @@ def assert_clean_refusal(result, tmp_path, *patterns: str) -> None:
     ("flags", "patterns"),
     [
         # values that reached the optimizer's and the codebook's constructors after runs/ was created
-        (["--learning-rate", "-1", "--vq-decay", "1.5"], [r"--learning-rate must be > 0", r"--vq-decay must be in \[0, 1\)"]),
+        (
+            ["--learning-rate", "-1", "--vq-decay", "1.5"],
+            [r"--learning-rate must be in \(0, 1\]", r"--vq-decay must be in \[0, 1\)"],
+        ),
         # more training images than the data holds was silently capped at the data's size
         (["--train-size", "70000"], [r"--train-size must be in \[1, 60000\]; got 70000"]),
         (["--data-dir", "/nonexistent"], [r"--data-dir /nonexistent has no train-images-idx3-ubyte\[\.gz\]"]),

@@ -256,11 +256,11 @@ class Model:
 def make_model(
     latent_dim: int,
     hidden_dim: int,
-    groups: int,
-    n_embed: int,
-    vq_beta: float,
-    vq_decay: float,
-    vq_dead_code_steps: int,
+    groups: int,  # DGRL
+    n_embed: int,  # DGRL
+    vq_beta: float,  # DGRL
+    vq_decay: float,  # DGRL
+    vq_dead_code_steps: int,  # DGRL
     learning_rate: float,
     device: torch.device,
 ) -> Model:
@@ -272,14 +272,14 @@ def make_model(
 
 def train_step(model: Model, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """One Adam step of the autoencoder on a batch of images: (reconstruction loss, VQ loss, code indices)."""
-    latent, vq_loss, codes = model.autoencoder.quantize(images)
+    latent, vq_loss, codes = model.autoencoder.quantize(images)  # DGRL: the baseline's vq_loss is 0, its codes None
     # Squared error summed over an image's pixels, averaged over images (see the docs: a per-pixel mean is ~2,000 times
     # smaller, the commitment loss then dominates the encoder and the codebook collapses).
     reconstruction_loss = F.mse_loss(model.autoencoder.decode(latent), images, reduction="sum") / len(images)
     model.optimizer.zero_grad()
     (reconstruction_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
     model.optimizer.step()
-    return reconstruction_loss.detach(), vq_loss.detach(), codes
+    return reconstruction_loss.detach(), vq_loss.detach(), codes  # DGRL: the VQ loss and codes for the logs
 
 
 def make_classifier(n_classes: int) -> nn.Module:
@@ -560,26 +560,24 @@ MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # t
 def validate(args: Args) -> None:
     """Every bad flag value at once, before any work (--train-size against the data comes once the data is loaded)."""
     errors = common_errors(args)
-    if args.groups < 0 or (args.groups and args.latent_dim % args.groups):
-        divisors = [g for g in range(1, args.latent_dim + 1) if args.latent_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (baseline) or divide --latent-dim {args.latent_dim}: one of {divisors}; got {args.groups}"
-        )
+    errors += range_errors(args, "train_size epochs batch_size latent_dim hidden_dim classifier_epochs n_swap_pairs", 1)
+    errors += range_errors(args, "learning_rate", 0, 1, low_open=True)  # Adam steps each weight by about this much
     if args.latent_dim % 2:
         errors.append(f"--latent-dim must be even, so that the latent splits into two factors; got {args.latent_dim}")
     if not 6 <= args.n_colours <= len(PALETTE):
         errors.append(f"--n-colours must be in [6, {len(PALETTE)}]; got {args.n_colours}")
-    errors += range_errors(args, "train_size epochs batch_size latent_dim hidden_dim classifier_epochs n_swap_pairs", 1)
-    errors += range_errors(args, "n_embed", 1)
-    errors += range_errors(args, "vq_dead_code_steps", 0)
-    errors += range_errors(args, "learning_rate", 0, 1, low_open=True)  # Adam steps each weight by about this much
-    errors += range_errors(args, "vq_beta", 0)
-    if args.vq_decay < 0 or args.vq_decay >= 1:
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")
     if not -(2**63) <= args.seed < 2**64:
         errors.append(f"--seed must be in [-2**63, 2**64 - 1] (torch's seed range); got {args.seed}")
     if args.save_model and args.checkpoint is not None:
         errors.append("--save-model saves a model this run trains, and with --checkpoint it trains none: pass one of them")
+    if args.groups < 0 or (args.groups and args.latent_dim % args.groups):  # DGRL
+        divisors = [g for g in range(1, args.latent_dim + 1) if args.latent_dim % g == 0]  # DGRL
+        wanted = f"0 (baseline) or divide --latent-dim {args.latent_dim}: one of {divisors}"  # DGRL
+        errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
+    errors += range_errors(args, "n_embed", 1)  # DGRL
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
+    if args.vq_decay < 0 or args.vq_decay >= 1:  # DGRL
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     exit_on_errors(errors)
 
 
@@ -611,11 +609,11 @@ if __name__ == "__main__":
     model = make_model(
         args.latent_dim,
         args.hidden_dim,
-        args.groups,
-        args.n_embed,
-        args.vq_beta,
-        args.vq_decay,
-        args.vq_dead_code_steps,
+        args.groups,  # DGRL
+        args.n_embed,  # DGRL
+        args.vq_beta,  # DGRL
+        args.vq_decay,  # DGRL
+        args.vq_dead_code_steps,  # DGRL
         args.learning_rate,
         device,
     )
@@ -683,9 +681,7 @@ if __name__ == "__main__":
         return painted("train", indices)
 
     if not stop:
-        print(
-            f"training the digit and colour classifiers on the training images (--classifier-epochs {args.classifier_epochs})"
-        )
+        print(f"training the referees, digit and colour classifiers (--classifier-epochs {args.classifier_epochs})")
     digit_classifier = train_classifier(
         painted_train, labels["train"], 10, args.classifier_epochs, args.batch_size, generator, stop
     )
@@ -694,6 +690,7 @@ if __name__ == "__main__":
     )
 
     # --- The factor tests: zero substitution and the swap test on the test set -----------------------------------------
+    tested = "no factor tests (stopped)"
     if not stop:
         test_images = painted("test", torch.arange(len(labels["test"]), device=device))
         results, figure_rows = factor_tests(
@@ -711,11 +708,7 @@ if __name__ == "__main__":
             writer.add_scalar(f"factor/{tag}", value, 0)
         print_results(results, args.n_colours)
         print(f"figure: runs/{run_name}/factors.png")
+        tested = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}"
     trained = f"{epoch} of {epochs} epochs ({images_seen} images)" if args.checkpoint is None else "a checkpoint"
-    tested = (
-        "no factor tests (stopped)"
-        if stop
-        else f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}"
-    )
     progress.finish(bool(stop), run_name, f"{trained}; {tested}")
     writer.close()

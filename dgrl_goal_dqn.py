@@ -320,11 +320,11 @@ class Representation(nn.Module):
         self,
         embed_dim: int,
         objective: str,
-        groups: int,
-        n_embed: int,
-        beta: float,
-        decay: float,
-        dead_code_steps: int = 0,
+        groups: int,  # DGRL
+        n_embed: int,  # DGRL
+        beta: float,  # DGRL
+        decay: float,  # DGRL
+        dead_code_steps: int = 0,  # DGRL
     ):
         super().__init__()
         self.objective = objective
@@ -343,7 +343,7 @@ class Representation(nn.Module):
             self.psi_next = nn.Linear(embed_dim, 64)
         else:
             self.decoder = nn.Sequential(nn.Linear(embed_dim, 256), nn.ReLU(), nn.Linear(256, 80 * 80 * 3))
-        self.vq = None
+        self.vq = None  # DGRL: None for the baseline
         if groups:  # DGRL
             self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
 
@@ -386,11 +386,11 @@ def make_agent(
     embed_dim: int,
     hidden_dim: int,
     objective: str,
-    groups: int,
-    n_embed: int,
-    vq_beta: float,
-    vq_decay: float,
-    vq_dead_code_steps: int,
+    groups: int,  # DGRL
+    n_embed: int,  # DGRL
+    vq_beta: float,  # DGRL
+    vq_decay: float,  # DGRL
+    vq_dead_code_steps: int,  # DGRL
     learning_rate: float,
     rep_learning_rate: float,
     finetune: bool,
@@ -426,7 +426,10 @@ def infonce_loss(anchors: torch.Tensor, positives: torch.Tensor, clip: float = 2
 
 
 def intrinsic_bonus(
-    z_state: torch.Tensor, z_goal: torch.Tensor, codes_state: torch.Tensor | None, codes_goal: torch.Tensor | None
+    z_state: torch.Tensor,
+    z_goal: torch.Tensor,
+    codes_state: torch.Tensor | None,  # DGRL
+    codes_goal: torch.Tensor | None,  # DGRL
 ) -> torch.Tensor:
     """DGRL: fraction of the G factors whose codes match. Baseline: cosine similarity of the continuous embeddings."""
     if codes_state is not None:  # DGRL
@@ -488,7 +491,7 @@ class CellTable:
 
     z: torch.Tensor
     features: torch.Tensor
-    codes: torch.Tensor | None
+    codes: torch.Tensor | None  # DGRL: None for the baseline
 
 
 @torch.no_grad()
@@ -503,7 +506,7 @@ def cell_features(model: Representation, embedder: CellEmbedder, cells: torch.Te
     """(features, continuous embedding, commitment loss, codes) of the observations of `cells` under `model`: rows of
     `table` when there is one (a frozen phi on noiseless images), else encoded."""
     if table is not None:
-        codes = None if table.codes is None else table.codes[cells]
+        codes = None if table.codes is None else table.codes[cells]  # DGRL
         return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
     z = embedder(model, cells)
     features, vq_loss, codes = model(z, update=update)
@@ -585,9 +588,15 @@ def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, in
 
 
 def td_update(
-    agent: Agent, batch: Batch, embedder: CellEmbedder, table: CellTable | None, *, gamma: float, bonus_coef: float,
+    agent: Agent,
+    batch: Batch,
+    embedder: CellEmbedder,
+    table: CellTable | None,
+    *,
+    gamma: float,
+    bonus_coef: float,
     double_dqn: bool,
-) -> dict[str, torch.Tensor]:  # fmt: skip
+) -> dict[str, torch.Tensor]:
     """One DQN step: smooth-L1 between Q(s, g, a) and r + bonus_coef * bonus(s', g) + gamma * Q_target(s', g, a'), a'
     from the online network (Double DQN) or the target's max. With a target phi (--finetune) the TD loss trains phi's
     encoder and the codebook updates on the (state, goal) batch. Returns the detached metrics."""
@@ -596,8 +605,8 @@ def td_update(
         target_rep = agent.target_rep if finetune else agent.rep
         next_goal_cells = torch.cat([batch.cells[:, 1], batch.cells[:, 2]])
         next_goal_features, next_goal_z, _, next_goal_codes = cell_features(target_rep, embedder, next_goal_cells, table)
-        next_codes = None
-        goal_codes = None
+        next_codes = None  # DGRL
+        goal_codes = None  # DGRL
         if next_goal_codes is not None:  # DGRL
             next_codes, goal_codes = next_goal_codes.chunk(2)  # DGRL
         bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)
@@ -623,7 +632,7 @@ def td_update(
         "td_loss": td_loss.detach(),
         "q_values": q_values.detach().mean(),
         "bonus": bonus.mean(),
-        "vq_loss": vq_loss.detach(),
+        "vq_loss": vq_loss.detach(),  # DGRL
     }
 
 
@@ -847,21 +856,21 @@ def validate(args: Args) -> None:
     errors = common_errors(args)
     errors += range_errors(args, "total_timesteps buffer_size batch_size max_episode_steps eval_frequency", 1)
     errors += range_errors(args, "target_network_frequency train_frequency rep_transitions rep_batch_size", 1)
-    errors += range_errors(args, "embed_dim hidden_dim n_embed", 1)
-    errors += range_errors(args, "seed goal_seed learning_starts rep_steps vq_dead_code_steps vq_beta bonus_coef", 0)
+    errors += range_errors(args, "embed_dim hidden_dim", 1)
+    errors += range_errors(args, "seed goal_seed learning_starts rep_steps bonus_coef", 0)
     errors += range_errors(args, "learning_rate rep_learning_rate", 0, low_open=True)
     errors += range_errors(args, "gamma exploration_fraction", 0, 1, low_open=True)
     errors += range_errors(args, "start_e end_e noise", 0, 1)
-    errors += range_errors(args, "vq_decay", 0)
-    if args.vq_decay >= 1:
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")
     if args.start_e < args.end_e:
         errors.append(f"--start-e {args.start_e} must be >= --end-e {args.end_e}: epsilon decays from one to the other")
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
+    errors += range_errors(args, "n_embed", 1)  # DGRL
+    errors += range_errors(args, "vq_dead_code_steps vq_beta vq_decay", 0)  # DGRL
+    if args.vq_decay >= 1:  # DGRL
+        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
+    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # DGRL: 0 is the baseline
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
+        groups_wanted = f"0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
+        errors.append(f"--groups must be {groups_wanted}; got {args.groups}")  # DGRL
     n_free = (len(LAYOUTS[args.env_id]) // 2) ** 2 - 1 - N_NOVEL_GOALS
     if not 1 <= args.n_train_goals <= n_free:
         errors.append(
@@ -904,11 +913,11 @@ if __name__ == "__main__":
         embed_dim=args.embed_dim,
         hidden_dim=args.hidden_dim,
         objective=args.rep,
-        groups=args.groups,
-        n_embed=args.n_embed,
-        vq_beta=args.vq_beta,
-        vq_decay=args.vq_decay,
-        vq_dead_code_steps=args.vq_dead_code_steps,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
         learning_rate=args.learning_rate,
         rep_learning_rate=args.rep_learning_rate,
         finetune=args.finetune,
@@ -920,8 +929,11 @@ if __name__ == "__main__":
         split = {"train_goals": train_goals.tolist(), "novel_goals": novel_goals.tolist()}
         if any(saved.get(key) != cells for key, cells in split.items()):
             saved_split = {key: saved.get(key) for key in split}
-            print(f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} was trained on the goal split {saved_split}, "
-                  f"but these flags give {split}", file=sys.stderr)  # fmt: skip
+            print(
+                f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} was trained on the goal split {saved_split}, "
+                f"but these flags give {split}",
+                file=sys.stderr,
+            )
             raise SystemExit(2)
         agent.rep.load_state_dict(saved["representation"])
         agent.q_network.load_state_dict(saved["q_network"])
@@ -967,7 +979,7 @@ if __name__ == "__main__":
         writer.add_scalar("vq/active_codes", n_active, 0)  # DGRL
         print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
     pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
-    pair_codes = (None, None)
+    pair_codes = (None, None)  # DGRL
     if dgrl:  # DGRL
         pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]])  # DGRL
     all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes).view(layout.n_cells, -1)
@@ -1027,8 +1039,9 @@ if __name__ == "__main__":
         # Learn
         if global_step >= args.learning_starts and global_step % args.train_frequency == 0:
             batch = replay.sample(args.batch_size, rng, device)
-            metrics = td_update(agent, batch, embedder, lookup, gamma=args.gamma, bonus_coef=args.bonus_coef,
-                                double_dqn=args.double_dqn)  # fmt: skip
+            metrics = td_update(
+                agent, batch, embedder, lookup, gamma=args.gamma, bonus_coef=args.bonus_coef, double_dqn=args.double_dqn
+            )
             train_steps += 1
             if train_steps % args.target_network_frequency == 0:
                 update_target(agent.target_q_network, agent.q_network)
@@ -1053,13 +1066,13 @@ if __name__ == "__main__":
             texts = []
             frames = []
             for split, goals in (("train", train_goals), ("novel", novel_goals)):
-                reached, steps, path = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
+                reached, steps, visited = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
                 texts.append(evaluation_text(split, reached, steps, optimal_steps[split]))
                 writer.add_scalar(f"eval/{split}_success_rate", reached.mean(), global_step)
                 writer.add_scalar(f"eval/{split}_mean_steps", steps.mean(), global_step)
                 writer.add_scalar(f"eval/{split}_total_steps", steps.sum(), global_step)
                 if args.capture_video:
-                    frames += episode_frames(layout, path, steps, goals)
+                    frames += episode_frames(layout, visited, steps, goals)
             agent.rep.train(args.finetune)
             last_evaluation = "  ".join(texts)
             writer.add_scalar("charts/SPS", progress.sps(steps_done), global_step)

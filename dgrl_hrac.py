@@ -321,7 +321,7 @@ def gather_readings(xy: np.ndarray, yaw: float, objects: np.ndarray) -> np.ndarr
 
 
 class HiroAntEnv(gym.Env):
-    """One env of the HIRO Ant suite on the modern `mujoco` bindings (reference hrac-keychest.md).
+    """One env of the HIRO Ant suite on the modern `mujoco` bindings.
 
     Observation: qpos[:15] + qvel[:14] of the ant and the time feature t * 0.001 (30-d); AntGather adds 10 apple and 10
     bomb range readings. Action: 8 motor torques in [-30, 30]. Reset: the model's initial state with qpos + U(-0.1,

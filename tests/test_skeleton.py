@@ -1,0 +1,141 @@
+"""The seven scripts are one family: the pieces every script shares (the common Args block, the headless-rendering
+default of the MuJoCo scripts, the run-management helpers) are byte-identical across them, and every script answers bad
+input the same way: a clean exit with status 2 and a message naming the flag, never a traceback."""
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
+MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
+WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
+SHARED_NAMES = [
+    "CHECKPOINT_FORMAT", "flag_text", "range_errors", "common_errors", "exit_on_errors", "seed_and_device", "make_writer",
+    "stop_on_signals", "Progress", "save_checkpoint", "load_checkpoint", "write_video",
+]  # fmt: skip
+BLOCK_START = "# --- Run management: identical in every script (tests/test_skeleton.py) "
+BLOCK_END = "# --- end of run management "
+MUJOCO_GL_DEFAULT = (
+    'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'
+)
+
+
+def shared_pieces(source: str) -> dict[str, str]:
+    """The shared pieces of one script's source: "Args" (the common fields, from the first field through --threads'
+    docstring) and each top-level name of the run-management block, as source text."""
+    lines = source.splitlines()
+    pieces = {}
+    start = lines.index("class Args:") + 1
+    end = next(i for i in range(start, len(lines)) if lines[i].startswith("    threads: int")) + 2
+    pieces["Args"] = "\n".join(lines[start:end])
+    first = next(i for i, line in enumerate(lines) if line.startswith(BLOCK_START))
+    last = next(i for i, line in enumerate(lines) if line.startswith(BLOCK_END))
+    block = "\n".join(lines[first + 1 : last])
+    for node in ast.parse(block).body:
+        if isinstance(node, ast.Assign):
+            name = node.targets[0].id
+        elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+            name = node.name
+        else:
+            raise AssertionError(f"the run-management block holds a {type(node).__name__}, not a definition")
+        pieces[name] = ast.get_source_segment(block, node)
+    return pieces
+
+
+def drift(sources: dict[str, str]) -> list[str]:
+    """Every difference between the scripts' shared pieces, against the first script that has each piece."""
+    found, problems = {}, []
+    for script, source in sources.items():
+        try:
+            pieces = shared_pieces(source)
+        except (ValueError, StopIteration) as error:
+            problems.append(f"{script}: the common Args block or the run-management block is missing ({error})")
+            continue
+        expected = {"Args", *SHARED_NAMES} - ({"write_video"} if script in WITHOUT_VIDEO else set())
+        if set(pieces) != expected:
+            problems.append(f"{script}: shared pieces {sorted(set(pieces) ^ expected)} missing or extra")
+        for name, text in pieces.items():
+            reference = found.setdefault(name, (script, text))
+            if text != reference[1]:
+                problems.append(f"{script}: {name} differs from {reference[0]}'s copy")
+        has_default = MUJOCO_GL_DEFAULT in source
+        if has_default != (script in MUJOCO_SCRIPTS):
+            problems.append(f"{script}: the MUJOCO_GL default is {'present' if has_default else 'missing'}")
+    return problems
+
+
+def read_sources() -> dict[str, str]:
+    return {script: (ROOT / script).read_text() for script in SCRIPTS}
+
+
+def test_all_seven_scripts_are_checked():
+    assert SCRIPTS == [
+        "dgrl_amigo.py", "dgrl_goal_dqn.py", "dgrl_hrac.py", "dgrl_hrac_keychest.py", "dgrl_mnist.py", "dgrl_ris.py",
+        "dgrl_ris_sawyer.py",
+    ]  # fmt: skip
+
+
+def test_shared_pieces_are_identical_in_every_script():
+    assert drift(read_sources()) == []
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        ('"""seed of the experiment"""', '"""the seed"""'),  # a docstring of the common Args block
+        ('"stopped" if stopped else "done"', '"stopped" if stopped else "finished"'),  # the end-of-run line
+        ("raise SystemExit(2)\n", "raise SystemExit(1)\n"),  # the exit status of a bad flag
+        ("weights_only=True", "weights_only=False"),  # loading a checkpoint runs no code
+    ],
+)
+def test_drift_check_fails_when_one_copy_is_edited(edit):
+    sources = read_sources()
+    old, new = edit
+    assert old in sources["dgrl_ris.py"]
+    sources["dgrl_ris.py"] = sources["dgrl_ris.py"].replace(old, new, 1)
+    problems = drift(sources)
+    assert problems and all(problem.startswith("dgrl_ris.py") for problem in problems), problems
+
+
+def test_drift_check_fails_when_a_piece_is_missing():
+    sources = read_sources()
+    sources["dgrl_amigo.py"] = re.sub(r"\ndef write_video\(.*?\n\n\n", "\n", sources["dgrl_amigo.py"], flags=re.S)
+    assert any("dgrl_amigo.py: shared pieces ['write_video']" in problem for problem in drift(sources))
+
+
+# --- Bad input every script shares: a clean exit 2 naming the flag, no traceback ---------------------------------------
+
+
+def assert_clean_refusal(result, *words: str) -> None:
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    for word in words:
+        assert word in result.stderr, (word, result.stderr)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_common_bad_flags_are_refused_before_any_work(script, run_script, tmp_path):
+    result = run_script(script, "--vq-beta", "nan", "--threads", "0", "--track")
+    assert_clean_refusal(result, "--vq-beta must be a finite number; got nan", "--threads must be >= 1; got 0", "--track")
+    assert "pip install wandb" in result.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_garbage_checkpoint_is_refused(script, run_script, tmp_path):
+    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint at all")
+    assert_clean_refusal(run_script(script, "--checkpoint", "garbage.pt"), "--checkpoint garbage.pt is not a checkpoint")
+    assert_clean_refusal(run_script(script, "--checkpoint", "missing.pt"), "--checkpoint missing.pt: no such file")
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_another_scripts_checkpoint_is_refused(script, run_script, tmp_path):
+    other = "dgrl_amigo.py" if script != "dgrl_amigo.py" else "dgrl_mnist.py"
+    torch.save({"script": other, "format": 1, "args": {}, "model": {}}, tmp_path / "other.pt")
+    torch.save({"model": {"weight": torch.zeros(2)}}, tmp_path / "plain.pt")  # a bare state dict, no script name
+    assert_clean_refusal(run_script(script, "--checkpoint", "other.pt"), f"holds {other} format 1", f"needs one that {script}")
+    assert_clean_refusal(run_script(script, "--checkpoint", "plain.pt"), "holds None format None", f"needs one that {script}")

@@ -752,28 +752,38 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
+def range_errors(
+    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
+) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
+    that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
-        if value < low or (low_open and value == low) or value > high:
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             if high == math.inf:
                 wanted = f"{'>' if low_open else '>='} {low:g}"
             else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    errors += range_errors(args, "threads", 1)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
+    errors += range_errors(args, "threads n_embed", 1)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -925,14 +935,12 @@ def validate(args: Args) -> None:
         errors.append(f"--env-id {args.env_id!r} is not a MiniGrid id; {hint}choices: {', '.join(ids)}")
     elif (error := env_error(args.env_id)) is not None:
         errors.append(error)
-    errors += range_errors(args, "seed", 0)
     positive_counts = "total_timesteps num_envs num_steps batch_envs teacher_batch_size t_star_patience progress_frequency"
     errors += range_errors(args, f"{positive_counts} video_frequency eval_episodes embed_dim", 1)
     errors += range_errors(args, "learning_rate teacher_learning_rate rmsprop_eps max_grad_norm", 0, low_open=True)
     errors += range_errors(args, "entropy_coef baseline_coef teacher_entropy_coef teacher_baseline_coef intrinsic_coef", 0)
     errors += range_errors(args, "gamma", 0, 1, low_open=True)
-    if not 0 <= args.rmsprop_alpha < 1:
-        errors.append(f"--rmsprop-alpha must be in [0, 1); got {args.rmsprop_alpha}")
+    errors += range_errors(args, "rmsprop_alpha", 0, 1, high_open=True)
     if args.t_star_threshold > 1:
         errors.append(
             f"--t-star-threshold must be <= 1 (teacher rewards are at most 1: t* never rises); got {args.t_star_threshold}"
@@ -953,10 +961,6 @@ def validate(args: Args) -> None:
         errors.append(  # DGRL
             f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"  # DGRL
         )  # DGRL
-    errors += range_errors(args, "n_embed", 1)  # DGRL
-    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
-    if not 0 <= args.vq_decay < 1:  # DGRL
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     exit_on_errors(errors)
 
 

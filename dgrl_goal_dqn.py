@@ -699,28 +699,38 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
+def range_errors(
+    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
+) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
+    that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
-        if value < low or (low_open and value == low) or value > high:
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             if high == math.inf:
                 wanted = f"{'>' if low_open else '>='} {low:g}"
             else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    errors += range_errors(args, "threads", 1)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
+    errors += range_errors(args, "threads n_embed", 1)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -857,16 +867,12 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "total_timesteps buffer_size batch_size max_episode_steps eval_frequency", 1)
     errors += range_errors(args, "target_network_frequency train_frequency rep_transitions rep_batch_size", 1)
     errors += range_errors(args, "embed_dim hidden_dim", 1)
-    errors += range_errors(args, "seed goal_seed learning_starts rep_steps bonus_coef", 0)
+    errors += range_errors(args, "goal_seed learning_starts rep_steps bonus_coef", 0)
     errors += range_errors(args, "learning_rate rep_learning_rate", 0, low_open=True)
     errors += range_errors(args, "gamma exploration_fraction", 0, 1, low_open=True)
     errors += range_errors(args, "start_e end_e noise", 0, 1)
     if args.start_e < args.end_e:
         errors.append(f"--start-e {args.start_e} must be >= --end-e {args.end_e}: epsilon decays from one to the other")
-    errors += range_errors(args, "n_embed", 1)  # DGRL
-    errors += range_errors(args, "vq_dead_code_steps vq_beta vq_decay", 0)  # DGRL
-    if args.vq_decay >= 1:  # DGRL
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # DGRL: 0 is the baseline
         divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
         groups_wanted = f"0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
@@ -924,6 +930,8 @@ if __name__ == "__main__":
         device=device,
     )
 
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
+
     if args.checkpoint is not None:
         saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
         split = {"train_goals": train_goals.tolist(), "novel_goals": novel_goals.tolist()}
@@ -944,7 +952,6 @@ if __name__ == "__main__":
         raise SystemExit(0)
 
     writer = make_writer(args, run_name)
-    stop = stop_on_signals()
     print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}")
 
     # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.

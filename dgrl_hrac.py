@@ -1065,28 +1065,38 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
+def range_errors(
+    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
+) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
+    that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
-        if value < low or (low_open and value == low) or value > high:
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             if high == math.inf:
                 wanted = f"{'>' if low_open else '>='} {low:g}"
             else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    errors += range_errors(args, "threads", 1)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
+    errors += range_errors(args, "threads n_embed", 1)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -1232,7 +1242,7 @@ def validate(args: Args) -> None:
         divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
         wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
         errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
-    errors += range_errors(args, "seed ctrl_updates man_updates correction_samples adj_weight critic_weight_decay", 0)
+    errors += range_errors(args, "ctrl_updates man_updates correction_samples adj_weight critic_weight_decay", 0)
     errors += range_errors(args, "man_reward_scale policy_noise noise_clip ctrl_noise man_noise", 0)
     errors += range_errors(args, "total_timesteps buffer_size batch_size hidden_dim adj_frequency adj_epochs", 1)
     errors += range_errors(args, "adj_batch_size eval_frequency eval_episodes", 1)
@@ -1240,11 +1250,8 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "actor_lr critic_lr adj_lr adj_margin_pos adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "subgoal_scale", 0, 100, low_open=True)  # metres; the largest arena is 48 m across
     errors += range_errors(args, "tau", 0, 1, low_open=True)
-    errors += range_errors(args, "n_embed embed_dim encoder_hidden_dim", 1)  # DGRL
-    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
+    errors += range_errors(args, "embed_dim encoder_hidden_dim", 1)  # DGRL
     errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
-    if not 0 <= args.vq_decay < 1:  # DGRL: at 1 the codebook would never move
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     for flag in ("ctrl_gamma", "man_gamma"):
         if not 0 < getattr(args, flag) < 1:  # the envs never terminate: at 1 the values would grow without bound
             value = getattr(args, flag)

@@ -843,28 +843,38 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
+def range_errors(
+    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
+) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
+    that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
-        if value < low or (low_open and value == low) or value > high:
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             if high == math.inf:
                 wanted = f"{'>' if low_open else '>='} {low:g}"
             else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    errors += range_errors(args, "threads", 1)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
+    errors += range_errors(args, "threads n_embed", 1)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -1001,24 +1011,21 @@ def validate(args: Args) -> None:
     counts = (
         "total_timesteps num_envs max_episode_steps k man_buffer_size man_batch_size man_policy_delay hidden_dim "
         "adj_init_steps adj_frequency adj_batch_size adj_hidden_dim adj_embed_dim eval_frequency eval_episodes "
-        "log_frequency embed_dim n_embed ae_hidden_dim ae_batch_size"
+        "log_frequency embed_dim ae_hidden_dim ae_batch_size"
     )
     errors += range_errors(args, counts, 1)
-    errors += range_errors(args, "seed n_noisy_goals adj_init_epochs adj_epochs ae_init_steps vq_dead_code_steps", 0)
-    errors += range_errors(args, "man_noise adj_weight ctrl_entropy adj_margin_pos vq_beta", 0)
+    errors += range_errors(args, "n_noisy_goals adj_init_epochs adj_epochs ae_init_steps", 0)
+    errors += range_errors(args, "man_noise adj_weight ctrl_entropy adj_margin_pos", 0)
     positive = "man_actor_lr man_critic_lr ctrl_lr adj_lr ae_lr man_reward_scale ctrl_reward_scale goal_threshold"
     errors += range_errors(args, positive + " adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "man_gamma ctrl_gamma man_tau", 0, 1, low_open=True)
     errors += range_errors(args, "random_action_prob", 0, 1)
-    if not 0 <= args.vq_decay < 1:  # DGRL
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     if errors:  # the checks below combine flags and assume each is in range
         exit_on_errors(errors)
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
+    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # DGRL
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
+        wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
+        errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
     if args.k > args.max_episode_steps:
         errors.append(f"--k ({args.k}) must be <= --max-episode-steps ({args.max_episode_steps}): a subgoal lasts k steps")
     if args.man_batch_size > args.man_buffer_size // 2:
@@ -1060,6 +1067,8 @@ if __name__ == "__main__":
     eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
     evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}
 
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
+
     if args.checkpoint is not None:
         must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: the autoencoder's flags only matter under DGRL
         saved = load_checkpoint(args.checkpoint, args, must_match, device)
@@ -1073,7 +1082,6 @@ if __name__ == "__main__":
         raise SystemExit(0)
 
     writer = make_writer(args, run_name)
-    stop = stop_on_signals()
     progress = Progress(args.total_timesteps, unit="frame")
     print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}")
     distances_bfs = shortest_path_lengths()

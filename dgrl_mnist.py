@@ -410,28 +410,38 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
+def range_errors(
+    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
+) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
+    that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
-        if value < low or (low_open and value == low) or value > high:
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             if high == math.inf:
                 wanted = f"{'>' if low_open else '>='} {low:g}"
             else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    errors += range_errors(args, "threads", 1)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
+    errors += range_errors(args, "threads n_embed", 1)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -566,18 +576,12 @@ def validate(args: Args) -> None:
         errors.append(f"--latent-dim must be even, so that the latent splits into two factors; got {args.latent_dim}")
     if not 6 <= args.n_colours <= len(PALETTE):
         errors.append(f"--n-colours must be in [6, {len(PALETTE)}]; got {args.n_colours}")
-    if not -(2**63) <= args.seed < 2**64:
-        errors.append(f"--seed must be in [-2**63, 2**64 - 1] (torch's seed range); got {args.seed}")
     if args.save_model and args.checkpoint is not None:
         errors.append("--save-model saves a model this run trains, and with --checkpoint it trains none: pass one of them")
     if args.groups < 0 or (args.groups and args.latent_dim % args.groups):  # DGRL
         divisors = [g for g in range(1, args.latent_dim + 1) if args.latent_dim % g == 0]  # DGRL
         wanted = f"0 (baseline) or divide --latent-dim {args.latent_dim}: one of {divisors}"  # DGRL
         errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
-    errors += range_errors(args, "n_embed", 1)  # DGRL
-    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
-    if args.vq_decay < 0 or args.vq_decay >= 1:  # DGRL
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     exit_on_errors(errors)
 
 
@@ -619,6 +623,7 @@ if __name__ == "__main__":
     )
     n_train = len(labels["train"])
     epochs = args.epochs
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
     if args.checkpoint is not None:
         saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
         model.autoencoder.load_state_dict(saved["autoencoder"])
@@ -629,7 +634,6 @@ if __name__ == "__main__":
         print(f"{args.checkpoint}: an autoencoder trained on {saved['images']} images; the factor tests, no training")
     print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
     writer = make_writer(args, run_name)
-    stop = stop_on_signals()
 
     # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
     progress = Progress(epochs * n_train, unit="image")

@@ -499,13 +499,13 @@ class Agent:
     critic_optimizer: torch.optim.Optimizer
     high_optimizer: torch.optim.Optimizer
 
-    def checkpoint_entries(self) -> dict:
+    def state_dicts(self) -> dict:
         """What evaluation needs, as state dicts: the goal encoder's include its codebook and EMA buffers."""
         entries = {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(), "high": self.high.state_dict()}
         entries["goal_encoder"] = None if self.goal_encoder is None else self.goal_encoder.state_dict()  # DGRL
         return entries
 
-    def load_checkpoint_entries(self, saved: dict) -> None:
+    def load_state_dicts(self, saved: dict) -> None:
         self.actor.load_state_dict(saved["actor"])
         self.critic.load_state_dict(saved["critic"])
         self.high.load_state_dict(saved["high"])
@@ -805,28 +805,38 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
+def range_errors(
+    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
+) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
+    that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
-        if value < low or (low_open and value == low) or value > high:
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             if high == math.inf:
                 wanted = f"{'>' if low_open else '>='} {low:g}"
             else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    errors += range_errors(args, "threads", 1)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
+    errors += range_errors(args, "threads n_embed", 1)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -973,16 +983,11 @@ def validate(args: Args) -> None:
         errors.append(f"--groups must be {choices}; got {args.groups}")  # DGRL
     counts = "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals eval_frequency eval_episodes"
     errors += range_errors(args, counts, 1)
-    errors += range_errors(args, "n_embed embed_dim", 1)  # DGRL
+    errors += range_errors(args, "embed_dim", 1)  # DGRL
     errors += range_errors(args, "max_episode_steps start_timesteps goal_threshold", 0)
-    if not 0 <= args.seed < 2**64:
-        errors.append(f"--seed must be in [0, 2**64 - 1] (what gymnasium and torch accept); got {args.seed}")
-    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
     errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr", 0, low_open=True)
     errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
-    if not 0 <= args.vq_decay < 1:  # DGRL
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
         errors.append(
             f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
@@ -1057,11 +1062,16 @@ if __name__ == "__main__":
         device=device,
     )
 
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
+
     if args.checkpoint is not None:
         saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-        agent.load_checkpoint_entries(saved)
-        success, distance = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic)
-        print(f"{args.eval_episodes} test episodes: success {success:.0%}, final distance {distance:.2f}")
+        agent.load_state_dicts(saved)
+        result = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, stop=stop)
+        if result is None:
+            print("stopped: the evaluation was interrupted")
+        else:
+            print(f"{args.eval_episodes} test episodes: success {result[0]:.0%}, final distance {result[1]:.2f}")
         raise SystemExit(0)
 
     try:
@@ -1079,7 +1089,6 @@ if __name__ == "__main__":
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     n_envs = args.num_envs
     episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
-    stop = stop_on_signals()
     progress = Progress(args.total_timesteps)
     observations, _ = envs.reset(seed=args.seed)
     step = 0
@@ -1174,10 +1183,10 @@ if __name__ == "__main__":
             if video:
                 write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=15)
             if args.save_model:
-                save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
 
     if args.save_model:
-        save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
+        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
     progress.finish(bool(stop) or diverged, run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
     envs.close()

@@ -650,7 +650,7 @@ class Agent:
     high_optimizer: torch.optim.Adam
     vq: VectorQuantizerEMA | None  # DGRL: the bottleneck; None under --groups 0
 
-    def checkpoint_entries(self) -> dict[str, dict | None]:
+    def state_dicts(self) -> dict[str, dict | None]:
         """What evaluation needs: the state dicts of the online networks and of the codebook (None under --groups 0)."""
         return {
             "actor": self.actor.state_dict(),
@@ -661,7 +661,7 @@ class Agent:
             "vq": None if self.vq is None else self.vq.state_dict(),  # DGRL: codebook, EMA counts and sums
         }
 
-    def load_checkpoint_entries(self, saved: dict) -> None:
+    def load_state_dicts(self, saved: dict) -> None:
         self.actor.load_state_dict(saved["actor"])
         self.critic.load_state_dict(saved["critic"])
         self.high.load_state_dict(saved["high"])
@@ -866,28 +866,38 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high], or (low, high] if low_open."""
+def range_errors(
+    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
+) -> list[str]:
+    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
+    that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
-        if value < low or (low_open and value == low) or value > high:
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             if high == math.inf:
                 wanted = f"{'>' if low_open else '>='} {low:g}"
             else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
+                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, --threads, --track's package, --checkpoint's file."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    errors += range_errors(args, "threads", 1)
+    if not 0 <= args.seed < 2**64:
+        errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
+    errors += range_errors(args, "threads n_embed", 1)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
@@ -1021,18 +1031,14 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 def validate(args: Args) -> None:
     """Refuse bad flags before any work: each message names the flag and the valid values; exit status 2."""
     errors = common_errors(args)
-    errors += range_errors(args, "seed start_timesteps driml_coef", 0)
+    errors += range_errors(args, "start_timesteps driml_coef", 0)
     errors += range_errors(args, "image_pad", 0, IMAGE_SIZE - 1)  # a larger shift leaves none of the image's content
     errors += range_errors(
         args, "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals feature_dim driml_dim eval_frequency", 1
     )
     errors += range_errors(args, "eval_episodes", 1)
-    errors += range_errors(args, "n_embed", 1)  # DGRL
-    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)  # DGRL
     errors += range_errors(args, "q_lr actor_lr h_lr encoder_lr alpha h_lambda prior_epsilon", 0, low_open=True)
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
-    if not 0 <= args.vq_decay < 1:  # DGRL
-        errors.append(f"--vq-decay must be in [0, 1); got {args.vq_decay}")  # DGRL
     if args.feature_dim >= 1 and (args.groups < 0 or (args.groups and args.feature_dim % args.groups)):  # DGRL
         divisors = [g for g in range(1, args.feature_dim + 1) if args.feature_dim % g == 0]  # DGRL
         choices = f"0 (RIS) or divide --feature-dim {args.feature_dim}: one of {divisors}"  # DGRL
@@ -1087,7 +1093,7 @@ if __name__ == "__main__":
     agent = make_agent(args, image_shape[0], action_dim, device)
 
     if saved is not None:
-        agent.load_checkpoint_entries(saved)
+        agent.load_state_dicts(saved)
         video = [] if args.capture_video else None
         result = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
         if result is None:
@@ -1193,10 +1199,10 @@ if __name__ == "__main__":
             if video:
                 write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
             if args.save_model:
-                save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
 
     if args.save_model:
-        save_checkpoint(checkpoint_path, agent.checkpoint_entries(), args)
+        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
     summary = f"last eval success {result['success_rate']:.0%} (hand {result['hand_success_rate']:.0%})"
     progress.finish(bool(stop), run_name, f"{step} steps, {updates} updates, {summary}")

@@ -755,7 +755,7 @@ def refusal(capsys, **overrides) -> str:
         ({"teacher_batch_size": 0}, ["--teacher-batch-size must be >= 1; got 0"]),
         ({"num_envs": 0}, ["--num-envs must be >= 1; got 0"]),
         ({"video_frequency": 0}, ["--video-frequency must be >= 1; got 0"]),
-        ({"seed": -1}, ["--seed must be >= 0; got -1"]),
+        ({"seed": -1}, ["--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got -1"]),
         ({"gamma": 0.0}, ["--gamma must be in (0, 1]; got 0.0"]),
         ({"gamma": 1.5}, ["--gamma must be in (0, 1]; got 1.5"]),
         ({"learning_rate": -1.0}, ["--learning-rate must be > 0; got -1.0"]),
@@ -874,7 +874,8 @@ def test_bad_flags_fail_before_any_work(run_script, tmp_path):
     )  # fmt: skip
     assert_clean_refusal(
         result, "--groups must be 0 (AMIGo) or divide --embed-dim 128", "--batch-envs (3) must divide --num-envs (16)",
-        "--gamma must be in (0, 1]", "--learning-rate must be > 0", "--vq-decay must be in [0, 1)", "--seed must be >= 0",
+        "--gamma must be in (0, 1]", "--learning-rate must be > 0", "--vq-decay must be in [0, 1)",
+        "--seed must be in [0, 2**64)",
         "--total-timesteps (100) must cover one collection",
     )  # fmt: skip
     assert not (tmp_path / "runs").exists()

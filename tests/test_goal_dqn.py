@@ -512,7 +512,7 @@ def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path, run_script):
         (
             ["--learning-rate", "-1", "--vq-decay", "1.5", "--bonus-coef", "nan", "--seed", "-1", "--vq-beta", "-0.1"],
             ["--learning-rate must be > 0; got -1.0", "--vq-decay must be in [0, 1); got 1.5",
-             "--bonus-coef must be a finite number; got nan", "--seed must be >= 0; got -1", "--vq-beta must be >= 0"],
+             "--bonus-coef must be a finite number; got nan", "--seed must be in [0, 2**64)", "--vq-beta must be >= 0"],
         ),
         (
             ["--groups", "5", "--n-train-goals", "40", "--noise", "2", "--rep-batch-size", "1", "--train-frequency", "0"],

@@ -675,7 +675,13 @@ def assert_clean_refusal(result, *messages: str) -> None:
         ({"subgoal_scale": 0.0}, ["--subgoal-scale must be in (0, 100]; got 0.0"]),
         ({"subgoal_scale": 1e30}, ["--subgoal-scale must be in (0, 100]; got 1e+30"]),
         ({"vq_decay": 1.0, "vq_beta": -1.0}, ["--vq-decay must be in [0, 1); got 1.0", "--vq-beta must be >= 0; got -1.0"]),
-        ({"tau": 0.0, "seed": -1}, ["--tau must be in (0, 1]; got 0.0", "--seed must be >= 0; got -1"]),
+        (
+            {"tau": 0.0, "seed": -1},
+            [
+                "--tau must be in (0, 1]; got 0.0",
+                "--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got -1",
+            ],
+        ),
         ({"total_timesteps": 5}, ["--total-timesteps (5) must be >= --k (10)"]),
         ({"checkpoint": "missing.pt"}, ["--checkpoint missing.pt: no such file"]),
     ],

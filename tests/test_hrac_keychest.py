@@ -566,7 +566,7 @@ def test_out_of_range_flags_are_refused(run_script, tmp_path):
         "--goal-threshold must be > 0; got -1.0",
         "--ctrl-lr must be > 0; got -1.0",  # Adam's own ValueError came after runs/ was created
         "--vq-decay must be in [0, 1); got 1.5",  # so did the codebook's
-        "--seed must be >= 0; got -1",  # numpy's seeding raised a ValueError
+        "--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got -1",  # numpy's seeding raised a ValueError
         "--num-envs must be >= 1; got 0",
         "--random-action-prob must be in [0, 1]; got 1.5",
         "--man-noise must be a finite number; got nan",

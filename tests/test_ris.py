@@ -810,7 +810,7 @@ def assert_clean_refusal(result: subprocess.CompletedProcess, *messages: str) ->
         ({"vq_decay": 1.0}, r"--vq-decay must be in \[0, 1\); got 1.0"),
         ({"vq_beta": -1.0}, r"--vq-beta must be >= 0; got -1.0"),
         ({"q_lr": -1.0}, r"--q-lr must be > 0; got -1.0"),
-        ({"seed": -1}, r"--seed must be in \[0, 2\*\*64 - 1\]"),
+        ({"seed": -1}, r"--seed must be in \[0, 2\*\*64\)"),
         ({"alpha": math.nan}, r"--alpha must be a finite number; got nan"),
         ({"tau": math.inf}, r"--tau must be a finite number; got inf"),
         ({"total_timesteps": 10_000}, r"--total-timesteps \(10000\) must exceed --start-timesteps \(10000\)"),
@@ -857,7 +857,7 @@ def test_bad_flags_fail_before_any_work(run_script, tmp_path):
         result, "--env-id 'AntX' is unknown: use one of AntU, AntFb, AntMaze, AntFg", "--groups must be 0 (RIS)",
         "--her-goal-frac (0.8) and --her-random-frac (0.4)", "--gamma must be in (0, 1]; got 1.5",
         "--tau must be in (0, 1]; got 0.0", "--vq-decay must be in [0, 1); got 1.5", "--vq-beta must be >= 0; got -1.0",
-        "--goal-threshold must be >= 0; got -1.0", "--seed must be in [0, 2**64 - 1]", "--q-lr must be > 0; got -1.0",
+        "--goal-threshold must be >= 0; got -1.0", "--seed must be in [0, 2**64)", "--q-lr must be > 0; got -1.0",
         "--alpha must be a finite number; got nan", "--total-timesteps (100) must exceed --start-timesteps (100)",
     )  # fmt: skip
     assert "state 31-d" not in result.stdout and not (tmp_path / "runs").exists()

@@ -528,8 +528,8 @@ def test_make_agent_builds_the_baseline_and_the_dgrl_agent():
             assert target is not online
             for new, old in zip(target.parameters(), online.parameters(), strict=True):
                 assert torch.equal(new, old) and not new.requires_grad
-    assert dgrl.checkpoint_entries()["vq"].keys() >= {"codebook", "ema_count", "ema_sum"}
-    assert ris.checkpoint_entries()["vq"] is None
+    assert dgrl.state_dicts()["vq"].keys() >= {"codebook", "ema_count", "ema_sum"}
+    assert ris.state_dicts()["vq"] is None
 
 
 @pytest.mark.parametrize("groups", [0, 4])
@@ -631,7 +631,7 @@ def assert_clean_refusal(result: subprocess.CompletedProcess, *messages: str) ->
         ({"vq_decay": 1.5}, "--vq-decay must be in [0, 1); got 1.5"),
         ({"vq_beta": -0.1}, "--vq-beta must be >= 0; got -0.1"),
         ({"driml_coef": -1.0}, "--driml-coef must be >= 0; got -1.0"),
-        ({"seed": -1}, "--seed must be >= 0; got -1"),
+        ({"seed": -1}, "--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got -1"),
         ({"image_pad": 84}, "--image-pad must be in [0, 83]; got 84"),
         ({"eval_episodes": 0}, "--eval-episodes must be >= 1; got 0"),
         ({"her_goal_frac": 0.8, "her_random_frac": 0.4}, "--her-goal-frac (0.8) and --her-random-frac (0.4)"),

@@ -139,3 +139,43 @@ def test_another_scripts_checkpoint_is_refused(script, run_script, tmp_path):
     torch.save({"model": {"weight": torch.zeros(2)}}, tmp_path / "plain.pt")  # a bare state dict, no script name
     assert_clean_refusal(run_script(script, "--checkpoint", "other.pt"), f"holds {other} format 1", f"needs one that {script}")
     assert_clean_refusal(run_script(script, "--checkpoint", "plain.pt"), "holds None format None", f"needs one that {script}")
+
+
+# --- The shared validation helpers themselves (one script's copy; the drift test covers the others) --------------------
+
+
+def test_range_errors_names_the_flag_and_the_interval():
+    import dgrl_mnist as script
+
+    args = script.Args(learning_rate=0.0, batch_size=0, vq_decay=1.0, epochs=3)
+    assert script.range_errors(args, "batch_size epochs", 1) == ["--batch-size must be >= 1; got 0"]
+    assert script.range_errors(args, "learning_rate", 0, low_open=True) == ["--learning-rate must be > 0; got 0.0"]
+    assert script.range_errors(args, "vq_decay", 0, 1, high_open=True) == ["--vq-decay must be in [0, 1); got 1.0"]
+    assert script.range_errors(args, "vq_decay", 0, 1) == []
+    assert script.range_errors(args, "learning_rate", 0, 1, low_open=True) == ["--learning-rate must be in (0, 1]; got 0.0"]
+    assert script.range_errors(script.Args(learning_rate=float("inf")), "learning_rate", 0, 1) == []  # common_errors' job
+
+
+def test_common_errors_cover_seed_threads_and_the_codebook_flags():
+    import dgrl_mnist as script
+
+    assert script.common_errors(script.Args()) == []
+    bad = script.Args(seed=-1, threads=0, n_embed=0, vq_beta=-0.5, vq_dead_code_steps=-1, vq_decay=1.0, learning_rate=1e400)
+    assert script.common_errors(bad) == [
+        "--learning-rate must be a finite number; got inf",
+        "--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got -1",
+        "--threads must be >= 1; got 0",
+        "--n-embed must be >= 1; got 0",
+        "--vq-beta must be >= 0; got -0.5",
+        "--vq-dead-code-steps must be >= 0; got -1",
+        "--vq-decay must be in [0, 1); got 1.0",
+    ]
+    assert script.common_errors(script.Args(seed=2**64))[0].endswith("got 18446744073709551616")
+
+
+def test_flag_text_writes_booleans_as_tyro_does():
+    import dgrl_mnist as script
+
+    assert script.flag_text("n_embed", 64) == "--n-embed 64"
+    assert script.flag_text("goal_channel", True) == "--goal-channel"
+    assert script.flag_text("goal_channel", False) == "--no-goal-channel"

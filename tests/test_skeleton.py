@@ -3,6 +3,7 @@ default of the MuJoCo scripts, the run-management helpers) are byte-identical ac
 input the same way: a clean exit with status 2 and a message naming the flag, never a traceback."""
 
 import ast
+import itertools
 import re
 from pathlib import Path
 
@@ -179,3 +180,18 @@ def test_flag_text_writes_booleans_as_tyro_does():
     assert script.flag_text("n_embed", 64) == "--n-embed 64"
     assert script.flag_text("goal_channel", True) == "--goal-channel"
     assert script.flag_text("goal_channel", False) == "--no-goal-channel"
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_every_flag_has_a_one_line_help_text(script):
+    """tyro turns each Args field's docstring into --help text; an embedded line break breaks its wrapping."""
+    args_class = next(
+        node for node in ast.parse((ROOT / script).read_text()).body if isinstance(node, ast.ClassDef) and node.name == "Args"
+    )
+    helps = {}
+    for previous, node in itertools.pairwise(args_class.body):
+        if isinstance(previous, ast.AnnAssign) and isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            helps[previous.target.id] = node.value.value
+    fields = [node.target.id for node in args_class.body if isinstance(node, ast.AnnAssign)]
+    assert [field for field in fields if field not in helps] == [], "fields without a help text"
+    assert {field: text for field, text in helps.items() if "\n" in text or not text.strip()} == {}

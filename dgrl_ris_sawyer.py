@@ -671,27 +671,44 @@ class Agent:
             self.vq.load_state_dict(saved["vq"])  # DGRL
 
 
-def make_agent(args: Args, image_size: int, action_dim: int, device) -> Agent:
-    """The agent of the flags in `args` (sizes, learning rates and the DGRL bottleneck), on `device`."""
-    actor = Actor(args.feature_dim, action_dim, args.hidden_dim).to(device)
-    critic = TwinCritic(args.feature_dim, action_dim, args.hidden_dim).to(device)
-    encoder = ImageEncoder(args.feature_dim, image_size).to(device)
-    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
-    high = HighLevelPolicy(args.feature_dim, args.hidden_dim).to(device)
+def make_agent(
+    image_size: int,
+    action_dim: int,
+    *,
+    hidden_dim: int,
+    feature_dim: int,
+    driml_dim: int,
+    q_lr: float,
+    actor_lr: float,
+    h_lr: float,
+    encoder_lr: float,
+    groups: int,  # DGRL
+    n_embed: int,  # DGRL
+    vq_beta: float,  # DGRL
+    vq_decay: float,  # DGRL
+    vq_dead_code_steps: int,  # DGRL
+    device: torch.device,
+) -> Agent:
+    """The agent of a run (the networks are created in this order, so a seed gives the same weights)."""
+    actor = Actor(feature_dim, action_dim, hidden_dim).to(device)
+    critic = TwinCritic(feature_dim, action_dim, hidden_dim).to(device)
+    encoder = ImageEncoder(feature_dim, image_size).to(device)
+    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, feature_dim, driml_dim).to(device)
+    high = HighLevelPolicy(feature_dim, hidden_dim).to(device)
     vq = None  # DGRL: RIS has no bottleneck
-    if args.groups > 0:  # DGRL
+    if groups > 0:  # DGRL
         vq = VectorQuantizerEMA(  # DGRL
-            args.feature_dim,  # DGRL
-            args.n_embed,  # DGRL
-            args.groups,  # DGRL
-            beta=args.vq_beta,  # DGRL
-            decay=args.vq_decay,  # DGRL
-            dead_code_steps=args.vq_dead_code_steps,  # DGRL
+            feature_dim,  # DGRL
+            n_embed,  # DGRL
+            groups,  # DGRL
+            beta=vq_beta,  # DGRL
+            decay=vq_decay,  # DGRL
+            dead_code_steps=vq_dead_code_steps,  # DGRL
         ).to(device)  # DGRL
     fused = device.type in ("cpu", "cuda")
     critic_groups = [
-        {"params": [*critic.parameters(), *driml_heads.parameters()], "lr": args.q_lr},
-        {"params": encoder.parameters(), "lr": args.encoder_lr},
+        {"params": [*critic.parameters(), *driml_heads.parameters()], "lr": q_lr},
+        {"params": encoder.parameters(), "lr": encoder_lr},
     ]
     return Agent(
         encoder=encoder,
@@ -702,8 +719,8 @@ def make_agent(args: Args, image_size: int, action_dim: int, device) -> Agent:
         actor_target=make_target(actor),
         critic_target=make_target(critic),
         critic_optimizer=torch.optim.Adam(critic_groups, fused=fused),
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused),
-        high_optimizer=torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=fused),
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=actor_lr, fused=fused),
+        high_optimizer=torch.optim.Adam(high.parameters(), lr=h_lr, fused=fused),
         vq=vq,  # DGRL
     )
 
@@ -1090,7 +1107,23 @@ if __name__ == "__main__":
     eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
     image_shape = envs.single_observation_space["image"].shape
     action_dim = envs.single_action_space.shape[0]
-    agent = make_agent(args, image_shape[0], action_dim, device)
+    agent = make_agent(
+        image_shape[0],
+        action_dim,
+        hidden_dim=args.hidden_dim,
+        feature_dim=args.feature_dim,
+        driml_dim=args.driml_dim,
+        q_lr=args.q_lr,
+        actor_lr=args.actor_lr,
+        h_lr=args.h_lr,
+        encoder_lr=args.encoder_lr,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        device=device,
+    )
 
     if saved is not None:
         agent.load_state_dicts(saved)

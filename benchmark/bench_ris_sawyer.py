@@ -45,8 +45,17 @@ def filled_replay(episodes: int, rng: np.random.Generator) -> sawyer.ImageEpisod
     return replay
 
 
+def agent_of(args: sawyer.Args, device: torch.device) -> sawyer.Agent:
+    """The script's make_agent with the flags of `args`, for 84x84 images and 2-d actions."""
+    return sawyer.make_agent(
+        84, 2, hidden_dim=args.hidden_dim, feature_dim=args.feature_dim, driml_dim=args.driml_dim, q_lr=args.q_lr,
+        actor_lr=args.actor_lr, h_lr=args.h_lr, encoder_lr=args.encoder_lr, groups=args.groups, n_embed=args.n_embed,
+        vq_beta=args.vq_beta, vq_decay=args.vq_decay, vq_dead_code_steps=args.vq_dead_code_steps, device=device,
+    )  # fmt: skip
+
+
 def act_time(groups: int, device: torch.device) -> float:
-    agent = sawyer.make_agent(sawyer.Args(groups=groups), 84, 2, device)
+    agent = agent_of(sawyer.Args(groups=groups), device)
     envs = sawyer.make_vector_env(1, 0, test=False)
     observations, _ = envs.reset(seed=0)
 
@@ -62,7 +71,7 @@ def act_time(groups: int, device: torch.device) -> float:
 
 def update_time(replay, groups: int, batch: int, device: torch.device, rng: np.random.Generator) -> float:
     args = sawyer.Args(groups=groups, batch_size=batch)
-    agent = sawyer.make_agent(args, 84, 2, device)
+    agent = agent_of(args, device)
 
     def step():
         sample = replay.sample(batch, args.her_goal_frac, args.her_random_frac, rng)

@@ -447,25 +447,44 @@ class Agent:
             self.goal_ae.load_state_dict(saved["goal_autoencoder"])  # DGRL
 
 
-def make_agent(args: Args, device: torch.device) -> Agent:
-    """The agent the flags describe, on `device` (networks built in a fixed order, so a seed gives the same weights)."""
-    dgrl = args.groups > 0  # DGRL
-    actor = ManagerActor(args.hidden_dim).to(device)
-    critic = TwinCritic(args.hidden_dim).to(device)
+def make_agent(
+    *,
+    hidden_dim: int,
+    man_actor_lr: float,
+    man_critic_lr: float,
+    ctrl_lr: float,
+    adj_lr: float,
+    adj_hidden_dim: int,
+    adj_embed_dim: int,
+    groups: int,  # DGRL
+    n_embed: int,  # DGRL
+    vq_beta: float,  # DGRL
+    vq_decay: float,  # DGRL
+    vq_dead_code_steps: int,  # DGRL
+    embed_dim: int,  # DGRL
+    dgrl_goal: str,  # DGRL
+    ae_hidden_dim: int,  # DGRL
+    ae_lr: float,  # DGRL
+    device: torch.device,
+) -> Agent:
+    """The agent of a run, on `device` (networks built in a fixed order, so a seed gives the same weights)."""
+    dgrl = groups > 0  # DGRL
+    actor = ManagerActor(hidden_dim).to(device)
+    critic = TwinCritic(hidden_dim).to(device)
     goal_ae = None
     if dgrl:  # DGRL
         goal_ae = GoalAutoencoder(  # DGRL
-            embed_dim=args.embed_dim,  # DGRL
-            hidden_dim=args.ae_hidden_dim,  # DGRL
-            groups=args.groups,  # DGRL
-            n_embed=args.n_embed,  # DGRL
-            beta=args.vq_beta,  # DGRL
-            decay=args.vq_decay,  # DGRL
-            dead_code_steps=args.vq_dead_code_steps,  # DGRL
+            embed_dim=embed_dim,  # DGRL
+            hidden_dim=ae_hidden_dim,  # DGRL
+            groups=groups,  # DGRL
+            n_embed=n_embed,  # DGRL
+            beta=vq_beta,  # DGRL
+            decay=vq_decay,  # DGRL
+            dead_code_steps=vq_dead_code_steps,  # DGRL
         ).to(device)  # DGRL
-    goal_input_dim = args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
-    controller = Controller(goal_input_dim, args.hidden_dim).to(device)
-    adjacency = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device).requires_grad_(False)  # train_adjacency only
+    goal_input_dim = embed_dim if dgrl and dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
+    controller = Controller(goal_input_dim, hidden_dim).to(device)
+    adjacency = AdjacencyNet(adj_hidden_dim, adj_embed_dim).to(device).requires_grad_(False)  # train_adjacency only
     return Agent(
         actor=actor,
         critic=critic,
@@ -474,12 +493,12 @@ def make_agent(args: Args, device: torch.device) -> Agent:
         controller=controller,
         adjacency=adjacency,
         goal_ae=goal_ae,
-        dgrl_goal=args.dgrl_goal,  # DGRL
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.man_actor_lr, fused=True),
-        critic_optimizer=torch.optim.Adam(critic.parameters(), lr=args.man_critic_lr, fused=True),
-        controller_optimizer=torch.optim.Adam(controller.parameters(), lr=args.ctrl_lr, fused=True),
-        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=True),
-        ae_optimizer=torch.optim.Adam(goal_ae.parameters(), lr=args.ae_lr, fused=True) if dgrl else None,  # DGRL
+        dgrl_goal=dgrl_goal,  # DGRL
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=man_actor_lr, fused=True),
+        critic_optimizer=torch.optim.Adam(critic.parameters(), lr=man_critic_lr, fused=True),
+        controller_optimizer=torch.optim.Adam(controller.parameters(), lr=ctrl_lr, fused=True),
+        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=adj_lr, fused=True),
+        ae_optimizer=torch.optim.Adam(goal_ae.parameters(), lr=ae_lr, fused=True) if dgrl else None,  # DGRL
     )
 
 
@@ -1062,7 +1081,25 @@ if __name__ == "__main__":
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)
     threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
-    agent = make_agent(args, device)
+    agent = make_agent(
+        hidden_dim=args.hidden_dim,
+        man_actor_lr=args.man_actor_lr,
+        man_critic_lr=args.man_critic_lr,
+        ctrl_lr=args.ctrl_lr,
+        adj_lr=args.adj_lr,
+        adj_hidden_dim=args.adj_hidden_dim,
+        adj_embed_dim=args.adj_embed_dim,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        embed_dim=args.embed_dim,  # DGRL
+        dgrl_goal=args.dgrl_goal,  # DGRL
+        ae_hidden_dim=args.ae_hidden_dim,  # DGRL
+        ae_lr=args.ae_lr,  # DGRL
+        device=device,
+    )
     eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
     eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
     evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}

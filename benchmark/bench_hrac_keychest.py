@@ -30,11 +30,34 @@ import dgrl_hrac_keychest as kc
 CPU = torch.device("cpu")
 
 
+def agent_from(args: kc.Args) -> kc.Agent:
+    """The script's make_agent on the CPU, with the values of `args` it takes."""
+    return kc.make_agent(
+        hidden_dim=args.hidden_dim,
+        man_actor_lr=args.man_actor_lr,
+        man_critic_lr=args.man_critic_lr,
+        ctrl_lr=args.ctrl_lr,
+        adj_lr=args.adj_lr,
+        adj_hidden_dim=args.adj_hidden_dim,
+        adj_embed_dim=args.adj_embed_dim,
+        groups=args.groups,
+        n_embed=args.n_embed,
+        vq_beta=args.vq_beta,
+        vq_decay=args.vq_decay,
+        vq_dead_code_steps=args.vq_dead_code_steps,
+        embed_dim=args.embed_dim,
+        dgrl_goal=args.dgrl_goal,
+        ae_hidden_dim=args.ae_hidden_dim,
+        ae_lr=args.ae_lr,
+        device=CPU,
+    )
+
+
 def td3_seconds(rng: np.random.Generator) -> float:
     """One HRAC high-level update: twin critics, then the actor (critic term every other update) and Polyak targets."""
     torch.manual_seed(0)
     args = kc.Args(groups=0)
-    agent = kc.make_agent(args, CPU)
+    agent = agent_from(args)
     replay = kc.ManagerReplay(args.man_buffer_size, rng)
     size = args.man_buffer_size
     replay.add(
@@ -66,7 +89,7 @@ def controller_seconds(groups: int, envs: kc.KeyChestVecEnv, rng: np.random.Gene
     subgoal for the low level)."""
     torch.manual_seed(0)
     args = kc.Args(groups=groups)
-    agent = kc.make_agent(args, CPU)
+    agent = agent_from(args)
     states = torch.as_tensor(rng.random((500, 3)) * 10, dtype=torch.float32)
     goals = torch.as_tensor(rng.random((500, 2)) * 10, dtype=torch.float32)
     next_states = torch.as_tensor(rng.random((500, 3)) * 10, dtype=torch.float32)

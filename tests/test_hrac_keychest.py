@@ -1,6 +1,7 @@
 """dgrl_hrac_keychest.py: Key-Chest layout and dynamics, BFS and adjacency labels, HRAC's losses, the agent and its
 updates, the subgoal autoencoder, subgoal proposals, smoke runs, checkpoints, Ctrl-C and flag validation."""
 
+import inspect
 import os
 import re
 import signal
@@ -303,9 +304,15 @@ def test_contrastive_loss_matches_its_formula():
 # --- agent pieces -----------------------------------------------------------------------------------------------------
 
 
+def agent_from(args: kc.Args) -> kc.Agent:
+    """The script's make_agent on the CPU, with the values of `args` it takes (each a keyword named as its flag)."""
+    names = inspect.signature(kc.make_agent).parameters.keys() - {"device"}
+    return kc.make_agent(**{name: getattr(args, name) for name in names}, device=torch.device("cpu"))
+
+
 def test_goal_autoencoder_round_trip_separates_cells():
     torch.manual_seed(0)
-    agent = kc.make_agent(kc.Args(groups=16, hidden_dim=8), torch.device("cpu"))  # the paper's G = 16, L = 64, m = 64
+    agent = agent_from(kc.Args(groups=16, hidden_dim=8))  # the paper's G = 16, L = 64, m = 64
     ae = agent.goal_ae
     for _ in range(2000):  # the script's --ae-init-steps, at its --ae-batch-size
         goals = kc.uniform_subgoals(256, torch.device("cpu"))
@@ -394,7 +401,7 @@ def parameters(module: torch.nn.Module) -> torch.Tensor:
     ("groups", "dgrl_goal", "goal_inputs"), [(0, "embedding", 2), (4, "decoded", 2), (4, "embedding", 16)]
 )
 def test_make_agent_wires_the_flags(groups, dgrl_goal, goal_inputs):
-    agent = kc.make_agent(kc.Args(groups=groups, dgrl_goal=dgrl_goal, **SMALL), torch.device("cpu"))
+    agent = agent_from(kc.Args(groups=groups, dgrl_goal=dgrl_goal, **SMALL))
     assert (agent.goal_ae is None) == (agent.ae_optimizer is None) == (groups == 0)
     assert agent.controller.policy[0].in_features == 3 + goal_inputs  # the embedding replaces the 2-d subgoal
     assert agent.actor.net[0].out_features == 16 and agent.adjacency.net[-1].out_features == 4
@@ -416,7 +423,7 @@ def test_make_agent_wires_the_flags(groups, dgrl_goal, goal_inputs):
 
 
 def test_manager_update_trains_both_nets_and_moves_the_targets_but_not_the_adjacency_net():
-    agent = kc.make_agent(kc.Args(groups=0, **SMALL), torch.device("cpu"))
+    agent = agent_from(kc.Args(groups=0, **SMALL))
     replay = kc.ManagerReplay(64, np.random.default_rng(0))
     rng = np.random.default_rng(1)
     replay.add(rng.random((64, 3)) * 10, rng.random((64, 2)) * 10, rng.random(64), rng.random((64, 3)) * 10, np.zeros(64))
@@ -435,7 +442,7 @@ def test_manager_update_trains_both_nets_and_moves_the_targets_but_not_the_adjac
 
 @pytest.mark.parametrize("groups", [0, 4])
 def test_controller_update_trains_the_low_level_and_under_dgrl_the_autoencoder(groups):
-    agent = kc.make_agent(kc.Args(groups=groups, n_embed=8, **SMALL), torch.device("cpu"))
+    agent = agent_from(kc.Args(groups=groups, n_embed=8, **SMALL))
     states = torch.tensor([[11.0, 7.0, 0.0]] * 12)
     goals = torch.tensor([[11.0, 8.0]] * 12)
     next_states = torch.tensor([[11.0, 8.0, 0.0]] * 12)  # every step ends on the raw subgoal

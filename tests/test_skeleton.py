@@ -5,6 +5,7 @@ input the same way: a clean exit with status 2 and a message naming the flag, ne
 import ast
 import itertools
 import re
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -48,8 +49,8 @@ def shared_pieces(source: str) -> dict[str, str]:
 
 
 def drift(sources: dict[str, str]) -> list[str]:
-    """Every difference between the scripts' shared pieces, against the first script that has each piece."""
-    found, problems = {}, []
+    """Every difference between the scripts' shared pieces: a copy that differs from the one most scripts hold."""
+    copies, problems = {}, []
     for script, source in sources.items():
         try:
             pieces = shared_pieces(source)
@@ -60,12 +61,16 @@ def drift(sources: dict[str, str]) -> list[str]:
         if set(pieces) != expected:
             problems.append(f"{script}: shared pieces {sorted(set(pieces) ^ expected)} missing or extra")
         for name, text in pieces.items():
-            reference = found.setdefault(name, (script, text))
-            if text != reference[1]:
-                problems.append(f"{script}: {name} differs from {reference[0]}'s copy")
+            copies.setdefault(name, {})[script] = text
         has_default = MUJOCO_GL_DEFAULT in source
         if has_default != (script in MUJOCO_SCRIPTS):
             problems.append(f"{script}: the MUJOCO_GL default is {'present' if has_default else 'missing'}")
+    for name, texts in copies.items():
+        majority, count = Counter(texts.values()).most_common(1)[0]
+        if count < len(texts) // 2 + 1:
+            problems.append(f"{name}: no copy is shared by most scripts")
+        differing = [script for script, text in texts.items() if text != majority]
+        problems += [f"{script}: {name} differs from the other scripts' copy" for script in differing]
     return problems
 
 

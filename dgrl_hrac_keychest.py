@@ -998,13 +998,13 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.
     try:
         saved = torch.load(path, map_location=device, weights_only=True)
     except Exception as error:
-        print(f"{script}: --checkpoint {path} is not a checkpoint ({type(error).__name__}); pass a file that "
-              f"`{script} --save-model` wrote", file=sys.stderr)  # fmt: skip
+        problem = f"--checkpoint {path} is not a checkpoint ({type(error).__name__})"
+        print(f"{script}: {problem}; pass a file that `{script} --save-model` wrote", file=sys.stderr)
         raise SystemExit(2) from None
     if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
-        print(f"{script}: --checkpoint {path} holds {found}; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote "
-              "with --save-model", file=sys.stderr)  # fmt: skip
+        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        print(f"{script}: --checkpoint {path} holds {found}; it needs {wanted}", file=sys.stderr)
         raise SystemExit(2)
     differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
     if differ:

@@ -77,6 +77,10 @@ class Args:
     """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
+    resume: str | None = None
+    """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
+    checkpoint_every: int = 1800
+    """wall-clock seconds between writes of runs/{run_name}/resume.pt (0: only on a stop signal and at the end)"""
 
     # Environment
     num_envs: int = 1
@@ -873,6 +877,9 @@ DGRL_MUST_MATCH = ("n_embed",)  # DGRL: the codebook's size, which matters only 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
 CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
+FREE_FLAGS = ("resume", "checkpoint_every", "threads", "capture_video", "save_model", "track", "wandb_project_name",
+              "wandb_entity")  # fmt: skip
 
 
 def flag_text(key: str, value) -> str:
@@ -919,6 +926,15 @@ def common_errors(args) -> list[str]:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
+    errors += range_errors(args, "checkpoint_every", 0)
+    if args.resume is not None:
+        name = os.path.basename(os.path.normpath(args.resume))
+        if not os.path.isfile(os.path.join(args.resume, RESUME_FILE)):
+            errors.append(f"--resume {args.resume}: no {RESUME_FILE} there (a run writes it with this version's scripts)")
+        elif os.path.realpath(args.resume) != os.path.realpath(os.path.join("runs", name)):
+            errors.append(f"--resume {args.resume}: run from the folder that holds it as runs/{name} (the run writes there)")
+        if args.checkpoint is not None:
+            errors.append("--resume continues a training run and --checkpoint only evaluates one: pass one of them")
     return errors
 
 
@@ -938,8 +954,10 @@ def seed_and_device(args) -> torch.device:
     return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
 
-def make_writer(args, run_name: str) -> SummaryWriter:
-    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table."""
+def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table. A
+    resumed run passes `purge_step`, the first step it has not logged yet: TensorBoard then drops whatever the stopped run
+    logged from that step on, so the curves continue without duplicated or missing points."""
     if args.track:
         import wandb
 
@@ -951,22 +969,24 @@ def make_writer(args, run_name: str) -> SummaryWriter:
             name=run_name,
             save_code=True,
         )
-    writer = SummaryWriter(f"runs/{run_name}")
-    table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
-    writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
+    if purge_step is None:
+        table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
+        writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
     return writer
 
 
 def stop_on_signals() -> list[int]:
-    """Ctrl-C (SIGINT) or SIGTERM asks the run to stop after the current step, with its checkpoint and logs written; a
-    second one stops at once. The training loop polls the returned list, which holds the signals received."""
+    """Ctrl-C (SIGINT), SIGTERM, SIGUSR1 or SIGUSR2 (what Slurm and submitit send before a time limit or a preemption)
+    asks the run to stop after the current step, with its resume file, checkpoint and logs written; a second one stops at
+    once. The training loop polls the returned list, which holds the signals received."""
     received = []
 
     def request_stop(number, frame):
         received.append(number)
         signal.signal(number, signal.SIG_DFL)
 
-    for number in (signal.SIGINT, signal.SIGTERM):
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
         signal.signal(number, request_stop)
     return received
 
@@ -974,15 +994,23 @@ def stop_on_signals() -> list[int]:
 class Progress:
     """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
     time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
-    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line."""
+    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line;
+    `resume_due` says when to write the resume file. A resumed run passes the step it starts from."""
 
-    def __init__(self, total: int, unit: str = "step"):
-        self.total, self.unit = total, unit
-        self.start_time = self.line_time = self.print_time = time.time()
-        self.line_step = 0
+    def __init__(self, total: int, unit: str = "step", start_step: int = 0):
+        self.total, self.unit, self.start_step = total, unit, start_step
+        self.start_time = self.line_time = self.print_time = self.save_time = time.time()
+        self.line_step = start_step
 
     def sps(self, step: int) -> int:
-        return int(step / max(time.time() - self.start_time, 1e-6))
+        return int((step - self.start_step) / max(time.time() - self.start_time, 1e-6))
+
+    def resume_due(self, seconds: int) -> bool:
+        """True once every `seconds` of wall clock (never for 0)."""
+        if seconds and time.time() - self.save_time >= seconds:
+            self.save_time = time.time()
+            return True
+        return False
 
     def line(self, step: int, figures: str) -> None:
         now = time.time()
@@ -1030,6 +1058,51 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.
     differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
     if differ:
         print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
+        raise SystemExit(2)
+    return saved
+
+
+def rng_states() -> dict:
+    """The global random states a run draws from: Python's and torch's (CPU, and every GPU where there is one)."""
+    states = {"python": random.getstate(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        states["cuda"] = torch.cuda.get_rng_state_all()
+    return states
+
+
+def set_rng_states(states: dict) -> None:
+    """Restore rng_states(); a resumed run calls it last, after building its networks and envs (which draw from them)."""
+    random.setstate(states["python"])
+    torch.set_rng_state(states["torch"])
+    if "cuda" in states:
+        torch.cuda.set_rng_state_all(states["cuda"])
+
+
+def save_resume(run_name: str, state: dict, args) -> None:
+    """Write the whole training state (`state`, with the global random states added) to runs/{run_name}/resume.pt: to a
+    temporary file, flushed to disk, then renamed over the previous one, so a kill at any moment leaves a whole file."""
+    path = os.path.join("runs", run_name, RESUME_FILE)
+    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), "rng": rng_states()}
+    with open(path + ".tmp", "wb") as file:
+        torch.save(payload | state, file)
+        file.flush()
+        os.fsync(file.fileno())
+    os.replace(path + ".tmp", path)
+
+
+def load_resume(args) -> dict:
+    """The state in --resume's resume.pt (on the CPU), once it is known to be this script's, saved with the same flags
+    but FREE_FLAGS (otherwise exit 2, naming the flags to pass). It is the run's own file and holds pickled objects (env
+    and generator states), so it is loaded in full: resume only runs you trust."""
+    script = os.path.basename(__file__)
+    saved = torch.load(os.path.join(args.resume, RESUME_FILE), map_location="cpu", weights_only=False)
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        print(f"{script}: --resume {args.resume} holds another script's or format's state", file=sys.stderr)
+        raise SystemExit(2)
+    flags, kept = vars(args), {key: value for key, value in saved["args"].items() if key not in FREE_FLAGS}
+    differ = [flag_text(key, value) for key, value in kept.items() if flags.get(key) != value]
+    if differ:
+        print(f"{script}: --resume {args.resume} was started with other settings: pass {' '.join(differ)}", file=sys.stderr)
         raise SystemExit(2)
     return saved
 

@@ -1,4 +1,6 @@
 import os
+import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -36,3 +38,80 @@ def run_script(tmp_path):
         )
 
     return run
+
+
+WALL_CLOCK_TAGS = ("charts/SPS",)  # scalars that measure time, not the run: never compared
+
+
+def tensorboard_scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar of a run folder as TensorBoard shows it: all its event files in order, with what a resumed run's
+    purge_step drops already dropped. NaN is returned as the string "nan" so that equal runs compare equal."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    accumulator = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    accumulator.Reload()
+    return {
+        tag: [(event.step, "nan" if event.value != event.value else event.value) for event in accumulator.Scalars(tag)]
+        for tag in accumulator.Tags()["scalars"]
+    }
+
+
+def checkpoint_tensors(path: Path) -> dict[str, torch.Tensor]:
+    """The tensors of a --save-model checkpoint, by dotted key (its flags left out: a resumed run adds --resume)."""
+
+    def flatten(value, prefix: str) -> dict:
+        if isinstance(value, dict):
+            return {key: tensor for name, item in value.items() for key, tensor in flatten(item, f"{prefix}{name}.").items()}
+        return {prefix[:-1]: value} if isinstance(value, torch.Tensor) else {}
+
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    return flatten({key: value for key, value in saved.items() if key != "args"}, "")
+
+
+@pytest.fixture
+def resume_check(tmp_path):
+    """`check(script, flags, stop_after)`: run A straight through; run B, stopped by SIGTERM as soon as its output has a
+    line matching the regex `stop_after`, then continued with --resume to the same budget. Every TensorBoard scalar of B
+    (but WALL_CLOCK_TAGS and `ignore`) must equal A's, step for step, and so must every tensor of the final checkpoints
+    (pass --save-model in `flags`). Returns B's first output, so that a test can check where it stopped."""
+
+    def check(script: str, flags: list[str], stop_after: str, ignore: tuple[str, ...] = (), timeout: int = 300) -> str:
+        env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+        command = [sys.executable, str(ROOT / script), *flags]
+        straight, stopped = tmp_path / "straight", tmp_path / "stopped"
+        straight.mkdir()
+        stopped.mkdir()
+        result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=timeout)
+        assert result.returncode == 0, result.stderr[-3000:]
+        process = subprocess.Popen(command, cwd=stopped, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        output = []
+        for line in process.stdout:
+            output.append(line)
+            if re.search(stop_after, line):
+                process.send_signal(signal.SIGTERM)
+                break
+        rest, errors = process.communicate(timeout=timeout)
+        output = "".join(output) + rest
+        assert process.returncode == 0, errors[-3000:]
+        assert "stopped:" in output, f"the run ended before the signal arrived:\n{output[-2000:]}"
+        (run_dir,) = (stopped / "runs").iterdir()
+        resume_command = [*command, "--resume", f"runs/{run_dir.name}"]
+        resumed = subprocess.run(resume_command, cwd=stopped, env=env, capture_output=True, text=True, timeout=timeout)
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        assert "stopped:" not in resumed.stdout
+        (straight_dir,) = (straight / "runs").iterdir()
+        skip = set(WALL_CLOCK_TAGS) | set(ignore)
+        expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in skip}
+        got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in skip}
+        assert sorted(got) == sorted(expected)
+        for tag, points in expected.items():
+            assert got[tag] == points, f"{tag}: straight {points[:6]}... resumed {got[tag][:6]}..."
+        (straight_checkpoint,) = straight_dir.glob("*.cleanrl_model")
+        (resumed_checkpoint,) = run_dir.glob("*.cleanrl_model")
+        expected_tensors, got_tensors = checkpoint_tensors(straight_checkpoint), checkpoint_tensors(resumed_checkpoint)
+        assert sorted(got_tensors) == sorted(expected_tensors)
+        for key, tensor in expected_tensors.items():
+            assert torch.equal(got_tensors[key], tensor), key
+        return output
+
+    return check

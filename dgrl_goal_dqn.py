@@ -554,6 +554,17 @@ class ReplayBuffer:
             terminated=torch.as_tensor(self.terminated[rows], device=device),
         )
 
+    def state_dict(self) -> dict:
+        """The stored rows and the write position. Until the memory wraps, rows [0, count) are the filled ones; after,
+        count is the size: so only the filled part is kept."""
+        stored = {name: getattr(self, name)[: self.count] for name in ("cells", "actions", "rewards", "terminated")}
+        return stored | {"position": self.position, "count": self.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.position, self.count = state["position"], state["count"]
+        for name in ("cells", "actions", "rewards", "terminated"):
+            getattr(self, name)[: self.count] = state[name]
+
 
 def pretrain_step(
     agent: Agent, embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor
@@ -688,6 +699,93 @@ def episode_frames(layout: MazeLayout, path: np.ndarray, steps: np.ndarray, goal
             frame = np.concatenate([layout.images[cell], gap, layout.images[goal]], axis=1)
             frames.append(frame.repeat(2, 0).repeat(2, 1))
     return frames
+
+
+# --- Stopping and resuming: the whole training state ------------------------------------------------------------------
+
+
+def add_kept_scalar(writer: SummaryWriter, kept: list, tag: str, value: float, step: int) -> None:
+    """writer.add_scalar, keeping (tag, value, step) in `kept`. Pre-training's scalars share TensorBoard's steps with the
+    DQN phase's, and a run resumed in the DQN phase purges every tag from its first unlogged step on: it logs again the
+    kept ones the purge dropped."""
+    writer.add_scalar(tag, value, step)
+    kept.append((tag, value, step))
+
+
+def agent_networks(agent: Agent) -> dict[str, nn.Module]:
+    """The agent's networks by name; their state dicts hold the codebook and its EMA buffers (DGRL)."""
+    networks = {"rep": agent.rep, "q_network": agent.q_network, "target_q_network": agent.target_q_network}
+    if agent.target_rep is not None:
+        networks["target_rep"] = agent.target_rep
+    return networks
+
+
+def env_state(envs: gym.vector.SyncVectorEnv) -> dict:
+    """The maze env's state inside its wrappers (RecordEpisodeStatistics(TimeLimit(VisualMazeEnv))), and the vector
+    env's: enough to go on with the episode in progress. The vector env's observation buffers are rewritten by every step
+    (same-step autoreset), so the loop's current observation is saved with the loop's variables instead."""
+    statistics = envs.envs[0]
+    time_limit = statistics.env
+    maze = time_limit.env
+    return {
+        "cell": maze.cell,
+        "goal_cell": maze.goal_cell,
+        "frame": maze._frame,
+        "generator": maze.np_random.bit_generator.state,  # goal draws, random starts, image noise
+        "elapsed_steps": time_limit._elapsed_steps,
+        "episode_return": statistics.episode_returns,
+        "episode_length": statistics.episode_lengths,
+        "episode_time": time.perf_counter() - statistics.episode_start_time,
+        "episode_count": statistics.episode_count,
+        "queues": (statistics.return_queue, statistics.length_queue, statistics.time_queue),
+        "autoreset": envs._autoreset_envs.copy(),
+        "action_generator": envs.action_space.np_random.bit_generator.state,  # epsilon's random actions
+    }
+
+
+def restore_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
+    statistics = envs.envs[0]
+    time_limit = statistics.env
+    maze = time_limit.env
+    maze.cell, maze.goal_cell, maze._frame = state["cell"], state["goal_cell"], state["frame"]
+    maze.np_random.bit_generator.state = state["generator"]
+    time_limit._elapsed_steps = state["elapsed_steps"]
+    statistics.episode_returns, statistics.episode_lengths = state["episode_return"], state["episode_length"]
+    statistics.episode_start_time = time.perf_counter() - state["episode_time"]
+    statistics.episode_count = state["episode_count"]
+    statistics.return_queue, statistics.length_queue, statistics.time_queue = state["queues"]
+    envs._autoreset_envs = state["autoreset"]
+    envs.action_space.np_random.bit_generator.state = state["action_generator"]
+
+
+def training_state(
+    agent: Agent, rng: np.random.Generator, envs: gym.vector.SyncVectorEnv, replay: ReplayBuffer, loop: dict
+) -> dict:
+    """Everything a stopped run needs to continue exactly, for save_resume (which adds the global Python and torch
+    random states): the networks with their targets and the codebook's buffers, both optimizers, the numpy generator
+    (random walks, replay batches, image noise), the env, the replay memory, and `loop`, the training loop's variables."""
+    return {
+        "networks": {name: network.state_dict() for name, network in agent_networks(agent).items()},
+        "optimizers": {"rep": agent.rep_optimizer.state_dict(), "q": agent.q_optimizer.state_dict()},
+        "generator": rng.bit_generator.state,
+        "env": env_state(envs),
+        "replay": replay.state_dict(),
+        "loop": loop,
+    }
+
+
+def restore_training_state(
+    saved: dict, agent: Agent, rng: np.random.Generator, envs: gym.vector.SyncVectorEnv, replay: ReplayBuffer
+) -> dict:
+    """Put back what training_state saved into objects built as a new run builds them; returns the loop's variables."""
+    for name, network in agent_networks(agent).items():
+        network.load_state_dict(saved["networks"][name])
+    agent.rep_optimizer.load_state_dict(saved["optimizers"]["rep"])
+    agent.q_optimizer.load_state_dict(saved["optimizers"]["q"])
+    rng.bit_generator.state = saved["generator"]
+    restore_env_state(envs, saved["env"])
+    replay.load_state_dict(saved["replay"])
+    return saved["loop"]
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -976,8 +1074,11 @@ def validate(args: Args) -> None:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     validate(args)
+    saved = load_resume(args) if args.resume is not None else None  # another script's file or changed flags: exit 2 here
     dgrl = args.groups > 0  # DGRL
     run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)  # random walks, replay batches and image noise
 
@@ -1024,74 +1125,120 @@ if __name__ == "__main__":
             print(evaluation_text(f"{tag} goals", reached, steps, optimal_steps[tag]))
         raise SystemExit(0)
 
-    writer = make_writer(args, run_name)
-    print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}")
+    # A resumed run's TensorBoard drops what the stopped run logged from the first step its resume file has not logged
+    # (of the phase it stopped in). Step 0 always stays: a file saved at step 0 follows everything logged at step 0.
+    first_unlogged = None
+    if saved is not None:
+        first_unlogged = max(saved["loop"]["global_step" if saved["loop"]["dqn_phase"] else "rep_step"], 1)
+    writer = make_writer(args, run_name, purge_step=first_unlogged)
+    resumed = "" if saved is None else f", resumed at {'DQN' if saved['loop']['dqn_phase'] else 'pre-training'} step "
+    resumed += "" if saved is None else str(saved["loop"]["global_step" if saved["loop"]["dqn_phase"] else "rep_step"])
+    print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}{resumed}")
 
-    # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
+    # The data of both phases: random-walk transitions to pre-train on; the maze env and the replay memory of the DQN.
     walks = tuple(
         torch.as_tensor(column, device=device)
         for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
     )
-    pretraining = Progress(args.rep_steps, unit="pre-training step")
-    rep_step = 0
-    next_rep_log = 0
-    rep_loss = None
-    while rep_step < args.rep_steps and not stop:
-        rows = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
-        rep_loss, vq_loss, codes = pretrain_step(agent, embedder, walks, rows)
-        if rep_step >= next_rep_log or rep_step == args.rep_steps - 1:
-            next_rep_log += 100
-            writer.add_scalar("losses/rep_loss", rep_loss.item(), rep_step)
-            if dgrl:  # DGRL
-                writer.add_scalar("vq/commit_loss", vq_loss.item(), rep_step)  # DGRL
-                writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), rep_step)  # DGRL
-        rep_step += 1
-        pretraining.heartbeat(rep_step)
-
-    # Freeze phi (unless --finetune); encode the maze's cells once; measure how well the bonus tracks maze distance.
-    agent.rep.eval()
-    agent.rep.requires_grad_(args.finetune)
-    pretrained = cell_table(agent.rep, embedder)
-    if dgrl:  # DGRL
-        distinct = len(torch.unique(pretrained.codes, dim=0))  # DGRL
-        writer.add_scalar("vq/distinct_cells", distinct, 0)  # DGRL
-        n_active = active_codes(pretrained.codes, args.n_embed).item()  # DGRL
-        writer.add_scalar("vq/active_codes", n_active, 0)  # DGRL
-        print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
-    pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
-    pair_codes = (None, None)  # DGRL
-    if dgrl:  # DGRL
-        pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]])  # DGRL
-    all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes).view(layout.n_cells, -1)
-    correlation, step_closer = bonus_quality(all_bonus.cpu().numpy(), layout)
-    writer.add_scalar("charts/bonus_distance_corr", correlation, 0)
-    writer.add_scalar("charts/bonus_step_closer", step_closer, 0)
-    loss_text = "not trained" if rep_loss is None else f"loss {rep_loss.item():.3f}"
-    print(
-        f"pre-training: {rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
-        f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
-    )
-    if args.finetune:
-        agent.rep.train()
-        update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
-    lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
-
-    # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
     envs = gym.vector.SyncVectorEnv(
         [make_env(layout, train_goals, args.random_start, args.noise, args.max_episode_steps)],
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
     envs.action_space.seed(args.seed)
+    observations, infos = envs.reset(seed=args.seed)
     replay = ReplayBuffer(args.buffer_size)
     recent_success = deque(maxlen=100)
     exploration_steps = args.exploration_fraction * args.total_timesteps
-    progress = Progress(args.total_timesteps)
-    observations, infos = envs.reset(seed=args.seed)
-    global_step = 0
-    train_steps = 0
-    next_train_log = 100
-    next_eval = args.eval_frequency
+    rep_step, next_rep_log, rep_loss = 0, 0, None
+    pretraining_log = []  # every scalar logged before the DQN phase, as (tag, value, step): see add_kept_scalar
+    dqn_phase = False  # True once pre-training's results are logged and the DQN phase has written its first resume file
+    global_step, train_steps, next_train_log, next_eval = 0, 0, 100, args.eval_frequency
     last_evaluation = "no evaluation"
+
+    def resume_state() -> dict:
+        """The whole training state as it is now (the loop's variables are read when this is called)."""
+        loop = {
+            "rep_step": rep_step,
+            "next_rep_log": next_rep_log,
+            "rep_loss": rep_loss,
+            "pretraining_log": pretraining_log,
+            "dqn_phase": dqn_phase,
+            "global_step": global_step,
+            "train_steps": train_steps,
+            "next_train_log": next_train_log,
+            "next_eval": next_eval,
+            "last_evaluation": last_evaluation,
+            "observations": observations,
+            "infos": infos,
+            "recent_success": recent_success,
+        }
+        return training_state(agent, rng, envs, replay, loop)
+
+    if saved is not None:
+        loop = restore_training_state(saved, agent, rng, envs, replay)
+        rep_step, next_rep_log, rep_loss = loop["rep_step"], loop["next_rep_log"], loop["rep_loss"]
+        pretraining_log, dqn_phase = loop["pretraining_log"], loop["dqn_phase"]
+        global_step, train_steps, next_train_log = loop["global_step"], loop["train_steps"], loop["next_train_log"]
+        next_eval, last_evaluation = loop["next_eval"], loop["last_evaluation"]
+        observations, infos, recent_success = loop["observations"], loop["infos"], loop["recent_success"]
+        for tag, value, step in pretraining_log:  # the purge dropped them too: the two phases share TensorBoard's steps
+            if step >= first_unlogged:
+                writer.add_scalar(tag, value, step)
+        set_rng_states(saved["rng"])  # last: building the agent drew from the global generators (nothing below does until
+        # the loops, and nothing between the two loops draws, so this also holds for a run resumed in the DQN phase)
+
+    # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
+    pretraining = Progress(args.rep_steps, unit="pre-training step", start_step=rep_step)
+    while rep_step < args.rep_steps and not stop:
+        rows = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
+        rep_loss, vq_loss, codes = pretrain_step(agent, embedder, walks, rows)
+        if rep_step >= next_rep_log or rep_step == args.rep_steps - 1:
+            next_rep_log += 100
+            add_kept_scalar(writer, pretraining_log, "losses/rep_loss", rep_loss.item(), rep_step)
+            if dgrl:  # DGRL
+                code_perplexity = perplexity(codes, args.n_embed).item()  # DGRL
+                add_kept_scalar(writer, pretraining_log, "vq/commit_loss", vq_loss.item(), rep_step)  # DGRL
+                add_kept_scalar(writer, pretraining_log, "vq/perplexity", code_perplexity, rep_step)  # DGRL
+        rep_step += 1
+        pretraining.heartbeat(rep_step)
+        if pretraining.resume_due(args.checkpoint_every):
+            save_resume(run_name, resume_state(), args)
+
+    # Freeze phi (unless --finetune) and encode the maze's cells once.
+    agent.rep.eval()
+    agent.rep.requires_grad_(args.finetune)
+    pretrained = cell_table(agent.rep, embedder)
+    if rep_step == args.rep_steps and not dqn_phase:  # pre-training has just ended (a stop skips this; a resume is past it)
+        # The codebook's health and how well the bonus tracks maze distance.
+        if dgrl:  # DGRL
+            distinct = len(torch.unique(pretrained.codes, dim=0))  # DGRL
+            add_kept_scalar(writer, pretraining_log, "vq/distinct_cells", distinct, 0)  # DGRL
+            n_active = active_codes(pretrained.codes, args.n_embed).item()  # DGRL
+            add_kept_scalar(writer, pretraining_log, "vq/active_codes", n_active, 0)  # DGRL
+            print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
+        pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
+        pair_codes = (None, None)  # DGRL
+        if dgrl:  # DGRL
+            pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]])  # DGRL
+        all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes)
+        correlation, step_closer = bonus_quality(all_bonus.view(layout.n_cells, -1).cpu().numpy(), layout)
+        add_kept_scalar(writer, pretraining_log, "charts/bonus_distance_corr", correlation, 0)
+        add_kept_scalar(writer, pretraining_log, "charts/bonus_step_closer", step_closer, 0)
+        loss_text = "not trained" if rep_loss is None else f"loss {rep_loss.item():.3f}"
+        print(
+            f"pre-training: {rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
+            f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
+        )
+        if args.finetune:
+            update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
+        dqn_phase = True
+        save_resume(run_name, resume_state(), args)  # the phases share TensorBoard's steps: a pre-training file must not stay
+    if args.finetune:
+        agent.rep.train()
+    lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
+
+    # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
+    progress = Progress(args.total_timesteps, start_step=global_step)
     while global_step < args.total_timesteps and not stop:
         # Act: epsilon-greedy on the features of the actual observation and goal.
         epsilon = max(args.end_e, args.start_e - (args.start_e - args.end_e) * global_step / exploration_steps)
@@ -1161,7 +1308,10 @@ if __name__ == "__main__":
                 write_video(f"videos/{run_name}/eval_step{steps_done}.mp4", frames, fps=VisualMazeEnv.metadata["render_fps"])
         global_step = steps_done
         progress.heartbeat(global_step)
+        if progress.resume_due(args.checkpoint_every):
+            save_resume(run_name, resume_state(), args)
 
+    save_resume(run_name, resume_state(), args)  # stopped or done: --resume runs/{run_name} goes on from here
     if args.save_model:
         path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         entries = {

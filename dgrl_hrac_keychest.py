@@ -24,7 +24,7 @@ import random
 import signal
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import ClassVar, Literal
 
 import gymnasium as gym
@@ -207,6 +207,8 @@ CHEST_CELL = (2, 1)
 FREE_CELLS = np.argwhere(~WALLS)  # (128, 2) in row-major order
 KEY_REWARD = 1.0
 CHEST_REWARD = 5.0
+# What gymnasium's vector RecordEpisodeStatistics accumulates (its episode start times measure wall clock, not the run).
+EPISODE_STATISTICS = ("episode_count", "episode_returns", "episode_lengths", "prev_dones", "return_queue", "length_queue")
 
 
 class KeyChestVecEnv(gym.vector.VectorEnv):
@@ -305,6 +307,16 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
 
     def render(self):
         return tuple(self.frame(index) for index in range(self.num_envs))
+
+    def state(self) -> dict:
+        """Everything the next steps depend on (for --resume): cells, keys, step counts and the random generators."""
+        generators = {"rng": self.rng.bit_generator.state, "action_rng": self.action_space.np_random.bit_generator.state}
+        return {"position": self.position.copy(), "has_key": self.has_key.copy(), "elapsed": self.elapsed.copy()} | generators
+
+    def load_state(self, state: dict) -> None:
+        self.position[:], self.has_key[:], self.elapsed[:] = state["position"], state["has_key"], state["elapsed"]
+        self.rng.bit_generator.state = state["rng"]
+        self.action_space.np_random.bit_generator.state = state["action_rng"]
 
 
 def shortest_path_lengths() -> np.ndarray:
@@ -450,6 +462,15 @@ class Agent:
         if self.goal_ae is not None:  # DGRL
             self.goal_ae.load_state_dict(saved["goal_autoencoder"])  # DGRL
 
+    def training_state_dicts(self) -> dict:
+        """What training needs (for --resume): every network, the targets included, and every optimizer."""
+        parts = {field.name: getattr(self, field.name) for field in fields(self)}
+        return {name: part.state_dict() for name, part in parts.items() if hasattr(part, "state_dict")}
+
+    def load_training_state_dicts(self, saved: dict) -> None:
+        for name, state_dict in saved.items():
+            getattr(self, name).load_state_dict(state_dict)
+
 
 def make_agent(
     *,
@@ -512,6 +533,8 @@ def make_agent(
 class ManagerReplay:
     """Preallocated ring buffer of k-step high-level transitions (state, subgoal, summed reward, next state, terminal)."""
 
+    COLUMNS = ("states", "goals", "rewards", "next_states", "terminals")
+
     def __init__(self, capacity: int, rng: np.random.Generator):
         self.capacity = capacity
         self.rng = rng
@@ -535,6 +558,16 @@ class ManagerReplay:
 
     def started(self) -> bool:
         return self.size >= self.capacity // 2
+
+    def state(self) -> dict:
+        """The filled part and the write position (for --resume; the generator is shared and saved by its owner)."""
+        columns = {name: getattr(self, name)[: self.size] for name in self.COLUMNS}
+        return {"size": self.size, "pointer": self.pointer, "columns": columns}
+
+    def load_state(self, state: dict) -> None:
+        self.size, self.pointer = state["size"], state["pointer"]
+        for name, column in state["columns"].items():
+            getattr(self, name)[: self.size] = column
 
     def sample(self, batch_size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
         """A uniform batch of distinct transitions (as the original). From a large buffer, redrawing the rare batch with a
@@ -602,10 +635,9 @@ def train_adjacency(
     margin_pos: float,
     margin_neg: float,
     rng: np.random.Generator,
-    stop: list[int] | None = None,
 ) -> float:
-    """`epochs` passes over every pair of visited cells in shuffled batches (fewer if `stop` fills up); returns the last
-    epoch's mean loss (NaN if no epoch ran or fewer than two cells were visited)."""
+    """`epochs` passes over every pair of visited cells in shuffled batches; returns the last epoch's mean loss (NaN if
+    no epoch ran or fewer than two cells were visited)."""
     device = next(anet.parameters()).device
     cells = np.flatnonzero(visited)
     first, second = np.triu_indices(len(cells), 1)
@@ -616,8 +648,6 @@ def train_adjacency(
     anet.requires_grad_(True)
     losses = []
     for _ in range(epochs):
-        if stop:
-            break
         order = torch.as_tensor(rng.permutation(len(first)), device=device)
         losses = []
         for batch in order.split(batch_size):
@@ -687,31 +717,47 @@ def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode:
     return decoded, decoded, (vq_loss, codes, reconstruction)  # DGRL
 
 
-def controller_rollout(envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
-    """Generator over vector steps of the low level acting on subgoals from `choose_subgoals(states)` every k steps of
-    each env's episode (acting never moves the codebook). Yields (observations, each env's step in its episode, raw
-    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos)."""
-    device = next(agent.controller.parameters()).device
-    t_episode = np.zeros(envs.num_envs, dtype=np.int64)
-    goals = torch.zeros(envs.num_envs, 2, device=device)
-    goal_inputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal)[0]
-    while True:
-        states = torch.as_tensor(observations, device=device)
-        new_segment = t_episode % k == 0
+class ControllerRollout:
+    """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
+    moves the codebook). `step()` makes one vector step and returns (observations, each env's step in its episode, raw
+    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos). Between steps
+    its state is the attributes `state()` returns: the observations to act on, each env's step in its episode and the
+    current subgoals with what the low level sees of them (computed by the autoencoder of the time they were chosen)."""
+
+    def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
+        self.envs, self.agent, self.choose_subgoals, self.k = envs, agent, choose_subgoals, k
+        device = next(agent.controller.parameters()).device
+        self.observations = observations
+        self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
+        self.goals = torch.zeros(envs.num_envs, 2, device=device)
+        self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]
+
+    def step(self):
+        agent = self.agent
+        states = torch.as_tensor(self.observations, device=self.goals.device)
+        new_segment = self.t_episode % self.k == 0
         if new_segment.any():
-            index = torch.as_tensor(np.flatnonzero(new_segment), device=device)
-            goals[index] = choose_subgoals(states[index])
-            goal_inputs[index] = controller_goals(agent.goal_ae, goals[index], agent.dgrl_goal)[0]
+            index = torch.as_tensor(np.flatnonzero(new_segment), device=self.goals.device)
+            self.goals[index] = self.choose_subgoals(states[index])
+            self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]
         with torch.no_grad():
-            logits, _ = agent.controller(states, goal_inputs)
+            logits, _ = agent.controller(states, self.goal_inputs)
             actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
-        next_observations, rewards, terminations, truncations, infos = envs.step(actions)
+        next_observations, rewards, terminations, truncations, infos = self.envs.step(actions)
         done = terminations | truncations
         real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
-        goals_np = goals.cpu().numpy().copy()
-        yield observations, t_episode.copy(), goals_np, actions, real_next, rewards, terminations, done, infos
-        t_episode = np.where(done, 0, t_episode + 1)
-        observations = next_observations
+        goals = self.goals.cpu().numpy().copy()
+        step = (self.observations, self.t_episode.copy(), goals, actions, real_next, rewards, terminations, done, infos)
+        self.t_episode = np.where(done, 0, self.t_episode + 1)
+        self.observations = next_observations
+        return step
+
+    def state(self) -> dict:
+        return {key: getattr(self, key) for key in ("observations", "t_episode", "goals", "goal_inputs")}
+
+    def load_state(self, state: dict) -> None:
+        for key, value in state.items():
+            setattr(self, key, value.to(self.goals.device) if isinstance(value, torch.Tensor) else value)
 
 
 def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> torch.Tensor:  # DGRL
@@ -1149,8 +1195,11 @@ def validate(args: Args) -> None:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     validate(args)
+    saved = load_resume(args) if args.resume is not None else None
     dgrl = args.groups > 0  # DGRL
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)
     threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
@@ -1191,9 +1240,8 @@ if __name__ == "__main__":
             )
         raise SystemExit(0)
 
-    writer = make_writer(args, run_name)
-    progress = Progress(args.total_timesteps, unit="frame")
-    print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}")
+    # The run's state besides the agent: the exploration env and the training envs with their rollouts, the adjacency
+    # memory, the high level's replay, each env's episode so far, the counters and the next frames of each cadence.
     distances_bfs = shortest_path_lengths()
     adjacency = np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool)  # over flat cell indices; persists all run long
     visited = np.zeros(HEIGHT * WIDTH, dtype=bool)
@@ -1202,53 +1250,20 @@ if __name__ == "__main__":
         "margin_pos": args.adj_margin_pos,
         "margin_neg": args.adj_margin_neg,
         "rng": rng,
-        "stop": stop,
     }
     max_steps = args.max_episode_steps
     n_envs = args.num_envs
     rows = np.arange(n_envs)
-
-    # Phase 1: random-subgoal exploration (the chest ends no episode) to learn k-step adjacency, as HRAC does first.
-    frames = 0
-    episodes = 0
     explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
     trajectories = np.zeros((n_envs, max_steps + 1), dtype=np.int64)  # flat cell indices of each env's current episode
-    observations = explore_envs.reset(seed=args.seed + 200)[0]
-    rollout = controller_rollout(
-        explore_envs, observations, agent, lambda states: uniform_subgoals(len(states), device), args.k
-    )
-    done = np.ones(n_envs, dtype=bool)  # no step yet: no episode to mark below
-    while frames < args.adj_init_steps and not stop:
-        observations, t_episode, _, _, real_next, _, _, done, _ = next(rollout)
-        trajectories[rows, t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
-        trajectories[rows, t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
-        frames += n_envs
-        for env in np.flatnonzero(done):
-            mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
-            episodes += 1
-        progress.heartbeat(frames, "exploring")
-    for env in np.flatnonzero(~done):  # the episodes still running count too
-        mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
-    adj_loss = train_adjacency(
-        agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_init_epochs, **adjacency_training
-    )
-    adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
-    writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
-    writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
-    if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
-        for _ in range(args.ae_init_steps):  # DGRL
-            if stop:  # DGRL
-                break  # DGRL
-            goals = uniform_subgoals(args.ae_batch_size, device)  # DGRL
-            _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
-            goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
-    print(
-        f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
-        f"(loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
+    explore_rollout = ControllerRollout(
+        explore_envs,
+        explore_envs.reset(seed=args.seed + 200)[0],
+        agent,
+        lambda states: uniform_subgoals(len(states), device),
+        args.k,
     )
 
-    # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
-    # subgoals are uniform random and neither level learns.
     replay = ManagerReplay(args.man_buffer_size, rng)
     envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
     noise = {"n_noisy_goals": args.n_noisy_goals, "noise": args.man_noise}
@@ -1258,23 +1273,115 @@ if __name__ == "__main__":
             return uniform_subgoals(len(states), device)
         return propose_subgoals(agent.actor, agent.adjacency, states, threshold=threshold, explore=True, **noise)
 
+    rollout = ControllerRollout(envs, envs.reset(seed=args.seed)[0], agent, explore_subgoals, args.k)
     episode_states = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
     episode_goals = np.zeros((n_envs, max_steps, 2), dtype=np.float32)
     episode_actions = np.zeros((n_envs, max_steps), dtype=np.int64)
     episode_next = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
     segment_start = np.zeros((n_envs, 3), dtype=np.float32)
     segment_reward = np.zeros(n_envs, dtype=np.float32)
+    frames = 0
+    episodes = 0
+    pretrained = False  # whether the first adjacency training (and the autoencoder's) is done
     man_updates = 0
     evaluations = 0
+    adj_accuracy = float("nan")
     recent_returns = []
     figures = {}  # the latest update's losses, logged every --log-frequency frames
-    next_adjacency = frames + args.adj_frequency
-    next_log = (frames // args.log_frequency + 1) * args.log_frequency
-    next_eval = (frames // args.eval_frequency + 1) * args.eval_frequency
-    rollout = controller_rollout(envs, envs.reset(seed=args.seed)[0], agent, explore_subgoals, args.k)
+    explored = -(-args.adj_init_steps // n_envs) * n_envs  # the frame at which the exploration ends
+    next_adjacency = explored + args.adj_frequency
+    next_log = (explored // args.log_frequency + 1) * args.log_frequency
+    next_eval = (explored // args.eval_frequency + 1) * args.eval_frequency
+    arrays = {"trajectories": trajectories, "adjacency": adjacency, "visited": visited, "episode_states": episode_states}
+    arrays |= {"episode_goals": episode_goals, "episode_actions": episode_actions, "episode_next": episode_next}
+    # (the loops update these arrays in place; segment_start and segment_reward they rebind)
+
+    def training_state() -> dict:
+        """Everything the run continues from, for resume.pt (save_resume adds the global random states)."""
+        variables = {"frames": frames, "episodes": episodes, "pretrained": pretrained, "man_updates": man_updates}
+        variables |= {"evaluations": evaluations, "adj_accuracy": adj_accuracy, "next_adjacency": next_adjacency}
+        variables |= {"next_log": next_log, "next_eval": next_eval, "recent_returns": recent_returns, "figures": figures}
+        variables |= {"segment_start": segment_start, "segment_reward": segment_reward}
+        return {
+            "agent": agent.training_state_dicts(),
+            "numpy_rng": rng.bit_generator.state,  # the replay's and the adjacency training's draws
+            "envs": {"explore": explore_envs.state(), "train": envs.env.state(), "eval": eval_envs.state()},
+            "episode_statistics": {name: getattr(envs, name) for name in EPISODE_STATISTICS},
+            "rollouts": {"explore": explore_rollout.state(), "train": rollout.state()},
+            "replay": replay.state(),
+            "arrays": arrays,
+            "variables": variables,  # those the loops rebind
+        }
+
+    def restore_training_state(saved: dict) -> dict:
+        """Load training_state() into the objects built above; returns the variables, for the caller to rebind."""
+        agent.load_training_state_dicts(saved["agent"])
+        rng.bit_generator.state = saved["numpy_rng"]
+        explore_envs.load_state(saved["envs"]["explore"])
+        envs.env.load_state(saved["envs"]["train"])
+        eval_envs.load_state(saved["envs"]["eval"])
+        for name, value in saved["episode_statistics"].items():
+            setattr(envs, name, value)
+        explore_rollout.load_state(saved["rollouts"]["explore"])
+        rollout.load_state(saved["rollouts"]["train"])
+        replay.load_state(saved["replay"])
+        for name, array in saved["arrays"].items():
+            arrays[name][:] = array
+        return saved["variables"]
+
+    if saved is not None:
+        variables = restore_training_state(saved)
+        frames, episodes, pretrained = variables["frames"], variables["episodes"], variables["pretrained"]
+        man_updates, evaluations, adj_accuracy = variables["man_updates"], variables["evaluations"], variables["adj_accuracy"]
+        next_adjacency, next_log, next_eval = variables["next_adjacency"], variables["next_log"], variables["next_eval"]
+        recent_returns, figures = variables["recent_returns"], variables["figures"]
+        segment_start, segment_reward = variables["segment_start"], variables["segment_reward"]
+        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
+
+    # Every save follows all logging of its frame, so a resumed run logs from the next frame on.
+    writer = make_writer(args, run_name, purge_step=None if saved is None else frames + 1)
+    progress = Progress(args.total_timesteps, unit="frame", start_step=frames)
+    resumed = "" if saved is None else f", resumed at frame {frames}"
+    print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}{resumed}")
+
+    # Phase 1: random-subgoal exploration (the chest ends no episode) to learn k-step adjacency, as HRAC does first.
+    while frames < args.adj_init_steps and not stop:
+        observations, t_episode, _, _, real_next, _, _, done, _ = explore_rollout.step()
+        trajectories[rows, t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
+        trajectories[rows, t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
+        frames += n_envs
+        for env in np.flatnonzero(done):
+            mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
+            episodes += 1
+        progress.heartbeat(frames, "exploring")
+        # Not after the last step: the pre-training below logs at its frame, and a save must follow all of a frame's logs.
+        if frames < args.adj_init_steps and progress.resume_due(args.checkpoint_every):
+            save_resume(run_name, training_state(), args)
+    if frames >= args.adj_init_steps and not pretrained:  # the exploration has just ended: a stop waits for the pre-training
+        for env in np.flatnonzero(explore_rollout.t_episode > 0):  # the episodes still running count too
+            mark_adjacent(adjacency, visited, trajectories[env, : explore_rollout.t_episode[env] + 1], args.k)
+        adj_loss = train_adjacency(
+            agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_init_epochs, **adjacency_training
+        )
+        adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
+        writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
+        writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
+        if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
+            for _ in range(args.ae_init_steps):  # DGRL
+                goals = uniform_subgoals(args.ae_batch_size, device)  # DGRL
+                _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
+                goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
+        pretrained = True
+        print(
+            f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
+            f"(loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
+        )
+
+    # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
+    # subgoals are uniform random and neither level learns.
     while frames < args.total_timesteps and not stop:
         # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
-        observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = next(rollout)
+        observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = rollout.step()
         episode_states[rows, t_episode] = observations
         episode_goals[rows, t_episode] = goals
         episode_actions[rows, t_episode] = actions
@@ -1378,7 +1485,10 @@ if __name__ == "__main__":
             if args.save_model:
                 save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
         progress.heartbeat(frames)
+        if progress.resume_due(args.checkpoint_every):
+            save_resume(run_name, training_state(), args)
 
+    save_resume(run_name, training_state(), args)  # stopped or done: --resume continues from here
     if args.save_model:
         save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
         print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")

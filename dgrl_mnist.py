@@ -286,6 +286,32 @@ def train_step(model: Model, images: torch.Tensor) -> tuple[torch.Tensor, torch.
     return reconstruction_loss.detach(), vq_loss.detach(), codes  # DGRL: the VQ loss and codes for the logs
 
 
+def training_state(
+    model: Model, generator: torch.Generator, order: torch.Tensor | None, counters: dict[str, int], tests_done: bool = False
+) -> dict:
+    """Everything the training loop carries from one minibatch to the next, for save_resume (which adds Python's and
+    torch's random states): the autoencoder with its codebook and EMA buffers, Adam's moments, the generator of the epoch
+    orders with the current epoch's order (the next minibatch is its part `step % batches per epoch`), the counters, and
+    whether the factor tests have run (then the run is complete and a resume has nothing left to do)."""
+    return {
+        "autoencoder": model.autoencoder.state_dict(),  # DGRL: the codebook, its EMA counts and sums
+        "optimizer": model.optimizer.state_dict(),
+        "generator": generator.get_state(),
+        "order": None if order is None else order.cpu(),  # None before the first minibatch
+        "counters": dict(counters),
+        "tests_done": tests_done,
+    }
+
+
+def restore_training_state(saved: dict, model: Model, generator: torch.Generator, device: torch.device):
+    """Put training_state's entries back into the model and the generator; return (the current epoch's order, counters)."""
+    model.autoencoder.load_state_dict(saved["autoencoder"])
+    model.optimizer.load_state_dict(saved["optimizer"])  # its moments move to the parameters' device
+    generator.set_state(saved["generator"])
+    order = None if saved["order"] is None else saved["order"].to(device)
+    return order, dict(saved["counters"])
+
+
 def make_classifier(n_classes: int) -> nn.Module:
     return nn.Sequential(nn.Flatten(), nn.Linear(3 * 28 * 28, 256), nn.ReLU(), nn.Linear(256, n_classes))
 
@@ -661,6 +687,10 @@ def validate(args: Args) -> None:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     validate(args)
+    saved = load_resume(args) if args.resume is not None else None  # a bad resume exits 2 here, before any work
+    if saved is not None and saved["tests_done"]:
+        print(f"{args.resume}: this run is complete (trained and tested); nothing to resume")
+        raise SystemExit(0)
     try:
         data = load_mnist(args.data_dir)
     except (ValueError, pickle.UnpicklingError) as error:  # no data, or files that are not MNIST
@@ -668,6 +698,8 @@ if __name__ == "__main__":
     exit_on_errors(range_errors(args, "train_size", 1, len(data["train"][1])))  # the real size is known only now
     dgrl = args.groups > 0  # DGRL
     run_name = f"ColorMNIST__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     generator = torch.Generator().manual_seed(args.seed)
 
@@ -698,23 +730,37 @@ if __name__ == "__main__":
     epochs = args.epochs
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
     if args.checkpoint is not None:
-        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-        model.autoencoder.load_state_dict(saved["autoencoder"])
+        checkpoint = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+        model.autoencoder.load_state_dict(checkpoint["autoencoder"])
         # The referees start from the random state the saving run reached, so the same flags give the same figures.
-        torch.set_rng_state(saved["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
-        generator.set_state(saved["generator_state"].cpu())
+        torch.set_rng_state(checkpoint["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
+        generator.set_state(checkpoint["generator_state"].cpu())
         epochs = 0
-        print(f"{args.checkpoint}: an autoencoder trained on {saved['images']} images; the factor tests, no training")
-    print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
-    writer = make_writer(args, run_name)
-
-    # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
-    progress = Progress(epochs * n_train, unit="image")
+        print(f"{args.checkpoint}: an autoencoder trained on {checkpoint['images']} images; the factor tests, no training")
     batches_per_epoch = math.ceil(n_train / args.batch_size)
     step = 0  # minibatches: the x-axis of TensorBoard
     images_seen = 0
     epoch = 0
     next_log = 100
+    order = None  # the current epoch's order of the training images
+
+    def resume_state(tests_done: bool = False) -> dict:
+        counters = {"step": step, "images_seen": images_seen, "epoch": epoch, "next_log": next_log}
+        return training_state(model, generator, order, counters, tests_done)
+
+    if saved is not None:
+        order, counters = restore_training_state(saved, model, generator, device)
+        step, images_seen, epoch, next_log = (counters[key] for key in ("step", "images_seen", "epoch", "next_log"))
+        set_rng_states(saved["rng"])  # last: building the model drew from the global random state
+    # TensorBoard before the first line, so that training starts as soon as the line is out; a resumed run's log goes on
+    # from the first minibatch it has not logged (what the stopped run logged after its resume file is dropped).
+    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)
+    print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
+    if saved is not None:
+        print(f"resuming at image {images_seen} of {epochs * n_train} (minibatch {step})")
+
+    # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
+    progress = Progress(epochs * n_train, unit="image", start_step=images_seen)
     while step < epochs * batches_per_epoch and not stop:
         position = step % batches_per_epoch
         if position == 0:
@@ -740,6 +786,12 @@ if __name__ == "__main__":
             progress.line(
                 images_seen, f"epoch {epoch}/{epochs}  reconstruction error {reconstruction_loss.item():.2f}/image{usage}"
             )
+        if progress.resume_due(args.checkpoint_every):
+            writer.flush()  # the log up to this minibatch reaches the disk before the state that continues it
+            save_resume(run_name, resume_state(), args)
+    if args.checkpoint is None:  # stopped or done: the state the referees start from, for a resume in any later phase
+        writer.flush()
+        save_resume(run_name, resume_state(), args)
 
     # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from --------------------
     if args.save_model:
@@ -767,7 +819,7 @@ if __name__ == "__main__":
     )
 
     # --- The factor tests: zero substitution and the swap test on the test set -----------------------------------------
-    tested = "no factor tests (stopped)"
+    tested, tests_done = "no factor tests (stopped)", False
     if not stop:
         test_images = painted("test", torch.arange(len(labels["test"]), device=device))
         results, figure_rows = factor_tests(
@@ -785,7 +837,9 @@ if __name__ == "__main__":
             writer.add_scalar(f"factor/{tag}", value, 0)
         print_results(results, args.n_colours)
         print(f"figure: runs/{run_name}/factors.png")
-        tested = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}"
+        tested, tests_done = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}", True
+        if args.checkpoint is None:  # complete: a resume has nothing left to do (and would log the factor tests twice)
+            save_resume(run_name, resume_state(tests_done=True), args)
     trained = f"{epoch} of {epochs} epochs ({images_seen} images)" if args.checkpoint is None else "a checkpoint"
-    progress.finish(bool(stop), run_name, f"{trained}; {tested}")
+    progress.finish(bool(stop) and not tests_done, run_name, f"{trained}; {tested}")
     writer.close()

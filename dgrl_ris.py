@@ -21,6 +21,7 @@ gymnasium, and every gymnasium-robotics maze id (`PointMaze_UMaze-v3`, `AntMaze_
 The study: benchmark/ris.sh. Docs: docs/dgrl_ris.md.
 """
 
+import copy
 import importlib.util
 import math
 import os
@@ -29,7 +30,7 @@ import signal
 import sys
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cache
 from typing import ClassVar
 
@@ -580,6 +581,8 @@ class EpisodeReplay:
     whatever survives of an overwritten episode is a suffix of it and its stored end index stays valid.
     """
 
+    STORED = ("states", "actions", "next_states", "goals", "episode_end")
+
     def __init__(self, capacity: int, state_dim: int, action_dim: int, goal_dim: int, device: torch.device):
         self.capacity, self.device = capacity, device
         self.states = torch.zeros(capacity, state_dim, device=device)
@@ -600,6 +603,16 @@ class EpisodeReplay:
         self.episode_end[rows] = self.position + length - 1
         self.position += length
         self.size = max(self.size, self.position)
+
+    def state_dict(self) -> dict:
+        """The filled rows (copied to the CPU, so the file holds only them) and the write position."""
+        rows = {name: getattr(self, name)[: self.size].to("cpu", copy=True) for name in self.STORED}
+        return {"position": self.position, "size": self.size, **rows}
+
+    def load_state_dict(self, saved: dict) -> None:
+        self.position, self.size = saved["position"], saved["size"]
+        for name in self.STORED:
+            getattr(self, name)[: self.size] = saved[name].to(self.device)
 
     def sample(self, batch_size: int, goal_dim: int, threshold: float, goal_frac: float, random_frac: float):
         """A HER batch: (s, a, s', g, r, done, s_g), with g relabelled and r, done recomputed.
@@ -787,6 +800,78 @@ def evaluate(
             success[env] = terminations[env]
         finished |= ended
     return success.mean(), distance.mean()
+
+
+# --- Resume: the whole training state (--resume) ---------------------------------------------------------------------
+
+# What the layers of a make_env env carry from one step to the next besides MuJoCo's state: TimeLimit's step count,
+# RecordEpisodeStatistics' sums, OrderEnforcing's flag, the envs' random generators, goals and (gymnasium-robotics)
+# reset positions. Pickling the envs instead would re-create them from their constructor arguments, losing all of it.
+ENV_CARRIED = ("_elapsed_steps", "episode_returns", "episode_lengths", "episode_count", "_has_reset", "_np_random", "goal",
+               "reset_pos", "init_qpos")  # fmt: skip
+MUJOCO_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step reads: time, qpos, qvel, act, ctrl, mocap, warmstart
+
+
+def env_layers(env: gym.Env) -> list:
+    """A make_env env's wrappers, the env itself and, inside a gymnasium-robotics maze, its MuJoCo robot env."""
+    layers = [env]
+    while inner := [vars(layers[-1])[name] for name in ("env", "point_env", "ant_env") if name in vars(layers[-1])]:
+        layers += inner
+    return layers
+
+
+def env_state(env: gym.Env) -> dict:
+    """One env's state as plain values: ENV_CARRIED layer by layer, MuJoCo's integration state (and the robotics
+    maze's target marker, a model field) and the action space's generator."""
+    layers = []
+    for layer in env_layers(env):
+        carried = {name: copy.deepcopy(value) for name, value in vars(layer).items() if name in ENV_CARRIED}
+        if isinstance(vars(layer).get("data"), mujoco.MjData):
+            physics = np.empty(mujoco.mj_stateSize(layer.model, MUJOCO_STATE))
+            mujoco.mj_getState(layer.model, layer.data, physics, MUJOCO_STATE)
+            carried["mujoco"] = (physics, layer.model.site_pos.copy())
+        layers.append(carried)
+    return {"layers": layers, "action_rng": copy.deepcopy(env.action_space.np_random)}
+
+
+def restore_env(env: gym.Env, saved: dict) -> None:
+    for layer, carried in zip(env_layers(env), saved["layers"], strict=True):
+        for name, value in carried.items():
+            if name == "mujoco":
+                mujoco.mj_setState(layer.model, layer.data, value[0], MUJOCO_STATE)
+                layer.model.site_pos[:] = value[1]
+                mujoco.mj_forward(layer.model, layer.data)  # positions of bodies and sites, for rendering
+            else:
+                setattr(layer, name, copy.deepcopy(value))
+    env.action_space._np_random = copy.deepcopy(saved["action_rng"])
+
+
+def training_state(agent: Agent, replay: EpisodeReplay, envs, eval_envs, **loop) -> dict:
+    """Everything a run needs to continue exactly, for save_resume (which adds the global random states): every network,
+    target and optimizer of the agent (the goal encoder's state dict holds its codebook and EMA buffers), the filled part
+    of the replay, both vector envs (the evaluation stream continues across evaluations; the batched action space's
+    generator draws the warm-up's random actions), and `loop`, the training loop's variables as they are."""
+    parts = {field.name: getattr(agent, field.name) for field in fields(agent)}
+    return {
+        "agent": {name: part.state_dict() for name, part in parts.items() if part is not None},
+        "replay": replay.state_dict(),
+        "envs": [env_state(env) for env in envs.envs],
+        "eval_envs": [env_state(env) for env in eval_envs.envs],
+        "action_rng": copy.deepcopy(envs.action_space.np_random),
+        "loop": copy.deepcopy(loop),
+    }
+
+
+def restore_training_state(saved: dict, agent: Agent, replay: EpisodeReplay, envs, eval_envs) -> dict:
+    """Load training_state's pieces into a freshly built agent, replay and envs; returns the loop's variables."""
+    for name, state in saved["agent"].items():
+        getattr(agent, name).load_state_dict(state)
+    replay.load_state_dict(saved["replay"])
+    for vector_env, states in ((envs, saved["envs"]), (eval_envs, saved["eval_envs"])):
+        for env, state in zip(vector_env.envs, states, strict=True):
+            restore_env(env, state)
+    envs.action_space._np_random = saved["action_rng"]
+    return saved["loop"]
 
 
 # --- Flags and checkpoints --------------------------------------------------------------------------------------------
@@ -1097,7 +1182,10 @@ if __name__ == "__main__":
     validate(args)
     dgrl = args.groups > 0  # DGRL
     args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
+    saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
 
     # Environments: training (random starts and goals) and evaluation (the test configuration, one seeded stream)
@@ -1153,16 +1241,9 @@ if __name__ == "__main__":
         exit_on_errors(
             [f"--buffer-size {args.buffer_size}: the replay does not fit in {device.type} memory ({type(error).__name__})"]
         )
-    writer = make_writer(args, run_name)
-    print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
-    if device.type == "cpu" and args.batch_size >= 1024:
-        print(
-            f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
-        )
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     n_envs = args.num_envs
     episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
-    progress = Progress(args.total_timesteps)
     observations, _ = envs.reset(seed=args.seed)
     step = 0
     updates = 0
@@ -1172,6 +1253,32 @@ if __name__ == "__main__":
     recent_success = []
     eval_success = eval_distance = float("nan")
     diverged = False
+    if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
+        loop = restore_training_state(saved, agent, replay, envs, eval_envs)
+        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
+        next_eval, next_loss_log, recent_success = loop["next_eval"], loop["next_loss_log"], loop["recent_success"]
+        eval_success, eval_distance = loop["eval_success"], loop["eval_distance"]
+        observations, episode = loop["observations"], loop["episode"]
+
+    def resume_state() -> dict:
+        """training_state with every variable the loop below carries from one step to the next."""
+        return training_state(
+            agent, replay, envs, eval_envs, step=step, updates=updates, evaluations=evaluations, next_eval=next_eval,
+            next_loss_log=next_loss_log, recent_success=recent_success, eval_success=eval_success,
+            eval_distance=eval_distance, observations=observations, episode=episode,
+        )  # fmt: skip
+
+    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)  # logs so far: steps <= step
+    print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
+    if saved is not None:
+        print(f"resumed at step {step} ({updates} updates) from {args.resume}/{RESUME_FILE}")
+    if device.type == "cpu" and args.batch_size >= 1024:
+        print(
+            f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
+        )
+    progress = Progress(args.total_timesteps, start_step=step)
+    if saved is not None:
+        set_rng_states(saved["rng"])  # last: building the envs and networks above drew from them
     while step < args.total_timesteps and not stop:
         # Act: uniform random actions during the warm-up, then the actor's samples.
         if step < args.start_timesteps:
@@ -1236,14 +1343,14 @@ if __name__ == "__main__":
                     break
         progress.heartbeat(step, f"{updates} updates")
 
-        # Evaluate on the test configuration, log, print progress, checkpoint.
+        # Evaluate on the test configuration, log, print progress, checkpoint. A stop signal lets the evaluation finish
+        # (seconds), so that the resume file holds whole steps.
         if step >= next_eval or step >= args.total_timesteps:
             next_eval += args.eval_frequency
             video = [] if args.capture_video and evaluations % 10 == 0 else None
-            result = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, video, stop)
-            if result is None:  # stopped by a signal mid-evaluation: nothing partial is logged
-                break
-            eval_success, eval_distance = result
+            eval_success, eval_distance = evaluate(
+                eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, video
+            )
             evaluations += 1
             writer.add_scalar("eval/success_rate", eval_success, step)
             writer.add_scalar("eval/final_distance", eval_distance, step)
@@ -1257,11 +1364,16 @@ if __name__ == "__main__":
                 write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=15)
             if args.save_model:
                 save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+        if progress.resume_due(args.checkpoint_every):
+            save_resume(run_name, resume_state(), args)
 
+    if not diverged:  # a diverged run broke off mid-step, with NaN networks: its last periodic resume file stays
+        save_resume(run_name, resume_state(), args)
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
-    progress.finish(bool(stop) or diverged, run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
+    stopped = bool(stop) and step < args.total_timesteps
+    progress.finish(stopped or diverged, run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
     envs.close()
     eval_envs.close()
     writer.close()

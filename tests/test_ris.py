@@ -1,6 +1,6 @@
 """dgrl_ris.py: the four Ant mazes (walls, collisions, physics, resets), the 31-d state and goals, HER relabelling in the
 episode replay, RIS's losses (advantage weights, subgoal cost, prior KL), one RIS update with and without DGRL, the
-gymnasium-robotics wrapper, smoke runs of every env id, checkpoints, Ctrl-C, bad flags."""
+gymnasium-robotics wrapper, smoke runs of every env id, checkpoints, Ctrl-C, stopping and resuming exactly, bad flags."""
 
 import ast
 import math
@@ -780,6 +780,101 @@ def test_ctrl_c_saves_a_loadable_checkpoint_and_flushes_the_logs(run_script, tmp
     changed = [*flags, "--max-episode-steps", "60", "--groups", "8", "--hidden-dim", "32", "--vq-beta", "0.5"]
     refused = run_script("dgrl_ris.py", *changed, "--checkpoint", str(checkpoint))
     assert_clean_refusal(refused, "was saved with other settings: pass --max-episode-steps 50 --groups 4 --hidden-dim 16")
+
+
+# --- stopping and resuming (--resume) --------------------------------------------------------------------------------
+
+SMALL_DGRL = ["--env-id", "AntU", "--groups", "4", "--embed-dim", "8", "--n-embed", "8", "--hidden-dim", "16"]
+SMALL_DGRL += ["--batch-size", "16", "--n-subgoals", "2", "--eval-episodes", "2", "--buffer-size", "5000", "--seed", "2"]
+
+
+def stopped_at(output: str) -> tuple[int, int]:
+    """(steps, updates) of the `stopped:` line of a run's output."""
+    steps, updates = re.search(r"stopped: (\d+) steps, (\d+) updates", output).groups()
+    return int(steps), int(updates)
+
+
+def test_resume_from_the_random_warm_up_equals_a_straight_run(resume_check):
+    """SIGTERM right after the first evaluation (step 150 of a 1000-step random warm-up), then --resume: every scalar
+    and the final checkpoint equal those of a run straight through (the random actions, the envs mid-episode and the
+    evaluation stream continue)."""
+    flags = [*SMALL_DGRL, "--total-timesteps", "1150", "--start-timesteps", "1000", "--eval-frequency", "150"]
+    output = resume_check("dgrl_ris.py", [*flags, "--max-episode-steps", "70", "--save-model"], r"^step +150/1150 ")
+    steps, updates = stopped_at(output)
+    assert 150 <= steps < 1000 and updates == 0, output
+
+
+def test_resume_mid_episode_after_updates_started_equals_a_straight_run(resume_check):
+    """SIGTERM at step 650 (100-step episodes: halfway through one; 250 updates done), then --resume: every scalar,
+    the losses logged at update 1000 included, and the final checkpoint (networks, codebook) equal a straight run's.
+    --checkpoint-every 1 also writes resume files during both runs: writing one changes nothing."""
+    flags = [*SMALL_DGRL, "--total-timesteps", "1500", "--start-timesteps", "400", "--eval-frequency", "325"]
+    flags += ["--max-episode-steps", "100", "--checkpoint-every", "1", "--save-model"]
+    output = resume_check("dgrl_ris.py", flags, r"^step +650/1500 ")
+    steps, updates = stopped_at(output)
+    assert 650 <= steps < 1400 and updates > 0, output  # stopped before the loss log, which the resumed run writes
+
+
+def test_resume_of_a_gymnasium_robotics_maze_equals_a_straight_run(resume_check):
+    """PointMaze (RIS, --groups 0): the robotics env's own state (MuJoCo data, goal, generators, time limit) continues."""
+    flags = ["--env-id", "PointMaze_UMaze-v3", "--groups", "0", "--hidden-dim", "16", "--batch-size", "16"]
+    flags += ["--total-timesteps", "500", "--start-timesteps", "200", "--eval-frequency", "150", "--eval-episodes", "2"]
+    output = resume_check("dgrl_ris.py", [*flags, "--max-episode-steps", "70", "--save-model"], r"^step +300/500 ")
+    steps, updates = stopped_at(output)
+    assert 300 <= steps < 500 and updates > 0, output
+
+
+@pytest.mark.parametrize("env_id", ["AntU", "PointMaze_UMaze-v3", "AntMaze_UMaze-v5"])
+def test_env_state_restores_an_env_mid_episode_exactly(env_id, tmp_path):
+    """A vector env restored from env_state (through torch.save, as in resume.pt) into a fresh one that has stepped
+    elsewhere then steps exactly as the original: observations, goals, ends of episodes, episode statistics, resets."""
+    original, restored = (ris.make_vector_env(env_id, 2, 3, False, 30, 0.5) for _ in range(2))
+    original.reset(seed=3)
+    restored.reset(seed=4)
+    for _ in range(45):
+        original.step(original.action_space.sample())
+        restored.step(restored.action_space.sample())
+    torch.save(
+        {"envs": [ris.env_state(env) for env in original.envs], "actions": original.action_space.np_random},
+        tmp_path / "state.pt",
+    )
+    saved = torch.load(tmp_path / "state.pt", weights_only=False)
+    for env, state in zip(restored.envs, saved["envs"], strict=True):
+        ris.restore_env(env, state)
+    restored.action_space._np_random = saved["actions"]
+    ends = 0
+    for _ in range(40):
+        expected, got = original.step(original.action_space.sample()), restored.step(restored.action_space.sample())
+        for key in ("state", "goal"):
+            assert np.array_equal(expected[0][key], got[0][key])
+        assert np.array_equal(expected[2], got[2]) and np.array_equal(expected[3], got[3])
+        if "final_info" in expected[4]:
+            ends += 1
+            for key in ("r", "l"):
+                assert np.array_equal(expected[4]["final_info"]["episode"][key], got[4]["final_info"]["episode"][key])
+    assert ends > 0  # the 30-step time limit (15 steps left) and a reset were crossed
+
+
+def test_resume_refuses_changed_flags_and_continues_a_finished_run(run_script, tmp_path):
+    """--resume under another seed or network size exits 2 naming the flags to pass, with no traceback; under the same
+    flags (--checkpoint-every may change) a finished run says so and adds nothing. resume.pt holds only the replay's
+    filled rows."""
+    flags = ["--env-id", "AntU", "--groups", "0", "--hidden-dim", "16", "--total-timesteps", "150"]
+    flags += ["--start-timesteps", "100", "--batch-size", "16", "--eval-frequency", "150", "--eval-episodes", "1"]
+    flags += ["--max-episode-steps", "50", "--buffer-size", "1000"]
+    first = run_script("dgrl_ris.py", *flags)
+    assert first.returncode == 0, first.stderr[-3000:]
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    saved = torch.load(run_dir / "resume.pt", weights_only=False)
+    assert saved["replay"]["size"] == 150 and saved["replay"]["states"].shape == (150, 31)
+    assert saved["loop"]["step"] == 150 and saved["agent"]["critic_optimizer"]["state"]
+    resume = ["--resume", f"runs/{run_dir.name}"]
+    refused = run_script("dgrl_ris.py", *flags, "--seed", "5", "--hidden-dim", "32", *resume)
+    assert_clean_refusal(refused, "was started with other settings: pass --seed 1 --hidden-dim 16")
+    again = run_script("dgrl_ris.py", *flags, *resume, "--checkpoint-every", "0")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"resumed at step 150 (51 updates) from runs/{run_dir.name}/resume.pt" in again.stdout
+    assert re.search(r"done: 150 steps, 51 updates", again.stdout), again.stdout
 
 
 # --- flags ------------------------------------------------------------------------------------------------------------

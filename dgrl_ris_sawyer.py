@@ -340,6 +340,23 @@ class SawyerPushAndReachEnv(gym.Env):
         info = self._info(observation["state"])
         return observation, -1.0, info["success"], self.steps >= EPISODE_STEPS, info
 
+    def snapshot(self) -> dict:
+        """What the env carries from one step to the next, for --resume: the MuJoCo integration state (positions,
+        velocities, the mocap target, time, the solver's warm start), the goal and its image, the step count and the reset
+        generator's state."""
+        physics = np.empty(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION))
+        mujoco.mj_getState(self.model, self.data, physics, mujoco.mjtState.mjSTATE_INTEGRATION)
+        return {
+            "physics": physics, "goal": self.goal.copy(), "goal_image": self.goal_image.copy(), "steps": self.steps,
+            "np_random": self.np_random.bit_generator.state,
+        }  # fmt: skip
+
+    def restore(self, snapshot: dict) -> None:
+        mujoco.mj_setState(self.model, self.data, snapshot["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(self.model, self.data)
+        self.goal, self.goal_image, self.steps = snapshot["goal"].copy(), snapshot["goal_image"].copy(), snapshot["steps"]
+        self.np_random.bit_generator.state = snapshot["np_random"]
+
     def render(self) -> np.ndarray:
         """The current state as an image_size x image_size RGB array."""
         if self._renderer is None:
@@ -379,6 +396,32 @@ def make_env(seed: int, test: bool):
 def make_vector_env(n: int, seed: int, test: bool) -> gym.vector.SyncVectorEnv:
     thunks = [make_env(seed + i, test) for i in range(n)]
     return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+def vector_env_state(envs: gym.vector.SyncVectorEnv) -> dict:
+    """Everything a vector of Sawyer envs carries from one step to the next, for --resume: each env's snapshot, its action
+    space's generator and its episode statistics so far, and the batched action space's generator (the warm-up's random
+    actions). Copied out explicitly: pickling an env rebuilds it from its constructor arguments, losing all of this. Under
+    SAME_STEP autoreset the vector env keeps nothing else between steps; the last observations are the training loop's."""
+    return {
+        "envs": [
+            {"env": env.unwrapped.snapshot(), "action_space": env.action_space.np_random.bit_generator.state,
+             "episode_returns": env.episode_returns, "episode_lengths": env.episode_lengths,
+             "episode_count": env.episode_count}
+            for env in envs.envs
+        ],
+        "action_space": envs.action_space.np_random.bit_generator.state,
+    }  # fmt: skip
+
+
+def set_vector_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
+    for env, saved in zip(envs.envs, state["envs"], strict=True):
+        env.unwrapped.restore(saved["env"])
+        env.action_space.np_random.bit_generator.state = saved["action_space"]
+        env.episode_returns, env.episode_lengths, env.episode_count = (
+            saved["episode_returns"], saved["episode_lengths"], saved["episode_count"]
+        )  # fmt: skip
+    envs.action_space.np_random.bit_generator.state = state["action_space"]
 
 
 # --- Networks ---------------------------------------------------------------------------------------------------------
@@ -551,6 +594,19 @@ class ImageEpisodeReplay:
         self.goal_row[start : goal + 1] = goal
         self.position = goal + 1
         self.size = max(self.size, self.position)
+
+    ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")
+
+    def state(self) -> dict:
+        """For --resume: the filled rows, as tensors sharing the arrays' memory (torch.save writes just those rows, uint8
+        images as uint8, with no pickled copy), and where the next episode goes."""
+        filled = {name: torch.from_numpy(getattr(self, name)[: self.size]) for name in self.ARRAYS}
+        return filled | {"position": self.position, "size": self.size}
+
+    def load_state(self, state: dict) -> None:
+        self.position, self.size = state["position"], state["size"]
+        for name in self.ARRAYS:
+            getattr(self, name)[: self.size] = state[name].numpy()
 
     def transitions(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """Rows of n transitions, uniform over the stored ones."""
@@ -864,6 +920,53 @@ def evaluate(
     }  # fmt: skip
 
 
+# --- Resuming ---------------------------------------------------------------------------------------------------------
+
+# What training needs besides a checkpoint's state dicts.
+TRAINING_ONLY = ("actor_target", "critic_target", "critic_optimizer", "actor_optimizer", "high_optimizer")
+
+
+def training_state(
+    agent: Agent,
+    replay: ImageEpisodeReplay,
+    envs: gym.vector.SyncVectorEnv,
+    eval_envs: gym.vector.SyncVectorEnv,
+    rng: np.random.Generator,
+    **loop,
+) -> dict:
+    """Everything a run needs to continue exactly, for save_resume (which adds the flags and the global random states):
+    the networks, codebook, targets and optimizers, the replay's filled rows, the training and evaluation envs, the
+    replay-sampling generator, and `loop`: the training loop's variables (counters, cadences, the last observations, the
+    episodes in progress, the last evaluation)."""
+    return {
+        "agent": agent.state_dicts() | {name: getattr(agent, name).state_dict() for name in TRAINING_ONLY},
+        "replay": replay.state(),
+        "envs": vector_env_state(envs),
+        "eval_envs": vector_env_state(eval_envs),
+        "replay_rng": rng.bit_generator.state,
+        "loop": loop,
+    }
+
+
+def restore_training_state(
+    saved: dict,
+    agent: Agent,
+    replay: ImageEpisodeReplay,
+    envs: gym.vector.SyncVectorEnv,
+    eval_envs: gym.vector.SyncVectorEnv,
+    rng: np.random.Generator,
+) -> dict:
+    """Put training_state's pieces back into a freshly built run; returns the loop's variables."""
+    agent.load_state_dicts(saved["agent"])
+    for name in TRAINING_ONLY:
+        getattr(agent, name).load_state_dict(saved["agent"][name])
+    replay.load_state(saved["replay"])
+    set_vector_env_state(envs, saved["envs"])
+    set_vector_env_state(eval_envs, saved["eval_envs"])
+    rng.bit_generator.state = saved["replay_rng"]
+    return saved["loop"]
+
+
 # A checkpoint evaluates only with the flags that shape its networks (the env and the test configuration are fixed).
 MUST_MATCH = (
     "feature_dim",
@@ -1167,8 +1270,11 @@ def validate(args: Args) -> None:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     validate(args)
+    resumed = None if args.resume is None else load_resume(args)
     dgrl = args.groups > 0  # DGRL
     run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if resumed is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL
     saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, must_match, device)
@@ -1214,13 +1320,6 @@ if __name__ == "__main__":
             write_video(f"videos/{run_name}/checkpoint_eval.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
         raise SystemExit(0)
 
-    writer = make_writer(args, run_name)
-    print(f"{run_name}: {image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}")
-    if device.type == "cpu" and args.batch_size >= 128:
-        print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
-    progress = Progress(args.total_timesteps)
-    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-
     replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim)
     episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
     observations, _ = envs.reset(seed=args.seed)
@@ -1231,7 +1330,61 @@ if __name__ == "__main__":
     next_log = 1  # losses every 100 updates, from the first
     recent_success = []
     result = dict.fromkeys(("success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance"), float("nan"))
-    while step < args.total_timesteps and not stop:
+    finished = False  # the last evaluation is done
+    if resumed is not None:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
+        loop = restore_training_state(resumed, agent, replay, envs, eval_envs, rng)
+        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
+        next_eval, next_log, finished = loop["next_eval"], loop["next_log"], loop["finished"]
+        recent_success, result = loop["recent_success"], loop["result"]
+        observations, episode = loop["observations"], loop["episode"]
+
+    # A resumed run drops whatever the stopped one logged after its resume.pt (every figure of `step` came before it).
+    writer = make_writer(args, run_name, purge_step=None if resumed is None else step + 1)
+    about = f"{image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}"
+    print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {step}"))
+    if device.type == "cpu" and args.batch_size >= 128:
+        print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
+    progress = Progress(args.total_timesteps, start_step=step)
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    if resumed is not None:
+        set_rng_states(resumed["rng"])  # last: building the run above drew from them
+    while not finished and not stop:
+        # Evaluate on the test configuration once a step reaches the next evaluation, and at the end. It comes first in the
+        # loop so that a run stopped mid-evaluation resumes with it.
+        if step >= next_eval or step >= args.total_timesteps:
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            before_evaluation = vector_env_state(eval_envs), rng_states()
+            evaluation = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
+            if evaluation is None:  # stopped mid-evaluation: nothing logged, and its draws undone for the resumed run
+                set_vector_env_state(eval_envs, before_evaluation[0])
+                set_rng_states(before_evaluation[1])
+                break
+            next_eval += args.eval_frequency
+            result = evaluation
+            evaluations += 1
+            for name, value in result.items():
+                writer.add_scalar(f"eval/{name}", value, step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
+            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
+            recent_success = []
+            progress.line(
+                step,
+                f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}  distance hand "
+                f"{result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}  train success {train_success}",
+            )
+            if video:
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
+            if args.save_model:
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+        if step >= args.total_timesteps:
+            finished = True
+            break
+        if progress.resume_due(args.checkpoint_every):  # every figure of `step` is logged
+            loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
+                        recent_success=recent_success, result=result, finished=finished, observations=observations,
+                        episode=episode)  # fmt: skip
+            save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
+
         # Act: uniform random actions during the warm-up, then the policy.
         if step < args.start_timesteps:
             actions = envs.action_space.sample()
@@ -1283,30 +1436,10 @@ if __name__ == "__main__":
                     writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
         progress.heartbeat(step, f"{updates} updates")
 
-        # Evaluate on the test configuration, log, print progress, checkpoint.
-        if step >= next_eval or step >= args.total_timesteps:
-            next_eval += args.eval_frequency
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            evaluation = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
-            if evaluation is None:  # stopped mid-evaluation: nothing to log
-                break
-            result = evaluation
-            evaluations += 1
-            for name, value in result.items():
-                writer.add_scalar(f"eval/{name}", value, step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
-            recent_success = []
-            progress.line(
-                step,
-                f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}  distance hand "
-                f"{result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}  train success {train_success}",
-            )
-            if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
-            if args.save_model:
-                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-
+    loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
+                recent_success=recent_success, result=result, finished=finished, observations=observations,
+                episode=episode)  # fmt: skip
+    save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")

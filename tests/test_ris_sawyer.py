@@ -748,3 +748,109 @@ def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path):
     reloaded = subprocess.run([sys.executable, script, *flags], cwd=tmp_path, env=base, capture_output=True, text=True)
     assert reloaded.returncode == 0, reloaded.stderr[-3000:]
     assert re.search(r"1 test episodes: success \d+%, hand success \d+%", reloaded.stdout), reloaded.stdout
+
+
+# --- stopping and resuming --------------------------------------------------------------------------------------------
+
+
+def run_steps(envs, actions: np.ndarray) -> list:
+    """Step a vector env through `actions`; everything it returns, flattened to arrays for comparison."""
+    trace = []
+    for action in actions:
+        observations, rewards, terminations, truncations, infos = envs.step(action)
+        ended = infos.get("final_info", {}).get("episode", {})
+        trace += [*observations.values(), rewards, terminations, truncations, *(ended.get(key, []) for key in "rl")]
+    return trace
+
+
+def test_a_restored_vector_env_continues_exactly():
+    """After 60 steps, the state of two training envs restored into envs built with another seed gives the same steps,
+    across an episode's end and its autoreset (the reset draws, the episode statistics), and the same random actions."""
+    envs = sawyer.make_vector_env(2, 0, test=False)
+    envs.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1, 1, (110, 2, 2)).astype(np.float32)
+    run_steps(envs, actions[:60])
+    state = sawyer.vector_env_state(envs)
+    other = sawyer.make_vector_env(2, 7, test=False)
+    other.reset(seed=7)
+    sawyer.set_vector_env_state(other, state)
+    assert np.array_equal(other.action_space.sample(), envs.action_space.sample())
+    expected, got = run_steps(envs, actions[60:]), run_steps(other, actions[60:])
+    assert len(got) == len(expected) > 50 * 7  # 50 steps, one of them an episode's end (with its return and length)
+    for want, have in zip(expected, got, strict=True):
+        assert np.array_equal(want, have)
+    envs.close()
+    other.close()
+
+
+def test_an_evaluation_cut_short_is_undone_by_restoring_the_eval_envs_and_the_rngs():
+    """What the training loop does when a stop arrives mid-evaluation: the eval envs' state and the global random states
+    taken before it, put back after it, make the next evaluation the one an uninterrupted run would have made."""
+    _, agent, _, _ = tiny_agent(4)
+    envs = sawyer.make_vector_env(2, 10_000, test=True)
+    envs.reset(seed=10_000)
+    before = sawyer.vector_env_state(envs), sawyer.rng_states()
+    expected = sawyer.evaluate(envs, agent, "cpu", deterministic=False)
+
+    class StopAfter:  # a stop list that fills at its 30th check
+        checks = 0
+
+        def __bool__(self):
+            self.checks += 1
+            return self.checks > 30
+
+    sawyer.set_vector_env_state(envs, before[0])
+    sawyer.set_rng_states(before[1])
+    assert sawyer.evaluate(envs, agent, "cpu", deterministic=False, stop=StopAfter()) is None
+    sawyer.set_vector_env_state(envs, before[0])
+    sawyer.set_rng_states(before[1])
+    assert sawyer.evaluate(envs, agent, "cpu", deterministic=False) == expected
+    envs.close()
+
+
+RESUME = ["--batch-size", "16", "--start-timesteps", "100", "--eval-episodes", "1", "--buffer-size", "400", "--save-model"]
+STOPPED = r"stopped: (\d+) steps, (\d+) updates"
+
+
+def test_a_run_stopped_in_the_random_warm_up_resumes_exactly(resume_check):
+    """SIGTERM right after the first line: the run stops within the random warm-up, and resumed it logs the same scalars
+    and ends with the same networks, codebook and targets as a run straight through."""
+    flags = [*RESUME, "--groups", "4", "--total-timesteps", "130", "--eval-frequency", "1000"]
+    output = resume_check("dgrl_ris_sawyer.py", flags, r"^SawyerPushAndReach__G4__\S+: \(84, 84, 3\) images")
+    steps, updates = map(int, re.search(STOPPED, output).groups())
+    assert 0 < steps < 100 and updates == 0, output
+
+
+def test_a_run_stopped_inside_an_episode_after_updates_started_resumes_exactly(resume_check, tmp_path):
+    """SIGTERM after the evaluation at step 120 (20 steps into the second episode, updates running): the resumed run
+    continues that episode, and logs and ends as a run straight through."""
+    flags = [*RESUME, "--groups", "16", "--total-timesteps", "160", "--eval-frequency", "120"]
+    output = resume_check("dgrl_ris_sawyer.py", flags, r"^step +120/160 +eval success")
+    steps, updates = map(int, re.search(STOPPED, output).groups())
+    assert 120 < steps < 160 and updates == steps - 99, output
+    events = EventAccumulator(str(next((tmp_path / "straight" / "runs").iterdir())))
+    events.Reload()
+    assert [event.step for event in events.Scalars("charts/episodic_length")] == [100]  # the second was still running
+
+
+def test_resume_refuses_changed_flags_and_continues_a_finished_run_to_its_end(run_script, tmp_path):
+    """--resume with another --seed or --groups exits 2 naming the flag to pass; with only free flags changed, a finished
+    run stays as it was (no new point). The replay's images are stored in resume.pt as uint8, only the filled rows."""
+    flags = [*RESUME, "--groups", "4", "--total-timesteps", "115", "--eval-frequency", "1000"]
+    first = run_script("dgrl_ris_sawyer.py", *flags)
+    assert first.returncode == 0, first.stderr[-3000:]
+    (run,) = (tmp_path / "runs").iterdir()
+    saved = torch.load(run / "resume.pt", weights_only=False)
+    assert saved["replay"]["images"].dtype == torch.uint8 and saved["replay"]["images"].shape == (102, 84, 84, 3)
+    assert saved["loop"]["finished"] and saved["loop"]["step"] == 115
+    resume = ["--resume", f"runs/{run.name}"]
+    for changed, message in ((["--seed", "2"], "pass --seed 1"), (["--groups", "8"], "pass --groups 4")):
+        refused = run_script("dgrl_ris_sawyer.py", *flags, *changed, *resume)
+        assert_clean_refusal(refused, f"--resume runs/{run.name} was started with other settings: {message}")
+    again = run_script("dgrl_ris_sawyer.py", *flags, "--checkpoint-every", "0", "--threads", "2", *resume)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"{run.name}: (84, 84, 3) images" in again.stdout and "resumed at step 115" in again.stdout
+    assert re.search(r"done: 115 steps, 16 updates", again.stdout), again.stdout
+    events = EventAccumulator(str(run))
+    events.Reload()
+    assert [event.step for event in events.Scalars("eval/success_rate")] == [115]

@@ -18,6 +18,7 @@ Budgets and frequencies count frames: env steps x --num-envs.
 The study: benchmark/amigo.sh. Docs: docs/dgrl_amigo.md.
 """
 
+import copy
 import importlib.util
 import itertools
 import math
@@ -276,6 +277,27 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
     def close_extras(self, **kwargs) -> None:
         for env in self.envs:
             env.close()
+
+    def get_state(self) -> dict:
+        """A copy of everything the next steps and resets depend on, for --resume: each env's attributes but the renderer's
+        and its spec (the grid with its objects, agent position and direction, what it carries, step count, mission,
+        np_random, and what an env class adds, e.g. KeyCorridor's target object, kept identical to the object carried),
+        and the current observation and episode statistics. Copied as a whole, so objects shared between envs' attributes
+        stay shared (pickling a gymnasium env instead would rebuild it from its constructor arguments)."""
+        envs = [{key: value for key, value in env.__dict__.items() if key not in NOT_ENV_STATE} for env in self.envs]
+        arrays = {key: getattr(self, key) for key in ("grids", "carried", "episode_return", "episode_length")}
+        return copy.deepcopy({"envs": envs, **arrays})
+
+    def set_state(self, state: dict) -> None:
+        """Continue from `get_state()`'s copy (which stays the caller's): the episodes in progress go on."""
+        state = copy.deepcopy(state)
+        for env, attributes in zip(self.envs, state.pop("envs"), strict=True):
+            env.__dict__.update(attributes)
+        for key, value in state.items():
+            getattr(self, key)[:] = value
+
+
+NOT_ENV_STATE = ("window", "clock", "render_mode", "spec", "gen_obs")  # renderer, free --capture-video, spec, our patch
 
 
 class GoalBook:
@@ -738,6 +760,37 @@ def new_window() -> dict:
     return {"return": [], "success": [], "reached": 0, "outcomes": 0, "goal_steps": [], "teacher_reward": []}
 
 
+def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes: OutcomeBuffer, loop: dict):
+    """Everything a stopped run needs to continue exactly, for runs/{run_name}/resume.pt (save_resume adds the global
+    random states, which acting and goal proposals draw from): the networks with the codebook and its EMA buffers, both
+    optimizers, the envs mid-episode with their generators, the goal book, t* and its streak, the goal outcomes waiting
+    for a teacher update, and `loop`: the training loop's variables (observation, counters, cadences, progress window,
+    env 0's video in progress). Rollout storage is not saved: a run stops between collections, which overwrite it."""
+    return {
+        "networks": agent.state_dicts(),
+        "student_optimizer": agent.student_optimizer.state_dict(),
+        "teacher_optimizer": agent.teacher_optimizer.state_dict(),
+        "envs": envs.get_state(),
+        "goal_book": {"goal": book.goal, "frame": book.frame, "logp": book.logp, "steps": book.steps},
+        "t_star": {"value": t_star.value, "streak": t_star.streak},
+        "outcomes": {"parts": outcomes.parts, "size": outcomes.size},
+        "loop": loop,
+    }
+
+
+def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes):
+    """Put `training_state`'s entries back into a freshly built run; returns the loop's variables."""
+    agent.load_state_dicts(saved["networks"])
+    agent.student_optimizer.load_state_dict(saved["student_optimizer"])
+    agent.teacher_optimizer.load_state_dict(saved["teacher_optimizer"])
+    envs.set_state(saved["envs"])
+    for key, value in saved["goal_book"].items():
+        getattr(book, key)[:] = value
+    t_star.value, t_star.streak = saved["t_star"]["value"], saved["t_star"]["streak"]
+    outcomes.parts, outcomes.size = saved["outcomes"]["parts"], saved["outcomes"]["size"]
+    return saved["loop"]
+
+
 MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # a checkpoint's networks and what it is run on
 LOSS_LOG_UPDATES = 10  # student updates between two writes of the student's losses
 VIDEO_FPS = 8
@@ -1040,8 +1093,12 @@ def validate(args: Args) -> None:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     validate(args)
+    saved = load_resume(args) if args.resume is not None else None
     dgrl = args.groups > 0  # DGRL
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is None:
+        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    else:
+        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
     width = envs.width
@@ -1068,17 +1125,18 @@ if __name__ == "__main__":
     stop = stop_on_signals()
 
     if args.checkpoint is not None:
-        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-        agent.load_state_dicts(saved)
+        evaluated = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+        agent.load_state_dicts(evaluated)
         result = evaluate(agent, envs, args.eval_episodes, args.seed + 10_000, device, stop)
         print(
-            f"{result['episodes']} episodes (t* {saved['t_star']} at save): return {result['return']:.3f}, "
+            f"{result['episodes']} episodes (t* {evaluated['t_star']} at save): return {result['return']:.3f}, "
             f"success {result['success']:.0%}, goals reached per episode {result['goals_per_episode']:.1f}"
         )
         envs.close()
         raise SystemExit(0)
 
-    writer = make_writer(args, run_name)
+    # A resumed run's TensorBoard drops what the stopped run logged after its resume.pt: it logged up to that step.
+    writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
     print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
     t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
     outcomes = OutcomeBuffer()
@@ -1102,7 +1160,6 @@ if __name__ == "__main__":
     video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
     episodes_env0 = 0
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    progress = Progress(args.total_timesteps, unit="frame")
     step = 0  # frames: env steps x --num-envs
     student_updates = 0
     teacher_updates = 0
@@ -1110,6 +1167,16 @@ if __name__ == "__main__":
     next_loss_log = LOSS_LOG_UPDATES
     window = new_window()
     metrics = {}
+    if saved is not None:  # continue where the stopped run left off: its envs mid-episode, its goals, its counters
+        loop = restore_training_state(saved, agent, envs, book, t_star, outcomes)
+        obs, step, window = loop["obs"], loop["step"], loop["window"]
+        student_updates, teacher_updates = loop["student_updates"], loop["teacher_updates"]
+        next_progress, next_loss_log, episodes_env0 = loop["next_progress"], loop["next_loss_log"], loop["episodes_env0"]
+        envs.record = args.capture_video and loop["record"]  # --capture-video may change on resume
+        video = loop["video"] if envs.record else []
+        print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {step}")
+        set_rng_states(saved["rng"])  # last: building the run above drew from them
+    progress = Progress(args.total_timesteps, unit="frame", start_step=step)
     while step < args.total_timesteps and not stop:
         # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
         goal_embedding = embed_goals(agent.goal_encoder, book.frame, book.goal, device)  # the encoder changed since
@@ -1240,7 +1307,16 @@ if __name__ == "__main__":
             if args.save_model:
                 save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
         progress.heartbeat(step, f"{student_updates} student updates  t* {t_star.value}")
+        if progress.resume_due(args.checkpoint_every):
+            loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
+            loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
+            loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
+            save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)
 
+    loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
+    loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
+    loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
+    save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)  # stopped or done
     if args.save_model:
         save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
         print(f"checkpoint: {checkpoint_path}")

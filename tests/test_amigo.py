@@ -206,6 +206,51 @@ def test_partial_view_bypass_does_not_change_the_dynamics():
     assert episodes >= 1  # the comparison went through an autoreset
 
 
+@pytest.mark.parametrize("env_id", [DOORKEY, CORRIDOR, "MiniGrid-ObstructedMaze-1Dlhb-v0", "MiniGrid-MemoryS7-v0"])
+def test_vec_env_state_continues_the_episodes_in_progress(env_id, tmp_path):
+    """get_state, through a file, into envs built with another seed and a renderer: the same steps and autoresets follow."""
+    rng = np.random.default_rng(0)
+    envs = amigo.MiniGridVecEnv(env_id, 3)
+    envs.reset(seed=1)
+    for _ in range(40):
+        envs.step(rng.integers(envs.n_actions, size=3))
+    state = envs.get_state()
+    torch.save(state, tmp_path / "state.pt")
+    before = [amigo.full_grid(env) for env in envs.envs]
+    envs.step(np.full(3, FORWARD))  # the state is a copy: stepping on does not change it
+    copy = amigo.MiniGridVecEnv(env_id, 3, render_env0=True)
+    copy.reset(seed=99)
+    copy.set_state(torch.load(tmp_path / "state.pt", weights_only=False))
+    assert copy.envs[0].render_mode == "rgb_array" and copy.envs[1].render_mode is None
+    for i, env in enumerate(copy.envs):
+        np.testing.assert_array_equal(amigo.full_grid(env), before[i])
+    envs.set_state(state)
+    assert envs.envs[0].step_count == copy.envs[0].step_count == 40 % envs.max_steps
+    ends = 0
+    for _ in range(envs.max_steps + 20):  # past an autoreset in every env: the envs' generators were restored too
+        actions = rng.integers(envs.n_actions, size=3)
+        obs, *outcome, info = envs.step(actions)  # rewards, terminated, truncated
+        obs_copy, *outcome_copy, info_copy = copy.step(actions)
+        for array, array_copy in zip([*obs.values(), *outcome], [*obs_copy.values(), *outcome_copy], strict=True):
+            np.testing.assert_array_equal(array, array_copy)
+        np.testing.assert_array_equal(info["final_grid"], info_copy["final_grid"])
+        np.testing.assert_array_equal(info["episode"]["r"], info_copy["episode"]["r"])
+        ends += int(info["_episode"].sum())
+    assert ends >= 3
+
+
+def test_vec_env_state_keeps_the_carried_object_the_target_object():
+    """KeyCorridor succeeds when `carrying is obj`: the state must keep the two one object, not two equal copies."""
+    envs = amigo.MiniGridVecEnv(CORRIDOR, 1)
+    envs.reset(seed=0)
+    env = envs.envs[0]
+    env.grid.set(*env.obj.cur_pos, None)
+    env.carrying = env.obj
+    copy = amigo.MiniGridVecEnv(CORRIDOR, 1)
+    copy.set_state(envs.get_state())
+    assert copy.envs[0].carrying is copy.envs[0].obj and copy.envs[0].obj is not env.obj
+
+
 # --- the goal-reach test ----------------------------------------------------------------------------------------------
 
 
@@ -910,3 +955,42 @@ def test_ctrl_c_stops_the_run_with_its_checkpoint_and_logs(run_script, tmp_path)
     )
     assert evaluation.returncode == 0, evaluation.stderr
     assert evaluation.stdout.startswith("1 episodes (t* 7 at save)")
+
+
+# --- stopping and resuming --------------------------------------------------------------------------------------------
+
+RESUME_FLAGS = [
+    "--env-id", DOORKEY, "--num-envs", "4", "--batch-envs", "2", "--num-steps", "20", "--total-timesteps", "4000",
+    "--progress-frequency", "800", "--teacher-batch-size", "20", "--seed", "3", "--save-model",
+]  # fmt: skip
+
+
+def test_resume_after_the_first_progress_line_equals_a_straight_run(resume_check):
+    """DGRL stopped early (envs mid-episode, goals pending, teacher outcomes waiting, a codebook with dead-code restarts)."""
+    output = resume_check("dgrl_amigo.py", [*RESUME_FLAGS, "--groups", "16", "--vq-dead-code-steps", "5"], r"^frame +800/")
+    assert 800 <= int(re.search(r"stopped: (\d+) frames", output).group(1)) < 4000
+
+
+def test_resume_after_the_second_progress_line_equals_a_straight_run_and_its_videos(resume_check, tmp_path):
+    """AMIGo (G = 0) stopped later, recording every episode of env 0: the video in progress at the stop carries on."""
+    flags = [*RESUME_FLAGS, "--groups", "0", "--capture-video", "--video-frequency", "1"]
+    output = resume_check("dgrl_amigo.py", flags, r"^frame +1600/")
+    assert 1600 <= int(re.search(r"stopped: (\d+) frames", output).group(1)) < 4000
+    straight = {path.name: path.stat().st_size for path in tmp_path.glob("straight/videos/*/*.mp4")}
+    resumed = {path.name: path.stat().st_size for path in tmp_path.glob("stopped/videos/*/*.mp4")}
+    assert resumed == straight and len(straight) >= 2
+
+
+def test_resume_refuses_changed_flags_and_keeps_images_uint8(run_script, tmp_path):
+    model = ["--groups", "4", "--embed-dim", "16", "--n-embed", "8"]
+    result = run_script("dgrl_amigo.py", *TINY, *model)
+    assert result.returncode == 0, result.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    saved = torch.load(run_dir / "resume.pt", weights_only=False)
+    assert saved["loop"]["step"] == 160 and saved["envs"]["grids"].dtype == saved["goal_book"]["frame"].dtype == np.uint8
+    resume = ["--resume", f"runs/{run_dir.name}"]
+    changed = run_script("dgrl_amigo.py", *TINY, *model, "--seed", "5", "--no-goal-channel", *resume)
+    assert_clean_refusal(changed, "was started with other settings: pass --seed 4 --goal-channel")
+    finished = run_script("dgrl_amigo.py", *TINY, *model, *resume, "--no-save-model")  # a free flag may change
+    assert finished.returncode == 0, finished.stderr
+    assert "resumed from" in finished.stdout and "done: 160 frames" in finished.stdout

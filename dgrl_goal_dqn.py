@@ -1155,8 +1155,10 @@ if __name__ == "__main__":
     global_step, train_steps, next_train_log, next_eval = 0, 0, 100, args.eval_frequency
     last_evaluation = "no evaluation"
 
-    def resume_state() -> dict:
-        """The whole training state as it is now (the loop's variables are read when this is called)."""
+    def write_resume() -> None:
+        """runs/{run_name}/resume.pt with the whole training state as it is now (the loop's variables are read when this
+        is called). TensorBoard is flushed first: after a kill -9, every point up to the file's step is on disk."""
+        writer.flush()
         loop = {
             "rep_step": rep_step,
             "next_rep_log": next_rep_log,
@@ -1172,7 +1174,7 @@ if __name__ == "__main__":
             "infos": infos,
             "recent_success": recent_success,
         }
-        return training_state(agent, rng, envs, replay, loop)
+        save_resume(run_name, training_state(agent, rng, envs, replay, loop), args)
 
     if saved is not None:
         loop = restore_training_state(saved, agent, rng, envs, replay)
@@ -1199,10 +1201,11 @@ if __name__ == "__main__":
                 code_perplexity = perplexity(codes, args.n_embed).item()  # DGRL
                 add_kept_scalar(writer, pretraining_log, "vq/commit_loss", vq_loss.item(), rep_step)  # DGRL
                 add_kept_scalar(writer, pretraining_log, "vq/perplexity", code_perplexity, rep_step)  # DGRL
+            pretraining.line(rep_step + 1, f"{args.rep} loss {rep_loss.item():.3f}")
         rep_step += 1
         pretraining.heartbeat(rep_step)
         if pretraining.resume_due(args.checkpoint_every):
-            save_resume(run_name, resume_state(), args)
+            write_resume()
 
     # Freeze phi (unless --finetune) and encode the maze's cells once.
     agent.rep.eval()
@@ -1232,7 +1235,7 @@ if __name__ == "__main__":
         if args.finetune:
             update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
         dqn_phase = True
-        save_resume(run_name, resume_state(), args)  # the phases share TensorBoard's steps: a pre-training file must not stay
+        write_resume()  # the phases share TensorBoard's steps: a pre-training file must not stay
     if args.finetune:
         agent.rep.train()
     lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
@@ -1309,9 +1312,9 @@ if __name__ == "__main__":
         global_step = steps_done
         progress.heartbeat(global_step)
         if progress.resume_due(args.checkpoint_every):
-            save_resume(run_name, resume_state(), args)
+            write_resume()
 
-    save_resume(run_name, resume_state(), args)  # stopped or done: --resume runs/{run_name} goes on from here
+    write_resume()  # stopped or done: --resume runs/{run_name} goes on from here
     if args.save_model:
         path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         entries = {

@@ -531,3 +531,84 @@ def test_bad_flags_fail_before_any_work(tmp_path, run_script, flags, messages):
     for message in messages:
         assert message in result.stderr, (message, result.stderr)
     assert not (tmp_path / "runs").exists()
+
+
+# --- stopping and resuming ----------------------------------------------------------------------------------------------
+
+# Pre-training logs at steps 0, 100 and 149; the DQN phase evaluates every 50 steps and trains from step 20.
+RESUME = ["--rep-steps", "150", "--rep-batch-size", "16", "--rep-transitions", "500", "--total-timesteps", "300"]
+RESUME += ["--learning-starts", "20", "--eval-frequency", "50", "--batch-size", "16", "--buffer-size", "1000"]
+RESUME += ["--max-episode-steps", "50", "--groups", "4", "--save-model"]
+
+
+def test_resume_inside_pre_training_continues_exactly(resume_check):
+    """Stopped by SIGTERM after pre-training's progress line at step 101 of 150: phi, the codebook with its dead-code
+    restarts, Adam and the batch generator go on from there; the DQN phase then runs as in a run never stopped."""
+    output = resume_check("dgrl_goal_dqn.py", RESUME, stop_after=r"^pre-training step +101/150 ")
+    stopped_at = int(re.search(r"stopped: (\d+) pre-training steps, 0 DQN steps", output)[1])
+    assert 101 <= stopped_at < 150
+
+
+def test_resume_inside_a_dqn_episode_continues_exactly(resume_check):
+    """Stopped by SIGTERM after the first progress line (DQN step 50): inside an episode (up to 50 steps), with the
+    Q-network and, with --finetune, phi and the codebook training, and --noise drawing from the env's generator at every
+    step. The purge from the stop step on drops pre-training's points at steps 100 and 149, which the resumed run logs
+    again."""
+    flags = [*RESUME, "--finetune", "--noise", "0.2", "--train-frequency", "4"]
+    output = resume_check("dgrl_goal_dqn.py", flags, stop_after=PROGRESS_LINE.pattern)
+    stopped_at = int(re.search(r"stopped: 150 pre-training steps, (\d+) DQN steps", output)[1])
+    assert 50 <= stopped_at < 300
+
+
+def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(tmp_path):
+    """A run killed with SIGKILL (no clean stop) goes on from its last periodic resume file (--checkpoint-every 1): the
+    points it logged after that file are purged and logged again, none twice, none missing."""
+    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
+
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    flags = [*RESUME, "--total-timesteps", "600", "--checkpoint-every", "1"]
+    command = [sys.executable, str(ROOT / "dgrl_goal_dqn.py"), *flags]
+    straight, killed = tmp_path / "straight", tmp_path / "killed"
+    straight.mkdir()
+    killed.mkdir()
+    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in process.stdout:  # kill after a progress line that follows a periodic resume file of the DQN phase
+        if PROGRESS_LINE.match(line):
+            (resume_file,) = (killed / "runs").glob("*/resume.pt")
+            if torch.load(resume_file, weights_only=False)["loop"]["global_step"] > 0:
+                process.kill()
+                break
+    process.communicate(timeout=300)
+    assert process.returncode == -signal.SIGKILL, "the run ended before a periodic resume file of the DQN phase"
+    (run_dir,) = (killed / "runs").iterdir()
+    saved_step = torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["global_step"]
+    resumed = subprocess.run(
+        [*command, "--resume", f"runs/{run_dir.name}"], cwd=killed, env=env, capture_output=True, text=True
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resumed at DQN step {saved_step}" in resumed.stdout
+    (straight_dir,) = (straight / "runs").iterdir()
+    expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in WALL_CLOCK_TAGS}
+    got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in WALL_CLOCK_TAGS}
+    assert got == expected
+    expected_tensors = checkpoint_tensors(next(straight_dir.glob("*.cleanrl_model")))
+    got_tensors = checkpoint_tensors(next(run_dir.glob("*.cleanrl_model")))
+    assert sorted(got_tensors) == sorted(expected_tensors)
+    assert all(torch.equal(got_tensors[key], tensor) for key, tensor in expected_tensors.items())
+
+
+def test_resume_refuses_changed_flags_and_accepts_free_ones(tmp_path, run_script):
+    tiny = ["--rep-steps", "0", "--total-timesteps", "30", "--learning-starts", "10", "--batch-size", "8"]
+    first = run_script("dgrl_goal_dqn.py", *tiny)
+    assert first.returncode == 0, first.stderr[-3000:]
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    changed = run_script("dgrl_goal_dqn.py", *tiny, "--seed", "2", "--groups", "8", "--resume", f"runs/{run_dir.name}")
+    assert changed.returncode == 2 and "Traceback" not in changed.stderr, changed.stderr
+    assert "was started with other settings: pass --seed 1 --groups 16" in changed.stderr, changed.stderr
+    free = run_script(
+        "dgrl_goal_dqn.py", *tiny, "--checkpoint-every", "5", "--threads", "2", "--resume", f"runs/{run_dir.name}"
+    )
+    assert free.returncode == 0 and "resumed at DQN step 30" in free.stdout, free.stderr[-3000:]
+    assert "\ndone: 0 pre-training steps, 30 DQN steps" in free.stdout

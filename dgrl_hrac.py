@@ -417,6 +417,22 @@ class HiroAntEnv(gym.Env):
         info = {"success": success} if self.env_id == "AntGather" else {"success": success, "distance": distance}
         return self._observe(), reward, False, truncated, info
 
+    def state_dict(self) -> dict:
+        """What a resumed run needs to continue this env exactly: MuJoCo's integration state (time, qpos, qvel, warm
+        start, controls, applied forces), the step counter, the goal, AntGather's objects and the random generator."""
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, self.data, physics, spec)
+        goal = None if self.goal is None else self.goal.copy()
+        return {"physics": physics, "steps": self.steps, "goal": goal, "objects": self.objects.copy(),
+                "kinds": self.kinds.copy(), "np_random": self.np_random.bit_generator.state}  # fmt: skip
+
+    def load_state_dict(self, state: dict) -> None:
+        mujoco.mj_setState(self.model, self.data, state["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(self.model, self.data)  # the derived quantities (positions of bodies, contacts) for renders
+        self.steps, self.goal, self.objects, self.kinds = state["steps"], state["goal"], state["objects"], state["kinds"]
+        self.np_random.bit_generator.state = state["np_random"]
+
     def render(self):
         if self._renderer is None:  # no shadows or reflections: 3x faster under software EGL on a CPU
             self.model.vis.quality.shadowsize = 0  # a visual setting only; the physics is unchanged
@@ -576,6 +592,28 @@ class Agent:
         self.adjacency.load_state_dict(entries["adjacency"])
         if self.encoder is not None:  # DGRL
             self.encoder.load_state_dict(entries["subgoal_encoder"])  # DGRL
+
+    def training_state_dicts(self) -> dict[str, dict]:
+        """For --resume, everything that learns: the checkpoint's entries, both levels' target networks and every
+        optimizer's state (the encoder's Adam moments are a parameter group of the controller's critic optimizer)."""
+        entries = self.state_dicts()
+        for name, level in (("manager", self.manager), ("controller", self.controller)):
+            entries[f"{name}_actor_target"] = level.actor_target.state_dict()
+            entries[f"{name}_critic_target"] = level.critic_target.state_dict()
+            entries[f"{name}_actor_optimizer"] = level.actor_optimizer.state_dict()
+            entries[f"{name}_critic_optimizer"] = level.critic_optimizer.state_dict()
+        entries["adjacency_optimizer"] = self.adjacency_optimizer.state_dict()
+        return entries
+
+    def load_training_state_dicts(self, entries: dict[str, dict]) -> None:
+        """Load what `training_state_dicts` wrote."""
+        self.load_state_dicts(entries)
+        for name, level in (("manager", self.manager), ("controller", self.controller)):
+            level.actor_target.load_state_dict(entries[f"{name}_actor_target"])
+            level.critic_target.load_state_dict(entries[f"{name}_critic_target"])
+            level.actor_optimizer.load_state_dict(entries[f"{name}_actor_optimizer"])
+            level.critic_optimizer.load_state_dict(entries[f"{name}_critic_optimizer"])
+        self.adjacency_optimizer.load_state_dict(entries["adjacency_optimizer"])
 
 
 def make_level(
@@ -764,6 +802,15 @@ class AdjacencyMemory:
         labels = np.array([(a, b) in self.edges for a, b in zip(first, second, strict=True)], dtype=np.float32)
         return cells[first], cells[second], labels
 
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The visited cells in the order of their ids (C, 2) and the adjacent pairs of ids (E, 2), for --resume."""
+        cells = np.array(sorted(self.index, key=self.index.get), dtype=np.int64).reshape(-1, 2)
+        return {"cells": cells, "edges": np.array(sorted(self.edges), dtype=np.int64).reshape(-1, 2)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self.index = {cell: i for i, cell in enumerate(map(tuple, state["cells"]))}
+        self.edges = set(map(tuple, state["edges"]))
+
 
 class Replay:
     """A ring of preallocated numpy arrays, one per field (shapes given at construction); `sample` draws uniformly."""
@@ -781,6 +828,17 @@ class Replay:
     def sample(self, batch_size: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         index = rng.integers(self.size, size=batch_size)
         return {name: array[index] for name, array in self.fields.items()}
+
+    def state_dict(self) -> dict:
+        """The ring's size and position and the filled part of every field (float32 tensors sharing the arrays' memory,
+        so that saving copies nothing), for --resume."""
+        filled = {name: torch.from_numpy(array[: self.size]) for name, array in self.fields.items()}
+        return {"size": self.size, "position": self.position, "fields": filled}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.size, self.position = state["size"], state["position"]
+        for name, array in self.fields.items():
+            array[: self.size] = state["fields"][name].numpy()
 
 
 def td3_update(
@@ -980,18 +1038,15 @@ def train_adjacency(
     margin_pos: float,
     margin_neg: float,
     device: torch.device | str,
-    stop: list[int] | tuple = (),
 ) -> tuple[float, float]:
-    """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss (polling
-    `stop` before each epoch). Returns (mean loss of the last epoch, accuracy of the embedding distances against the labels
-    with the threshold halfway between the margins); NaN for both without any pair."""
+    """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss. Returns
+    (mean loss of the last epoch, accuracy of the embedding distances against the labels with the threshold halfway
+    between the margins); NaN for both without any pair or epoch."""
     cells_a, cells_b, labels = (torch.as_tensor(x, device=device) for x in memory.labelled_pairs())
     if len(labels) == 0:
         return float("nan"), float("nan")
     losses = []
     for _ in range(epochs):
-        if stop:  # Ctrl-C: the run is stopping; the network keeps the epochs done
-            break
         order = torch.as_tensor(rng.permutation(len(labels)), device=device)
         losses = []
         for start in range(0, len(labels), batch_size):
@@ -1348,9 +1403,13 @@ def validate(args: Args) -> None:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     validate(args)
+    saved = load_resume(args) if args.resume is not None else None
     dgrl = args.groups > 0  # DGRL
     man_reward_scale = args.man_reward_scale or (1.0 if args.env_id in ("AntMazeSparse", "AntGather") else 0.1)
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is None:
+        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    else:
+        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)
     # The critics' weight decay drives the weights of dead ReLU units into subnormal floats, which slow a CPU's matrix
@@ -1415,7 +1474,8 @@ if __name__ == "__main__":
             print(f"video: videos/{run_name}/checkpoint.mp4")
         raise SystemExit(0)
 
-    writer = make_writer(args, run_name)
+    # A resumed run logs from the step after its resume file's on (TensorBoard drops what the stopped run logged later).
+    writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
     print(
         f"{run_name}: state {state_dim}-d, subgoal {goal_dim}-d (bounds {bounds.tolist()}), manager goal {man_goal_dim}-d, "
         f"{args.total_timesteps} steps, device {device}"
@@ -1433,7 +1493,6 @@ if __name__ == "__main__":
     memory = AdjacencyMemory(args.k)
     adj_threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    progress = Progress(args.total_timesteps)
     step = 0
     episodes = 0
     evaluations = 0
@@ -1445,6 +1504,54 @@ if __name__ == "__main__":
     seg_actions = np.zeros((args.k, action_dim))
     state, _ = env.reset(seed=args.seed)
     episode_steps = 0
+
+    def training_state() -> dict:
+        """Everything the loop carries from one step to the next, for --resume (save_resume adds the global random
+        states): the agent with its targets and optimizers, both replays, the adjacency memory, both envs, the numpy
+        generator, the counters and cadences, and the bookkeeping of the episode and the segment in progress."""
+        loop = {"step": step, "episodes": episodes, "evaluations": evaluations, "next_eval": next_eval,
+                "next_adjacency": next_adjacency, "result": result, "recent": recent, "state": state,
+                "episode_steps": episode_steps}  # fmt: skip
+        episode = {}  # at an episode's step 0 the loop starts a new one
+        if episode_steps:
+            episode = {"goal": goal, "positions": positions, "remaining": remaining, "proposals": proposals,
+                       "episode_return": episode_return, "ctrl_rewards": ctrl_rewards, "subgoal": subgoal,
+                       "proposed": proposed, "seg_reward": seg_reward, "seg_states": seg_states,
+                       "seg_actions": seg_actions}  # fmt: skip
+        return {
+            "agent": agent.training_state_dicts(),
+            "ctrl_replay": ctrl_replay.state_dict(),
+            "man_replay": man_replay.state_dict(),
+            "memory": memory.state_dict(),
+            "env": env.state_dict(),
+            "eval_env": eval_env.state_dict(),
+            "numpy_rng": rng.bit_generator.state,
+            "loop": loop,
+            "episode": episode,
+        }
+
+    if saved is not None:  # continue where the stopped run left off, mid-episode and mid-segment included
+        agent.load_training_state_dicts(saved["agent"])
+        ctrl_replay.load_state_dict(saved["ctrl_replay"])
+        man_replay.load_state_dict(saved["man_replay"])
+        memory.load_state_dict(saved["memory"])
+        env.load_state_dict(saved["env"])
+        eval_env.load_state_dict(saved["eval_env"])
+        rng.bit_generator.state = saved["numpy_rng"]
+        loop, episode = saved["loop"], saved["episode"]
+        step, episodes, evaluations = loop["step"], loop["episodes"], loop["evaluations"]
+        next_eval, next_adjacency = loop["next_eval"], loop["next_adjacency"]
+        result, recent, state, episode_steps = loop["result"], loop["recent"], loop["state"], loop["episode_steps"]
+        if episode_steps:
+            goal, positions, remaining = episode["goal"], episode["positions"], episode["remaining"]
+            proposals, episode_return, ctrl_rewards = episode["proposals"], episode["episode_return"], episode["ctrl_rewards"]
+            subgoal, proposed, seg_reward = episode["subgoal"], episode["proposed"], episode["seg_reward"]
+            seg_states, seg_actions = episode["seg_states"], episode["seg_actions"]
+        print(f"resuming at step {step}: {episodes} episodes done, {episode_steps} steps into the current one")
+        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
+    progress = Progress(args.total_timesteps, start_step=step)
+    # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) is honoured between steps only: a step's episode-end work (updates,
+    # adjacency training, evaluation) always finishes, so that the resume file holds whole steps.
     while step < args.total_timesteps and not stop:
         # Act: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted every step.
         if episode_steps == 0:
@@ -1502,7 +1609,7 @@ if __name__ == "__main__":
         episode_over = terminated or truncated or step >= args.total_timesteps
 
         # Episode end: log it, then train both levels (HRAC: 500 controller and 50 manager updates, no warm-up).
-        if episode_over and not stop:
+        if episode_over:
             episodes += 1
             memory.add_trajectory(np.array(positions))
             recent["return"].append(episode_return)
@@ -1519,8 +1626,6 @@ if __name__ == "__main__":
                 writer.add_scalar("charts/success_rate", float(info["success"]), step)
             ctrl_metrics = {}
             for _ in range(args.ctrl_updates or episode_steps):
-                if stop:  # Ctrl-C: the updates made so far count
-                    break
                 ctrl_metrics = controller_update(
                     agent,
                     ctrl_replay.sample(args.batch_size, rng),
@@ -1532,8 +1637,6 @@ if __name__ == "__main__":
                 )
             man_metrics = {}
             for _ in range((args.man_updates or -(-episode_steps // args.k)) if man_replay.size else 0):
-                if stop:
-                    break
                 man_metrics = manager_update(
                     agent,
                     man_replay.sample(args.batch_size, rng),
@@ -1562,7 +1665,7 @@ if __name__ == "__main__":
                 writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
 
         # Adjacency network: retrained every adj_frequency steps (at an episode end) on the labels gathered so far.
-        if episode_over and not stop and step >= next_adjacency:
+        if episode_over and step >= next_adjacency:
             next_adjacency += args.adj_frequency
             began = time.time()
             adj_loss, adj_accuracy = train_adjacency(
@@ -1575,7 +1678,6 @@ if __name__ == "__main__":
                 margin_pos=args.adj_margin_pos,
                 margin_neg=args.adj_margin_neg,
                 device=device,
-                stop=stop,
             )
             writer.add_scalar("adjacency/loss", adj_loss, step)
             writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
@@ -1588,12 +1690,10 @@ if __name__ == "__main__":
             )
 
         # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
-        if episode_over and not stop and (step >= next_eval or step >= args.total_timesteps):
+        if episode_over and (step >= next_eval or step >= args.total_timesteps):
             next_eval += args.eval_frequency
             video = [] if args.capture_video and evaluations % 10 == 0 else None
-            result = evaluate(
-                eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop
-            )
+            result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video)
             evaluations += 1
             for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
                 writer.add_scalar(f"eval/{tag}", result[name], step)
@@ -1618,12 +1718,15 @@ if __name__ == "__main__":
         if episode_over:
             state, _ = env.reset()
             episode_steps = 0
+        if progress.resume_due(args.checkpoint_every):
+            save_resume(run_name, training_state(), args)
 
+    save_resume(run_name, training_state(), args)  # stopped or done: a stopped run continues with --resume from here
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
     progress.finish(
-        bool(stop),
+        step < args.total_timesteps,
         run_name,
         f"{step} steps, {episodes} episodes, last eval success {result['success']:.0%} distance {result['distance']:.2f} "
         f"return {result['return']:.2f}",

@@ -2,7 +2,8 @@
 joints and their ranges, the elevated platform of AntFall, the ant's edits, observations, resets, goals, rewards, success
 tests and AntGather's sensors), HRAC's computations (subgoal transition, controller reward, off-policy correction,
 adjacency labels and losses, the TD3 step), the agent's updates under DGRL, evaluation, flag validation and smoke runs of
-every env id in both modes (train, checkpoint, evaluate, video, Ctrl-C)."""
+every env id in both modes (train, checkpoint, evaluate, video, Ctrl-C), and exact resumes of stopped runs (the envs',
+replays' and adjacency memory's states alone, then whole runs stopped by SIGTERM and continued with --resume)."""
 
 import inspect
 import re
@@ -600,14 +601,14 @@ def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():
     assert near < 1.1 < far
 
 
-def test_train_adjacency_stops_at_a_stop_request_and_reports_nan_without_pairs():
+def test_train_adjacency_reports_nan_without_pairs_or_epochs():
     memory = hrac.AdjacencyMemory(k=10)
     memory.add_trajectory(np.stack([np.arange(0, 30, 0.5), np.zeros(60)], 1))
     anet = hrac.AdjacencyNet(2)
     before = [p.detach().clone() for p in anet.parameters()]
     settings = {"epochs": 5, "batch_size": 64, "margin_pos": 1.0, "margin_neg": 1.2, "device": "cpu"}
     optimizer = torch.optim.Adam(anet.parameters(), lr=1e-3)
-    result = hrac.train_adjacency(anet, optimizer, memory, np.random.default_rng(0), **settings, stop=[2])
+    result = hrac.train_adjacency(anet, optimizer, memory, np.random.default_rng(0), **settings | {"epochs": 0})
     assert np.isnan(result).all() and all(torch.equal(a, b) for a, b in zip(before, anet.parameters(), strict=True))
     single_cell = hrac.AdjacencyMemory(k=10)
     single_cell.add_trajectory(np.zeros((20, 2)))
@@ -864,3 +865,107 @@ def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved_and_the_logs_flushed(run
     assert process.returncode == 0, err
     episodes = int(re.search(r"(\d+) evaluation episodes: success", out).group(1))
     assert 1 <= episodes < 1000
+
+
+# --- exact resume (--resume) ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_an_env_continues_exactly_from_its_state_dict(env_id):
+    """Mid-episode (and across the next reset): a fresh env loaded with another's state_dict steps, observes, rewards and
+    resets exactly as the original (MuJoCo's integration state, the step counter, the goal, the objects, the generator)."""
+    original, copy = hrac.HiroAntEnv(env_id), hrac.HiroAntEnv(env_id)
+    original.reset(seed=1)
+    copy.reset(seed=2)
+    actions = np.random.default_rng(0).uniform(-30, 30, (600, 8))
+    for action in actions[:37]:
+        original.step(action)
+    copy.load_state_dict(original.state_dict())
+    for action in actions[37:]:
+        expected, got = original.step(action), copy.step(action)
+        assert np.array_equal(expected[0], got[0]) and expected[1:4] == got[1:4]
+        if expected[3]:
+            assert np.array_equal(original.reset()[0], copy.reset()[0])
+    if env_id == "AntMaze":
+        assert np.array_equal(original.goal, copy.goal)
+
+
+def test_replay_and_adjacency_memory_round_trip_their_state_dicts():
+    replay = hrac.Replay(5, states=(2,), rewards=())
+    for i in range(3):
+        replay.add(states=(i, -i), rewards=float(i))
+    saved = replay.state_dict()
+    assert saved["fields"]["states"].shape == (3, 2) and saved["fields"]["states"].dtype == torch.float32  # filled part
+    copy = hrac.Replay(5, states=(2,), rewards=())
+    copy.load_state_dict(saved)
+    assert (copy.size, copy.position) == (3, 3)
+    assert all(np.array_equal(copy.fields[name], replay.fields[name]) for name in replay.fields)
+    memory = hrac.AdjacencyMemory(k=3)
+    memory.add_trajectory(np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [2.0, 1.0], [5.0, 5.0]]))
+    restored = hrac.AdjacencyMemory(k=3)
+    restored.load_state_dict(memory.state_dict())
+    assert restored.index == memory.index and restored.edges == memory.edges
+    for expected, got in zip(memory.labelled_pairs(), restored.labelled_pairs(), strict=True):
+        assert np.array_equal(expected, got)
+
+
+RESUME = ["--ctrl-updates", "10", "--man-updates", "4", "--batch-size", "16", "--eval-episodes", "1", "--eval-frequency",
+          "500", "--adj-frequency", "500", "--adj-epochs", "2", "--hidden-dim", "32", "--save-model"]  # fmt: skip
+
+
+def test_a_run_stopped_in_its_first_episode_resumes_exactly(resume_check):
+    """SIGTERM as soon as the start line is out: the run stops a few steps into its first episode (mid-segment, most
+    often at step 1 or 2), before any update or adjacency training; the env, the segment and the replays carry over."""
+    flags = ["--env-id", "AntFall", "--groups", "0", "--seed", "3", "--total-timesteps", "1000", *RESUME]
+    output = resume_check("dgrl_hrac.py", flags, r"^AntFall__G0__")
+    assert int(re.search(r"stopped: (\d+) steps", output).group(1)) < 500, output
+
+
+STOP_MID_EPISODE = """
+import runpy, mujoco
+mj_step, seen = mujoco.mj_step, dict(model=None, steps=0)
+
+def counting_step(model, data, nstep=1):
+    if seen["model"] is None:  # the first model stepped is the training env's; the evaluation env's steps come later
+        seen["model"] = model
+    if model is seen["model"]:
+        seen["steps"] += 1
+        if seen["steps"] == {marker}:
+            print("marker: training step {marker}", flush=True)
+    mj_step(model, data, nstep)
+
+mujoco.mj_step = counting_step
+runpy.run_path({script!r}, run_name="__main__")
+"""
+
+
+def test_a_run_stopped_mid_segment_after_its_first_updates_resumes_exactly(resume_check, tmp_path):
+    """SIGTERM at training step 537 (a line printed there by a wrapper that counts the training env's steps), 37 steps
+    into the second episode, 7 into a segment: after the first updates, adjacency training (with pairs: this seed's
+    first episode crosses two cells), evaluation and checkpoint. The networks, targets, optimizers, codebook, adjacency
+    memory, evaluation stream and the episode in progress all carry over; a resume file is also written every second,
+    by the straight run as well, which must change nothing."""
+    wrapper = tmp_path / "stop_mid_episode.py"
+    wrapper.write_text(STOP_MID_EPISODE.format(marker=537, script=str(ROOT / "dgrl_hrac.py")))
+    flags = ["--env-id", "AntMazeSparse", "--groups", "16", "--seed", "2", "--total-timesteps", "1500",
+             "--checkpoint-every", "1", *RESUME]  # fmt: skip
+    output = resume_check(str(wrapper), flags, r"^marker: training step 537")
+    stopped_at = int(re.search(r"stopped: (\d+) steps", output).group(1))
+    assert 537 <= stopped_at < 1000 and "adjacency network trained on 2 cells, 1 adjacent pairs" in output, output
+
+
+def test_resume_refuses_changed_flags_and_a_missing_file(run_script, tmp_path):
+    flags = ["--env-id", "AntPush", "--groups", "0", "--total-timesteps", "20", "--ctrl-updates", "2", "--man-updates", "1",
+             "--batch-size", "8", "--eval-episodes", "1", "--hidden-dim", "32"]  # fmt: skip
+    assert run_script("dgrl_hrac.py", *flags).returncode == 0
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    saved = torch.load(run_dir / "resume.pt", weights_only=False)  # a finished run leaves its resume file too
+    assert saved["loop"]["step"] == 20 and saved["ctrl_replay"]["fields"]["states"].shape == (20, 30)
+    before = sorted(run_dir.iterdir())
+    changed = run_script("dgrl_hrac.py", *flags, "--seed", "4", "--hidden-dim", "64", "--resume", f"runs/{run_dir.name}")
+    assert_clean_refusal(changed, "was started with other settings: pass --seed 1 --hidden-dim 32")
+    assert sorted(run_dir.iterdir()) == before  # nothing written
+    missing = run_script("dgrl_hrac.py", *flags, "--resume", "runs/nothing")
+    assert_clean_refusal(missing, "--resume runs/nothing: no resume.pt there")
+    done = run_script("dgrl_hrac.py", *flags, "--threads", "2", "--resume", f"runs/{run_dir.name}")  # a free flag
+    assert done.returncode == 0 and "done: 20 steps" in done.stdout, done.stderr

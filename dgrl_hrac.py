@@ -1038,15 +1038,19 @@ def train_adjacency(
     margin_pos: float,
     margin_neg: float,
     device: torch.device | str,
-) -> tuple[float, float]:
-    """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss. Returns
-    (mean loss of the last epoch, accuracy of the embedding distances against the labels with the threshold halfway
-    between the margins); NaN for both without any pair or epoch."""
+    stop: list[int] | tuple = (),
+) -> tuple[int, float, float]:
+    """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss, polling
+    `stop` before each epoch. Returns (epochs run, mean loss of the last epoch, accuracy of the embedding distances
+    against the labels with the threshold halfway between the margins); the two figures are NaN without any pair and
+    when a stop request ended the training early (its epochs are run: a resumed run runs the rest)."""
     cells_a, cells_b, labels = (torch.as_tensor(x, device=device) for x in memory.labelled_pairs())
     if len(labels) == 0:
-        return float("nan"), float("nan")
+        return epochs, float("nan"), float("nan")
     losses = []
-    for _ in range(epochs):
+    for epoch in range(epochs):
+        if stop:
+            return epoch, float("nan"), float("nan")
         order = torch.as_tensor(rng.permutation(len(labels)), device=device)
         losses = []
         for start in range(0, len(labels), batch_size):
@@ -1057,11 +1061,11 @@ def train_adjacency(
             optimizer.step()
             losses.append(loss.detach())
     if not losses:
-        return float("nan"), float("nan")
+        return epochs, float("nan"), float("nan")
     with torch.no_grad():
         predicted = (anet(cells_a) - anet(cells_b)).norm(dim=-1) < (margin_pos + margin_neg) / 2
         accuracy = (predicted.float() == labels).float().mean().item()
-    return torch.stack(losses).mean().item(), accuracy
+    return epochs, torch.stack(losses).mean().item(), accuracy
 
 
 @torch.no_grad()
@@ -1498,6 +1502,7 @@ if __name__ == "__main__":
     evaluations = 0
     next_eval = args.eval_frequency
     next_adjacency = args.adj_frequency
+    adjacency_due, adjacency_epochs, eval_due = False, 0, False  # the work an episode end calls for; epochs done of it
     result = {"success": float("nan"), "distance": float("nan"), "return": float("nan")}
     recent = {"final_distance": [], "subgoal_distance": [], "return": []}  # training episodes since the last progress line
     seg_states = np.zeros((args.k + 1, state_dim))
@@ -1510,7 +1515,8 @@ if __name__ == "__main__":
         states): the agent with its targets and optimizers, both replays, the adjacency memory, both envs, the numpy
         generator, the counters and cadences, and the bookkeeping of the episode and the segment in progress."""
         loop = {"step": step, "episodes": episodes, "evaluations": evaluations, "next_eval": next_eval,
-                "next_adjacency": next_adjacency, "result": result, "recent": recent, "state": state,
+                "next_adjacency": next_adjacency, "adjacency_due": adjacency_due, "adjacency_epochs": adjacency_epochs,
+                "eval_due": eval_due, "result": result, "recent": recent, "state": state,
                 "episode_steps": episode_steps}  # fmt: skip
         episode = {}  # at an episode's step 0 the loop starts a new one
         if episode_steps:
@@ -1541,6 +1547,7 @@ if __name__ == "__main__":
         loop, episode = saved["loop"], saved["episode"]
         step, episodes, evaluations = loop["step"], loop["episodes"], loop["evaluations"]
         next_eval, next_adjacency = loop["next_eval"], loop["next_adjacency"]
+        adjacency_due, adjacency_epochs, eval_due = loop["adjacency_due"], loop["adjacency_epochs"], loop["eval_due"]
         result, recent, state, episode_steps = loop["result"], loop["recent"], loop["state"], loop["episode_steps"]
         if episode_steps:
             goal, positions, remaining = episode["goal"], episode["positions"], episode["remaining"]
@@ -1550,9 +1557,67 @@ if __name__ == "__main__":
         print(f"resuming at step {step}: {episodes} episodes done, {episode_steps} steps into the current one")
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
     progress = Progress(args.total_timesteps, start_step=step)
-    # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) is honoured between steps only: a step's episode-end work (updates,
-    # adjacency training, evaluation) always finishes, so that the resume file holds whole steps.
-    while step < args.total_timesteps and not stop:
+    # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps (an
+    # episode end's updates finish first), or between two epochs of an adjacency training.
+    while not stop:
+        # Adjacency network: retrained every adj_frequency steps (after an episode end) on the labels gathered so far. A
+        # stop request ends the training between epochs; the loop then ends, and --resume runs the epochs left.
+        if adjacency_due:
+            began = time.time()
+            epochs_run, adj_loss, adj_accuracy = train_adjacency(
+                agent.adjacency,
+                agent.adjacency_optimizer,
+                memory,
+                rng,
+                epochs=args.adj_epochs - adjacency_epochs,
+                batch_size=args.adj_batch_size,
+                margin_pos=args.adj_margin_pos,
+                margin_neg=args.adj_margin_neg,
+                device=device,
+                stop=stop,
+            )
+            adjacency_epochs += epochs_run
+            if adjacency_epochs < args.adj_epochs:
+                continue
+            adjacency_due, adjacency_epochs = False, 0
+            writer.add_scalar("adjacency/loss", adj_loss, step)
+            writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
+            writer.add_scalar("adjacency/cells", len(memory.index), step)
+            writer.add_scalar("adjacency/edges", len(memory.edges), step)
+            print(
+                f"step {step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
+                f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)",
+                flush=True,
+            )
+
+        # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
+        if eval_due:
+            eval_due = False
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video)
+            evaluations += 1
+            for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
+                writer.add_scalar(f"eval/{tag}", result[name], step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
+            summary = {name: float(np.mean(values)) if values else float("nan") for name, values in recent.items()}
+            recent = {name: [] for name in recent}
+            if args.env_id == "AntGather":
+                task = f"return {result['return']:6.2f}"
+            else:
+                task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
+            progress.line(
+                step,
+                f"eval {task}  train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}  "
+                f"subgoal distance {summary['subgoal_distance']:5.2f}",
+            )
+            if video:
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, HiroAntEnv.metadata["render_fps"])
+            if args.save_model:
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+
+        if step >= args.total_timesteps:
+            break
+
         # Act: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted every step.
         if episode_steps == 0:
             goal = manager_goal(env)
@@ -1664,69 +1729,23 @@ if __name__ == "__main__":
                 writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
                 writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
 
-        # Adjacency network: retrained every adj_frequency steps (at an episode end) on the labels gathered so far.
-        if episode_over and step >= next_adjacency:
-            next_adjacency += args.adj_frequency
-            began = time.time()
-            adj_loss, adj_accuracy = train_adjacency(
-                agent.adjacency,
-                agent.adjacency_optimizer,
-                memory,
-                rng,
-                epochs=args.adj_epochs,
-                batch_size=args.adj_batch_size,
-                margin_pos=args.adj_margin_pos,
-                margin_neg=args.adj_margin_neg,
-                device=device,
-            )
-            writer.add_scalar("adjacency/loss", adj_loss, step)
-            writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
-            writer.add_scalar("adjacency/cells", len(memory.index), step)
-            writer.add_scalar("adjacency/edges", len(memory.edges), step)
-            print(
-                f"step {step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
-                f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)",
-                flush=True,
-            )
-
-        # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
-        if episode_over and (step >= next_eval or step >= args.total_timesteps):
-            next_eval += args.eval_frequency
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video)
-            evaluations += 1
-            for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
-                writer.add_scalar(f"eval/{tag}", result[name], step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            summary = {name: float(np.mean(values)) if values else float("nan") for name, values in recent.items()}
-            recent = {name: [] for name in recent}
-            if args.env_id == "AntGather":
-                task = f"return {result['return']:6.2f}"
-            else:
-                task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
-            progress.line(
-                step,
-                f"eval {task}  train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}  "
-                f"subgoal distance {summary['subgoal_distance']:5.2f}",
-            )
-            if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, HiroAntEnv.metadata["render_fps"])
-            if args.save_model:
-                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-
-        # The next episode.
-        if episode_over:
+            # What the episode end calls for; both come first in the next iteration, where a stop can end the training.
+            adjacency_due, eval_due = step >= next_adjacency, step >= next_eval or step >= args.total_timesteps
+            next_adjacency += args.adj_frequency if adjacency_due else 0
+            next_eval += args.eval_frequency if eval_due else 0
             state, _ = env.reset()
             episode_steps = 0
-        if progress.resume_due(args.checkpoint_every):
+        if not (adjacency_due or eval_due) and progress.resume_due(args.checkpoint_every):  # a whole step's logs written
+            writer.flush()  # the logs up to this step on disk before the state that continues after them (a kill -9)
             save_resume(run_name, training_state(), args)
 
+    writer.flush()
     save_resume(run_name, training_state(), args)  # stopped or done: a stopped run continues with --resume from here
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
     progress.finish(
-        step < args.total_timesteps,
+        step < args.total_timesteps or adjacency_due or eval_due,
         run_name,
         f"{step} steps, {episodes} episodes, last eval success {result['success']:.0%} distance {result['distance']:.2f} "
         f"return {result['return']:.2f}",

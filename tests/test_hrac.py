@@ -583,7 +583,7 @@ def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():
     memory.add_trajectory(np.stack([np.arange(0, 30, 0.5), np.zeros(60)], 1))  # 1 m cells 0..29 along x
     torch.manual_seed(0)
     anet = hrac.AdjacencyNet(2)
-    loss, accuracy = hrac.train_adjacency(
+    epochs, loss, accuracy = hrac.train_adjacency(
         anet,
         torch.optim.Adam(anet.parameters(), lr=1e-3),
         memory,
@@ -594,25 +594,52 @@ def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():
         margin_neg=1.2,
         device="cpu",
     )
-    assert accuracy > 0.9 and loss < 0.05
+    assert epochs == 60 and accuracy > 0.9 and loss < 0.05
     with torch.no_grad():
         near = (anet(torch.tensor([[10.0, 0.0]])) - anet(torch.tensor([[13.0, 0.0]]))).norm()
         far = (anet(torch.tensor([[10.0, 0.0]])) - anet(torch.tensor([[25.0, 0.0]]))).norm()
     assert near < 1.1 < far
 
 
-def test_train_adjacency_reports_nan_without_pairs_or_epochs():
+class StopAfter:
+    """A stop request that turns up after `polls` polls (the signal handler appends to a list; this counts the checks)."""
+
+    def __init__(self, polls: int):
+        self.polls = polls
+
+    def __bool__(self) -> bool:
+        self.polls -= 1
+        return self.polls < 0
+
+
+def test_train_adjacency_stops_between_epochs_and_the_rest_continues_it_exactly():
+    """A stop request seen before the third of five epochs ends the training after two (NaN figures); the three epochs
+    left, run later with the same generator and optimizer, leave the network as five epochs in a row do."""
     memory = hrac.AdjacencyMemory(k=10)
     memory.add_trajectory(np.stack([np.arange(0, 30, 0.5), np.zeros(60)], 1))
-    anet = hrac.AdjacencyNet(2)
-    before = [p.detach().clone() for p in anet.parameters()]
-    settings = {"epochs": 5, "batch_size": 64, "margin_pos": 1.0, "margin_neg": 1.2, "device": "cpu"}
-    optimizer = torch.optim.Adam(anet.parameters(), lr=1e-3)
-    result = hrac.train_adjacency(anet, optimizer, memory, np.random.default_rng(0), **settings | {"epochs": 0})
-    assert np.isnan(result).all() and all(torch.equal(a, b) for a, b in zip(before, anet.parameters(), strict=True))
+    settings = {"batch_size": 64, "margin_pos": 1.0, "margin_neg": 1.2, "device": "cpu"}
+    results, networks = [], []
+    for stop in (None, StopAfter(2)):
+        torch.manual_seed(0)
+        anet, rng = hrac.AdjacencyNet(2), np.random.default_rng(0)
+        optimizer = torch.optim.Adam(anet.parameters(), lr=1e-3)
+        if stop is not None:
+            epochs, *figures = hrac.train_adjacency(anet, optimizer, memory, rng, epochs=5, **settings, stop=stop)
+            assert epochs == 2 and np.isnan(figures).all()
+        results.append(hrac.train_adjacency(anet, optimizer, memory, rng, epochs=5 if stop is None else 3, **settings))
+        networks.append(anet)
+    assert results[0][1:] == results[1][1:] and results[1][0] == 3
+    assert all(torch.equal(a, b) for a, b in zip(networks[0].parameters(), networks[1].parameters(), strict=True))
+
+
+def test_train_adjacency_reports_nan_without_pairs():
     single_cell = hrac.AdjacencyMemory(k=10)
     single_cell.add_trajectory(np.zeros((20, 2)))
-    assert np.isnan(hrac.train_adjacency(anet, optimizer, single_cell, np.random.default_rng(0), **settings)).all()
+    anet = hrac.AdjacencyNet(2)
+    settings = {"epochs": 5, "batch_size": 64, "margin_pos": 1.0, "margin_neg": 1.2, "device": "cpu"}
+    optimizer = torch.optim.Adam(anet.parameters(), lr=1e-3)
+    epochs, *figures = hrac.train_adjacency(anet, optimizer, single_cell, np.random.default_rng(0), **settings)
+    assert epochs == 5 and np.isnan(figures).all()
 
 
 def test_evaluate_ends_an_episode_at_the_first_success(monkeypatch):
@@ -952,6 +979,34 @@ def test_a_run_stopped_mid_segment_after_its_first_updates_resumes_exactly(resum
     output = resume_check(str(wrapper), flags, r"^marker: training step 537")
     stopped_at = int(re.search(r"stopped: (\d+) steps", output).group(1))
     assert 537 <= stopped_at < 1000 and "adjacency network trained on 2 cells, 1 adjacent pairs" in output, output
+
+
+STOP_IN_ADJACENCY_TRAINING = """
+import runpy, torch
+sqrt, calls = torch.sqrt, []
+
+def counting_sqrt(*args, **kwargs):  # called once per batch of an adjacency training, by contrastive_loss (only there)
+    calls.append(None)
+    if len(calls) == 100:
+        print("marker: adjacency batch 100", flush=True)
+    return sqrt(*args, **kwargs)
+
+torch.sqrt = counting_sqrt
+runpy.run_path({script!r}, run_name="__main__")
+"""
+
+
+def test_a_run_stopped_during_an_adjacency_training_resumes_exactly(resume_check, tmp_path):
+    """SIGTERM at the 100th of 400 epochs of the adjacency training at step 1000 (the training at step 500 has one cell,
+    no pair; the one at 1000 has two cells, one pair: one batch an epoch): the training stops between two epochs, the
+    evaluation due after it waits, and --resume runs the epochs left, then the evaluation, as a straight run does."""
+    wrapper = tmp_path / "stop_in_adjacency_training.py"
+    wrapper.write_text(STOP_IN_ADJACENCY_TRAINING.format(script=str(ROOT / "dgrl_hrac.py")))
+    flags = ["--env-id", "AntMazeSparse", "--groups", "0", "--seed", "2", "--total-timesteps", "1500", "--adj-epochs", "400",
+             *RESUME[: RESUME.index("--adj-epochs")], *RESUME[RESUME.index("--adj-epochs") + 2 :]]  # fmt: skip
+    output = resume_check(str(wrapper), flags, r"^marker: adjacency batch 100")
+    assert "stopped: 1000 steps" in output and "step      1000: adjacency" not in output, output
+    assert "step      1000/1500" not in output, output
 
 
 def test_resume_refuses_changed_flags_and_a_missing_file(run_script, tmp_path):

@@ -1356,6 +1356,7 @@ if __name__ == "__main__":
         progress.heartbeat(frames, "exploring")
         # Not after the last step: the pre-training below logs at its frame, and a save must follow all of a frame's logs.
         if frames < args.adj_init_steps and progress.resume_due(args.checkpoint_every):
+            writer.flush()  # a run killed later resumes from here: what it logged before must be on disk
             save_resume(run_name, training_state(), args)
     if frames >= args.adj_init_steps and not pretrained:  # the exploration has just ended: a stop waits for the pre-training
         for env in np.flatnonzero(explore_rollout.t_episode > 0):  # the episodes still running count too
@@ -1486,8 +1487,10 @@ if __name__ == "__main__":
                 save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
         progress.heartbeat(frames)
         if progress.resume_due(args.checkpoint_every):
+            writer.flush()
             save_resume(run_name, training_state(), args)
 
+    writer.flush()
     save_resume(run_name, training_state(), args)  # stopped or done: --resume continues from here
     if args.save_model:
         save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)

@@ -606,3 +606,81 @@ def test_a_budget_without_updates_or_evaluations_is_refused(run_script, tmp_path
         "--total-timesteps (1500) must be >= 1800, or no update runs",
         "--eval-frequency (2000) leaves no evaluation: the first would be at frame 2000, after --total-timesteps (1500)",
     )
+
+
+# --- stopping and resuming --------------------------------------------------------------------------------------------
+
+
+def test_resume_from_a_stop_during_the_exploration(resume_check):
+    # HRAC (--groups 0): 1000 exploration steps of 2 envs; the first output line comes right before them.
+    flags = tiny(num_envs=2, adj_init_steps=2000, total_timesteps=3400, max_episode_steps=90)
+    output = resume_check("dgrl_hrac_keychest.py", [*flags, "--groups", "0", "--save-model"], stop_after=r"device cpu")
+    assert "adjacency pre-training" not in output  # it stopped before the exploration ended
+    assert int(re.search(r"stopped: (\d+) frames", output)[1]) < 2000
+
+
+def test_resume_from_a_stop_inside_episodes_while_both_levels_train(resume_check):
+    # DGRL. 85-step episodes, all four envs' from frame 800 on: updates from 1820; at the evaluation of frame 2000 each env
+    # is at step 45 of its episode, in the middle of a subgoal's segment, and the stop comes then or a few steps later.
+    # After it: a loss log of the updates before it (frame 2100), the episodes' ends (2160) with their returns, and an
+    # adjacency retraining (2600).
+    flags = [*tiny(max_episode_steps=85, adj_frequency=600, log_frequency=100), "--save-model"]
+    output = resume_check("dgrl_hrac_keychest.py", flags, stop_after=r"frame +2000/3000")
+    assert 2000 <= int(re.search(r"stopped: (\d+) frames", output)[1]) < 3000
+
+
+def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_path):
+    """A run killed outright (SIGKILL: no clean stop) goes on from its last periodic resume file (--checkpoint-every 1,
+    written between two steps): TensorBoard drops what the killed run logged after it, and the resumed run's scalars and
+    final checkpoint equal a straight run's."""
+    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
+
+    env = {
+        "PATH": "/usr/bin:/bin",
+        "PYTHONPATH": os.path.dirname(kc.__file__),
+        "OMP_NUM_THREADS": "1",
+        "PYTHONUNBUFFERED": "1",
+    }
+    command = [sys.executable, kc.__file__, *tiny(max_episode_steps=85, adj_frequency=600), "--save-model"]
+    command += ["--checkpoint-every", "1"]
+    straight, killed = tmp_path / "straight", tmp_path / "killed"
+    straight.mkdir()
+    killed.mkdir()
+    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    saved_frames = 0
+    for line in process.stdout:  # kill at a progress line once a resume file of the training phase is there
+        resume_files = list((killed / "runs").glob("*/resume.pt"))
+        if line.startswith("frame") and resume_files:
+            saved_frames = torch.load(resume_files[0], weights_only=False)["variables"]["frames"]
+            if saved_frames >= 1820:  # both levels train
+                process.kill()
+                break
+    process.communicate(timeout=60)
+    assert process.returncode == -signal.SIGKILL, "the run ended before a resume file of the training phase was written"
+    (run_dir,) = (killed / "runs").iterdir()
+    resumed = subprocess.run(
+        [*command, "--resume", f"runs/{run_dir.name}"], cwd=killed, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resumed at frame {saved_frames}" in resumed.stdout
+    (straight_dir,) = (straight / "runs").iterdir()
+    expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in WALL_CLOCK_TAGS}
+    got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in WALL_CLOCK_TAGS}
+    assert got == expected
+    expected_tensors = checkpoint_tensors(next(straight_dir.glob("*.cleanrl_model")))
+    got_tensors = checkpoint_tensors(next(run_dir.glob("*.cleanrl_model")))
+    assert sorted(got_tensors) == sorted(expected_tensors)
+    assert all(torch.equal(got_tensors[key], tensor) for key, tensor in expected_tensors.items())
+
+
+def test_resume_refuses_changed_flags(run_script, tmp_path):
+    run_dir = tmp_path / "runs" / "stopped_run"
+    run_dir.mkdir(parents=True)
+    saved_args = vars(kc.Args(seed=1, hidden_dim=32))
+    torch.save({"script": "dgrl_hrac_keychest.py", "format": kc.CHECKPOINT_FORMAT, "args": saved_args}, run_dir / "resume.pt")
+    result = run_script("dgrl_hrac_keychest.py", "--resume", "runs/stopped_run", "--seed", "2", "--threads", "2")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert "was started with other settings: pass --seed 1 --hidden-dim 32" in result.stderr  # --threads may change
+    assert os.listdir(run_dir) == ["resume.pt"]

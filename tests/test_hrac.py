@@ -2,8 +2,9 @@
 joints and their ranges, the elevated platform of AntFall, the ant's edits, observations, resets, goals, rewards, success
 tests and AntGather's sensors), HRAC's computations (subgoal transition, controller reward, off-policy correction,
 adjacency labels and losses, the TD3 step), the agent's updates under DGRL, evaluation, flag validation and smoke runs of
-every env id in both modes (train, checkpoint, evaluate, video, Ctrl-C), and exact resumes of stopped runs (the envs',
-replays' and adjacency memory's states alone, then whole runs stopped by SIGTERM and continued with --resume)."""
+every env id in both modes (train, checkpoint, evaluate, video, Ctrl-C), and exact resumes (the envs', replays' and
+adjacency memory's states alone; whole runs stopped by SIGTERM, or killed outright after a periodic resume write, and
+continued with --resume)."""
 
 import inspect
 import re
@@ -17,6 +18,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_hrac as hrac
@@ -1007,6 +1009,73 @@ def test_a_run_stopped_during_an_adjacency_training_resumes_exactly(resume_check
     output = resume_check(str(wrapper), flags, r"^marker: adjacency batch 100")
     assert "stopped: 1000 steps" in output and "step      1000: adjacency" not in output, output
     assert "step      1000/1500" not in output, output
+
+
+KILL_AFTER_A_RESUME_WRITE = """
+import os, runpy, signal, time, mujoco
+from torch.utils.tensorboard import SummaryWriter
+mj_step, seen, writers, init = mujoco.mj_step, dict(model=None, steps=0), [], SummaryWriter.__init__
+
+def recording_init(self, *args, **kwargs):
+    writers.append(self)
+    init(self, *args, **kwargs)
+
+def counting_step(model, data, nstep=1):
+    if seen["model"] is None:  # the first model stepped is the training env's
+        seen["model"] = model
+    if model is seen["model"]:
+        seen["steps"] += 1
+        if seen["steps"] == 700:  # --checkpoint-every 10 is due: the resume file is written at the end of this step
+            time.sleep(10.1)
+        if seen["steps"] == 1010:  # the episode end at 1000 has logged (on disk), and no resume file was written since
+            for writer in writers:
+                writer.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+    mj_step(model, data, nstep)
+
+SummaryWriter.__init__ = recording_init
+mujoco.mj_step = counting_step
+runpy.run_path({script!r}, run_name="__main__")
+"""
+
+
+def test_a_run_killed_after_a_periodic_resume_write_resumes_exactly(tmp_path):
+    """SIGKILL (no clean stop) at step 1010, after the periodic resume write at step 700 and the episode end at 1000,
+    whose scalars and evaluation are on disk: --resume continues from step 700, TensorBoard drops what the killed run
+    logged after it, and the scalars and the final checkpoint equal a straight run's."""
+    flags = ["--env-id", "AntMazeSparse", "--groups", "16", "--seed", "2", "--total-timesteps", "1500",
+             "--checkpoint-every", "10", *RESUME]  # fmt: skip
+    wrapper = tmp_path / "kill_after_a_resume_write.py"
+    wrapper.write_text(KILL_AFTER_A_RESUME_WRITE.format(script=str(ROOT / "dgrl_hrac.py")))
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    runs = {}
+    for name, script in (("straight", ROOT / "dgrl_hrac.py"), ("killed", wrapper)):
+        (tmp_path / name).mkdir()
+        runs[name] = subprocess.run(
+            [sys.executable, str(script), *flags], cwd=tmp_path / name, env=env, capture_output=True, text=True, timeout=300
+        )
+    assert runs["straight"].returncode == 0 and runs["killed"].returncode == -signal.SIGKILL, runs["killed"].stderr
+    (straight_dir,) = (tmp_path / "straight" / "runs").iterdir()
+    (run_dir,) = (tmp_path / "killed" / "runs").iterdir()
+    assert torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["step"] == 700, "no resume write at step 700 alone"
+    assert (1000, "eval/return") in {(step, tag) for tag, points in tensorboard_scalars(run_dir).items() for step, _ in points}
+    resumed = subprocess.run(
+        [sys.executable, str(ROOT / "dgrl_hrac.py"), *flags, "--resume", f"runs/{run_dir.name}"],
+        cwd=tmp_path / "killed",
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert resumed.returncode == 0 and "resuming at step 700" in resumed.stdout, resumed.stderr
+    expected, got = tensorboard_scalars(straight_dir), tensorboard_scalars(run_dir)
+    for tag in set(expected) | set(got):
+        if tag not in WALL_CLOCK_TAGS:
+            assert got.get(tag) == expected.get(tag), tag
+    expected_tensors = checkpoint_tensors(straight_dir / "dgrl_hrac.cleanrl_model")
+    got_tensors = checkpoint_tensors(run_dir / "dgrl_hrac.cleanrl_model")
+    assert sorted(got_tensors) == sorted(expected_tensors)
+    assert all(torch.equal(got_tensors[key], tensor) for key, tensor in expected_tensors.items())
 
 
 def test_resume_refuses_changed_flags_and_a_missing_file(run_script, tmp_path):

@@ -10,6 +10,7 @@ import signal
 import struct
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -315,66 +316,74 @@ def test_ctrl_c_stops_with_the_checkpoint_and_the_logs(tmp_path, run_script):
 
 # --- Stopping and resuming: a run stopped and resumed logs and saves exactly what a run straight through does ----------
 
-# 3 epochs of 250 minibatches: TINY's referees and swap pairs
-RESUME = [*TINY[4:], "--epochs", "3", "--train-size", "4000", "--batch-size", "16", "--save-model"]
+# 2 epochs of 188 minibatches (losses logged at 100, 200, 300), TINY's referees and swap pairs
+RESUME = [*TINY[4:], "--epochs", "2", "--train-size", "3000", "--batch-size", "16", "--save-model"]
 
 
 def stopped_at(output: str) -> tuple[int, int]:
     """(epochs completed, images seen) from a stopped run's last line."""
-    found = re.search(r"stopped: (\d+) of 3 epochs \((\d+) images\)", output)
+    found = re.search(r"stopped: (\d+) of 2 epochs \((\d+) images\)", output)
     assert found, output[-2000:]
     return int(found[1]), int(found[2])
+
+
+# The signal comes as soon as the test reads the line; on a busy machine that can be before the run's next minibatch, so
+# a stop "in epoch E" may land on its first minibatch (then the resumed run draws the epoch's order itself).
 
 
 def test_a_run_stopped_in_its_first_epoch_resumes_exactly(resume_check):
     output = resume_check("dgrl_mnist.py", RESUME, r"^ColorMNIST__G2__")  # the first line: training starts right after it
     epochs, images = stopped_at(output)
-    assert epochs == 0 and 0 < images < 4000, output
+    assert epochs == 0 and images < 3000, output
 
 
 def test_a_run_stopped_in_its_second_epoch_resumes_exactly(resume_check):
     """With dead-code restarts the training itself draws from torch's global random state."""
-    output = resume_check("dgrl_mnist.py", [*RESUME, "--vq-dead-code-steps", "20"], r"epoch 1/3")
+    output = resume_check("dgrl_mnist.py", [*RESUME, "--vq-dead-code-steps", "20"], r"epoch 1/2")
     epochs, images = stopped_at(output)
-    assert epochs == 1 and 4000 < images < 8000, output
+    assert epochs == 1 and 3000 <= images < 6000, output
 
 
 def test_a_run_stopped_while_training_its_referees_resumes_with_the_same_factor_tests(resume_check, tmp_path):
-    output = resume_check("dgrl_mnist.py", RESUME, r"^training the referees")
-    assert stopped_at(output) == (3, 12000) and "no factor tests (stopped)" in output, output
+    """The referees draw from torch's global random state, which dead-code restarts moved during training: the resumed run
+    must start them from the state the training ended in, not from the one its model construction left."""
+    flags = [*RESUME, "--vq-dead-code-steps", "20"]
+    output = resume_check("dgrl_mnist.py", flags, r"^training the referees")
+    assert stopped_at(output) == (2, 6000) and "no factor tests (stopped)" in output, output
     # Complete now: another resume has nothing left to do, and logs nothing twice.
     (run,) = (tmp_path / "stopped" / "runs").iterdir()
     events = sorted(run.glob("events.out.tfevents.*"))
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *RESUME, "--resume", f"runs/{run.name}"]
+    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags, "--resume", f"runs/{run.name}"]
     again = subprocess.run(command, cwd=tmp_path / "stopped", env=env, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "this run is complete (trained and tested); nothing to resume" in again.stdout
     assert sorted(run.glob("events.out.tfevents.*")) == events
 
 
 def test_a_run_killed_resumes_from_its_last_resume_file_without_duplicated_or_missing_points(tmp_path):
-    """SIGKILL (no clean stop): the run continues from the periodic resume file, and TensorBoard drops what the killed run
-    logged after it, so the curves equal a straight run's."""
+    """SIGKILL (no clean stop) a little after the first periodic resume file (one a second): the run continues from the
+    latest file, and TensorBoard drops what the killed run logged after it, so the curves equal a straight run's."""
     from conftest import checkpoint_tensors, tensorboard_scalars
 
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *RESUME, "--checkpoint-every", "1"]
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    flags = [*TINY[4:], "--epochs", "2", "--train-size", "10000", "--batch-size", "16", "--save-model"]  # 1,250 minibatches
+    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags, "--checkpoint-every", "1"]
     straight, killed = tmp_path / "straight", tmp_path / "killed"
     straight.mkdir()
     killed.mkdir()
     assert subprocess.run(command, cwd=straight, env=env, capture_output=True, timeout=300).returncode == 0
-    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    for line in process.stdout:  # killed at the first progress line after a periodic resume file: some logs come after it
-        if line.startswith("image ") and list(killed.glob("runs/*/resume.pt")):
-            process.kill()
-            break
-    process.communicate(timeout=60)
-    assert process.returncode == -signal.SIGKILL, "the run ended before the kill"
+    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    while not list(killed.glob("runs/*/resume.pt")) and process.poll() is None:
+        time.sleep(0.01)
+    time.sleep(0.3)  # about 100 minibatches more: a loss point or two logged after the file
+    assert process.poll() is None, "the run ended before the kill"
+    process.kill()
+    process.wait(timeout=60)
     (run,) = (killed / "runs").iterdir()
     resumed = subprocess.run([*command, "--resume", f"runs/{run.name}"], cwd=killed, env=env, capture_output=True, text=True)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    resumed_at = int(re.search(r"resuming at image (\d+) of 12000", resumed.stdout)[1])
-    assert 0 < resumed_at < 12000, resumed.stdout  # a periodic file, not the one written at the end of training
+    resumed_at = int(re.search(r"resuming at image (\d+) of 20000", resumed.stdout)[1])
+    assert 0 < resumed_at < 20000, resumed.stdout  # a periodic file, not the one written at the end of training
     (straight_run,) = (straight / "runs").iterdir()
     expected, got = tensorboard_scalars(straight_run), tensorboard_scalars(run)
     for scalars in (expected, got):

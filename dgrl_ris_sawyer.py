@@ -21,6 +21,7 @@ Training resets everywhere in the arena; evaluation on the test configuration, w
         --eval-frequency 2000 --eval-episodes 10            # the CPU preset (30 min on a CPU core, 16-19 SPS)
     python dgrl_ris_sawyer.py --total-timesteps 600 --start-timesteps 300 --batch-size 16 \
         --eval-frequency 600 --eval-episodes 2              # 1-minute smoke run
+    python dgrl_ris_sawyer.py --groups 16 --resume runs/<run_name>   # continue a stopped run (with its flags)
 
 Without a display, rendering is headless (MUJOCO_GL defaults to egl; set it to osmesa where EGL is missing). Env frames/s
 and a picture of state and goal images: benchmark/sawyer_env.py; update times: benchmark/bench_ris_sawyer.py; the CPU

@@ -3,7 +3,9 @@ success test and its termination, goal images and exact state restoration after 
 hand and the puck, mocap xy control, pushing, walls); the agent (random-translate augmentation, the image encoder, the
 DRIML loss, the image replay's relabelling and rewards, make_agent, one RIS update with and without DGRL, acting,
 evaluation); flag validation (a clean exit 2 naming the flag); smoke runs of the script in both modes, headless without
-MUJOCO_GL, with a checkpoint evaluated, refused with other network flags, a video written, and a Ctrl-C mid-run."""
+MUJOCO_GL, with a checkpoint evaluated, refused with other network flags, a video written, and a Ctrl-C mid-run;
+stopping and resuming (env state and cut-short evaluation round trips, runs stopped by SIGTERM in the warm-up and
+mid-episode that resume to the scalars and checkpoint of a run straight through, changed flags refused)."""
 
 import math
 import re

@@ -16,6 +16,7 @@ defaults here (1,000 pre-training steps, 20,000 DQN steps) take about 1 min on o
     python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 0      # the same with the continuous goal-DQN
     python dgrl_goal_dqn.py --env-id SpiralWorld --n-train-goals 16 --groups 8   # SpiralWorld, then the 4 novel goals
     python dgrl_goal_dqn.py --total-timesteps 2000 --rep-steps 50                # a quick CPU smoke run (seconds)
+    python dgrl_goal_dqn.py <the same flags> --resume runs/<run_name>           # continue a stopped run exactly
 
 The whole study (3 seeds, as in the paper): benchmark/goal_dqn.sh. Docs: docs/dgrl_goal_dqn.md.
 """
@@ -1128,11 +1129,12 @@ if __name__ == "__main__":
     # A resumed run's TensorBoard drops what the stopped run logged from the first step its resume file has not logged
     # (of the phase it stopped in). Step 0 always stays: a file saved at step 0 follows everything logged at step 0.
     first_unlogged = None
+    resumed = ""
     if saved is not None:
-        first_unlogged = max(saved["loop"]["global_step" if saved["loop"]["dqn_phase"] else "rep_step"], 1)
+        phase, step_key = ("DQN", "global_step") if saved["loop"]["dqn_phase"] else ("pre-training", "rep_step")
+        first_unlogged = max(saved["loop"][step_key], 1)
+        resumed = f", resumed at {phase} step {saved['loop'][step_key]}"
     writer = make_writer(args, run_name, purge_step=first_unlogged)
-    resumed = "" if saved is None else f", resumed at {'DQN' if saved['loop']['dqn_phase'] else 'pre-training'} step "
-    resumed += "" if saved is None else str(saved["loop"]["global_step" if saved["loop"]["dqn_phase"] else "rep_step"])
     print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}{resumed}")
 
     # The data of both phases: random-walk transitions to pre-train on; the maze env and the replay memory of the DQN.

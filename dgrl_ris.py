@@ -15,6 +15,7 @@ prior on the discrete goal and subgoal embeddings. `--groups 0` is plain RIS fro
         --eval-frequency 2000 --eval-episodes 10            # the CPU preset (20 min on a CPU core; --groups 0: 10 min)
     python dgrl_ris.py --env-id AntU --total-timesteps 3000 --start-timesteps 500 --batch-size 64   # 1-minute smoke run
     python dgrl_ris.py --env-id AntU --checkpoint runs/<run>/dgrl_ris.cleanrl_model   # evaluate a --save-model checkpoint
+    python dgrl_ris.py --env-id AntMaze --groups 16 --resume runs/<run>   # continue a stopped run exactly (its flags)
 
 Environments: the four Ant mazes of RIS (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built here from the Ant model inside
 gymnasium, and every gymnasium-robotics maze id (`PointMaze_UMaze-v3`, `AntMaze_UMaze-v5`, ...).
@@ -1184,7 +1185,7 @@ if __name__ == "__main__":
     args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
     saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
+    if saved is not None:  # the stopped run's name, folder and videos
         run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
 

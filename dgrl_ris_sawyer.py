@@ -568,6 +568,8 @@ class ImageEpisodeReplay:
     survives of an overwritten episode is a suffix of it with its goal and its stored rows intact.
     """
 
+    ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")  # what --resume saves
+
     def __init__(self, capacity: int, image_shape: tuple[int, ...], action_dim: int):
         self.capacity = capacity
         self.images = np.zeros((capacity, *image_shape), np.uint8)
@@ -595,8 +597,6 @@ class ImageEpisodeReplay:
         self.goal_row[start : goal + 1] = goal
         self.position = goal + 1
         self.size = max(self.size, self.position)
-
-    ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")
 
     def state(self) -> dict:
         """For --resume: the filled rows, as tensors sharing the arrays' memory (torch.save writes just those rows, uint8

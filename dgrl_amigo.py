@@ -14,6 +14,7 @@ Budgets and frequencies count frames: env steps x --num-envs.
     python dgrl_amigo.py --groups 16                           # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
     python dgrl_amigo.py --groups 0                            # AMIGo
     python dgrl_amigo.py --env-id MiniGrid-DoorKey-5x5-v0 --total-timesteps 1000000 --groups 16   # learns in ~3 min on a CPU
+    python dgrl_amigo.py --groups 16 --resume runs/<run_name>  # continue a stopped run exactly (its flags, same folder)
 
 The study: benchmark/amigo.sh. Docs: docs/dgrl_amigo.md.
 """
@@ -1308,6 +1309,7 @@ if __name__ == "__main__":
                 save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
         progress.heartbeat(step, f"{student_updates} student updates  t* {t_star.value}")
         if progress.resume_due(args.checkpoint_every):
+            writer.flush()  # a run killed outright after this save still has every scalar up to it on disk
             loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
             loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
             loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}

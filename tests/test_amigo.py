@@ -2,7 +2,8 @@
 autoreset, seeding, truncation, the partial-view bypass), AMIGo's goal-reach test on real envs, the student and teacher
 rewards, the t* schedule, the outcome buffer, V-trace and the actor-critic losses, the agent make_agent builds, one
 teacher and one student update with and without DGRL, evaluation with scripted networks, flag validation, smoke runs
-(train, checkpoint, evaluate, video, Ctrl-C)."""
+(train, checkpoint, evaluate, video, Ctrl-C); stopping and resuming (the env state, runs stopped by SIGTERM at two
+points or killed after periodic saves equal straight runs, changed flags refused)."""
 
 import dataclasses
 import math
@@ -979,6 +980,56 @@ def test_resume_after_the_second_progress_line_equals_a_straight_run_and_its_vid
     straight = {path.name: path.stat().st_size for path in tmp_path.glob("straight/videos/*/*.mp4")}
     resumed = {path.name: path.stat().st_size for path in tmp_path.glob("stopped/videos/*/*.mp4")}
     assert resumed == straight and len(straight) >= 2
+
+
+def test_resume_after_a_kill_continues_from_the_last_periodic_save(tmp_path):
+    """SIGKILL (no grace) after resume.pt was written every second, usually mid-window: the resumed run purges what the
+    killed run logged after the save and ends like a straight run. KeyCorridorS3R1 with 27-step unrolls: episodes end by
+    truncation on a collection's last step (270 = 10 x 27) and a random student never solves it, so no episode ends on a
+    collection's first step, whose scalars would be logged at the saved frame and kept twice (see the docs)."""
+    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
+
+    flags = [
+        "--env-id", CORRIDOR, "--num-envs", "4", "--batch-envs", "2", "--num-steps", "27", "--total-timesteps", "6480",
+        "--progress-frequency", "1080", "--teacher-batch-size", "20", "--seed", "5", "--groups", "16", "--save-model",
+    ]  # fmt: skip
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    command = [sys.executable, str(ROOT / "dgrl_amigo.py"), *flags]
+    straight, killed = tmp_path / "straight", tmp_path / "killed"
+    straight.mkdir()
+    killed.mkdir()
+    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    process = subprocess.Popen(
+        [*command, "--checkpoint-every", "1"],
+        cwd=killed,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    next(line for line in process.stdout if re.match(r"frame +3240/", line))
+    process.kill()
+    process.wait(timeout=60)
+    (run_dir,) = (killed / "runs").iterdir()
+    saved_step = torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["step"]
+    assert 0 < saved_step < 6480
+    resumed = subprocess.run(
+        [*command, "--resume", f"runs/{run_dir.name}"], cwd=killed, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resumed from runs/{run_dir.name}/resume.pt at frame {saved_step}" in resumed.stdout
+    (straight_dir,) = (straight / "runs").iterdir()
+    expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in WALL_CLOCK_TAGS}
+    got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in WALL_CLOCK_TAGS}
+    assert sorted(got) == sorted(expected)
+    for tag, points in expected.items():
+        assert got[tag] == points, f"{tag} (saved at frame {saved_step}): straight {points[:6]}... resumed {got[tag][:6]}..."
+    expected_tensors = checkpoint_tensors(next(straight_dir.glob("*.cleanrl_model")))
+    got_tensors = checkpoint_tensors(next(run_dir.glob("*.cleanrl_model")))
+    assert sorted(got_tensors) == sorted(expected_tensors)
+    for key, tensor in expected_tensors.items():
+        assert torch.equal(got_tensors[key], tensor), key
 
 
 def test_resume_refuses_changed_flags_and_keeps_images_uint8(run_script, tmp_path):

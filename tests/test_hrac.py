@@ -942,14 +942,6 @@ RESUME = ["--ctrl-updates", "10", "--man-updates", "4", "--batch-size", "16", "-
           "500", "--adj-frequency", "500", "--adj-epochs", "2", "--hidden-dim", "32", "--save-model"]  # fmt: skip
 
 
-def test_a_run_stopped_in_its_first_episode_resumes_exactly(resume_check):
-    """SIGTERM as soon as the start line is out: the run stops a few steps into its first episode (mid-segment, most
-    often at step 1 or 2), before any update or adjacency training; the env, the segment and the replays carry over."""
-    flags = ["--env-id", "AntFall", "--groups", "0", "--seed", "3", "--total-timesteps", "1000", *RESUME]
-    output = resume_check("dgrl_hrac.py", flags, r"^AntFall__G0__")
-    assert int(re.search(r"stopped: (\d+) steps", output).group(1)) < 500, output
-
-
 STOP_MID_EPISODE = """
 import runpy, mujoco
 mj_step, seen = mujoco.mj_step, dict(model=None, steps=0)
@@ -966,6 +958,16 @@ def counting_step(model, data, nstep=1):
 mujoco.mj_step = counting_step
 runpy.run_path({script!r}, run_name="__main__")
 """
+
+
+def test_a_run_stopped_in_its_first_episode_resumes_exactly(resume_check, tmp_path):
+    """SIGTERM at training step 3 (a few steps into the first episode and its first segment), before any update or
+    adjacency training: the env, the segment, the replays so far and the generators carry over."""
+    wrapper = tmp_path / "stop_mid_episode.py"
+    wrapper.write_text(STOP_MID_EPISODE.format(marker=3, script=str(ROOT / "dgrl_hrac.py")))
+    flags = ["--env-id", "AntFall", "--groups", "0", "--seed", "3", "--total-timesteps", "1000", *RESUME]
+    output = resume_check(str(wrapper), flags, r"^marker: training step 3$")
+    assert 3 <= int(re.search(r"stopped: (\d+) steps", output).group(1)) < 10, output
 
 
 def test_a_run_stopped_mid_segment_after_its_first_updates_resumes_exactly(resume_check, tmp_path):

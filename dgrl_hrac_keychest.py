@@ -11,6 +11,7 @@ itself. `--groups 0` is plain HRAC from the same file.
 
     python dgrl_hrac_keychest.py --groups 16            # paper setting, DGRL G=16: 2M frames (about 28 min on a CPU core)
     python dgrl_hrac_keychest.py --groups 0             # HRAC
+    python dgrl_hrac_keychest.py --groups 16 --resume runs/<run>   # continue a stopped run exactly (its flags)
     python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400 \
         --eval-frequency 5000                           # smoke run (about 30 s)
 

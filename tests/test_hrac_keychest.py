@@ -620,13 +620,13 @@ def test_resume_from_a_stop_during_the_exploration(resume_check):
 
 
 def test_resume_from_a_stop_inside_episodes_while_both_levels_train(resume_check):
-    # DGRL. 85-step episodes, all four envs' from frame 800 on: updates from 1820; at the evaluation of frame 2000 each env
-    # is at step 45 of its episode, in the middle of a subgoal's segment, and the stop comes then or a few steps later.
-    # After it: a loss log of the updates before it (frame 2100), the episodes' ends (2160) with their returns, and an
+    # DGRL. 87-step episodes, all four envs' from frame 800 on: updates from 1844; at the evaluation of frame 2400 each env
+    # is at step 52 of its episode, in the middle of a subgoal's segment, and the stop comes then or a few steps later.
+    # After it: a loss log of the updates before it (frame 2500), the episodes' ends (2540) with their returns, and an
     # adjacency retraining (2600).
-    flags = [*tiny(max_episode_steps=85, adj_frequency=600, log_frequency=100), "--save-model"]
-    output = resume_check("dgrl_hrac_keychest.py", flags, stop_after=r"frame +2000/3000")
-    assert 2000 <= int(re.search(r"stopped: (\d+) frames", output)[1]) < 3000
+    flags = [*tiny(max_episode_steps=87, adj_frequency=600, log_frequency=100), "--save-model"]
+    output = resume_check("dgrl_hrac_keychest.py", flags, stop_after=r"frame +2400/3000")
+    assert 2400 <= int(re.search(r"stopped: (\d+) frames", output)[1]) < 3000
 
 
 def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_path):

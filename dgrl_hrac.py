@@ -17,6 +17,7 @@ run time (rllab's and HIRO's maze generator, rewritten here); AntGather adds app
     python dgrl_hrac.py --env-id AntMaze --groups 0       # HRAC on AntMaze
     python dgrl_hrac.py --env-id AntMaze --groups 0 --total-timesteps 300000   # the short CPU run of docs/dgrl_hrac.md
     python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5   # 15-second smoke run
+    python dgrl_hrac.py --env-id AntPush --groups 16 --resume runs/<run_name>   # continue a stopped run, same flags
 
 The study: benchmark/hrac.sh; env speed and renders: benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """
@@ -1042,8 +1043,8 @@ def train_adjacency(
 ) -> tuple[int, float, float]:
     """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss, polling
     `stop` before each epoch. Returns (epochs run, mean loss of the last epoch, accuracy of the embedding distances
-    against the labels with the threshold halfway between the margins); the two figures are NaN without any pair and
-    when a stop request ended the training early (its epochs are run: a resumed run runs the rest)."""
+    against the labels with the threshold halfway between the margins). A stop request ends the training early, with
+    fewer epochs run (a resumed run runs the rest) and NaN figures, as a memory without any pair gives."""
     cells_a, cells_b, labels = (torch.as_tensor(x, device=device) for x in memory.labelled_pairs())
     if len(labels) == 0:
         return epochs, float("nan"), float("nan")
@@ -1578,7 +1579,7 @@ if __name__ == "__main__":
             )
             adjacency_epochs += epochs_run
             if adjacency_epochs < args.adj_epochs:
-                continue
+                continue  # stopped between two epochs: the loop ends, the training still due
             adjacency_due, adjacency_epochs = False, 0
             writer.add_scalar("adjacency/loss", adj_loss, step)
             writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
@@ -1735,7 +1736,9 @@ if __name__ == "__main__":
             next_eval += args.eval_frequency if eval_due else 0
             state, _ = env.reset()
             episode_steps = 0
-        if not (adjacency_due or eval_due) and progress.resume_due(args.checkpoint_every):  # a whole step's logs written
+        # The periodic resume write, never with work pending: its logs at this step would follow the file, and a run killed
+        # after them would log them twice (TensorBoard's purge on --resume drops the later steps only).
+        if not (adjacency_due or eval_due) and progress.resume_due(args.checkpoint_every):
             writer.flush()  # the logs up to this step on disk before the state that continues after them (a kill -9)
             save_resume(run_name, training_state(), args)
 

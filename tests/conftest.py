@@ -83,16 +83,17 @@ def resume_check(tmp_path):
         stopped.mkdir()
         result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=timeout)
         assert result.returncode == 0, result.stderr[-3000:]
-        process = subprocess.Popen(command, cwd=stopped, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # stderr joins stdout: a pipe nobody reads while waiting for the stop line could fill up and block the run
+        process = subprocess.Popen(command, cwd=stopped, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         output = []
         for line in process.stdout:
             output.append(line)
             if re.search(stop_after, line):
                 process.send_signal(signal.SIGTERM)
                 break
-        rest, errors = process.communicate(timeout=timeout)
+        rest, _ = process.communicate(timeout=timeout)
         output = "".join(output) + rest
-        assert process.returncode == 0, errors[-3000:]
+        assert process.returncode == 0, output[-3000:]
         assert "stopped:" in output, f"the run ended before the signal arrived:\n{output[-2000:]}"
         (run_dir,) = (stopped / "runs").iterdir()
         resume_command = [*command, "--resume", f"runs/{run_dir.name}"]

@@ -7,6 +7,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -566,21 +567,22 @@ def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(tmp_path):
     from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
 
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    flags = [*RESUME, "--total-timesteps", "600", "--checkpoint-every", "1"]
+    flags = [*RESUME, "--total-timesteps", "5000", "--checkpoint-every", "1"]  # a DQN phase of seconds: periodic writes
     command = [sys.executable, str(ROOT / "dgrl_goal_dqn.py"), *flags]
     straight, killed = tmp_path / "straight", tmp_path / "killed"
     straight.mkdir()
     killed.mkdir()
     result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
-    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    for line in process.stdout:  # kill after a progress line that follows a periodic resume file of the DQN phase
-        if PROGRESS_LINE.match(line):
-            (resume_file,) = (killed / "runs").glob("*/resume.pt")
-            if torch.load(resume_file, weights_only=False)["loop"]["global_step"] > 0:
-                process.kill()
-                break
-    process.communicate(timeout=300)
+    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while process.poll() is None and time.time() < deadline:  # kill once a periodic resume file of the DQN phase exists
+        resume_files = list((killed / "runs").glob("*/resume.pt"))
+        if resume_files and torch.load(resume_files[0], weights_only=False)["loop"]["global_step"] > 0:
+            process.kill()
+            break
+        time.sleep(0.05)
+    process.wait(timeout=300)
     assert process.returncode == -signal.SIGKILL, "the run ended before a periodic resume file of the DQN phase"
     (run_dir,) = (killed / "runs").iterdir()
     saved_step = torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["global_step"]

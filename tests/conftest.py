@@ -68,6 +68,23 @@ def checkpoint_tensors(path: Path) -> dict[str, torch.Tensor]:
     return flatten({key: value for key, value in saved.items() if key != "args"}, "")
 
 
+def assert_same_run(straight_dir: Path, resumed_dir: Path, ignore: tuple[str, ...] = ()) -> None:
+    """A resumed run's folder holds what a straight run's does: every TensorBoard scalar (but WALL_CLOCK_TAGS and
+    `ignore`) at the same steps with the same values, and a final checkpoint with equal tensors."""
+    skip = set(WALL_CLOCK_TAGS) | set(ignore)
+    expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in skip}
+    got = {tag: points for tag, points in tensorboard_scalars(resumed_dir).items() if tag not in skip}
+    assert sorted(got) == sorted(expected)
+    for tag, points in expected.items():
+        assert got[tag] == points, f"{tag}: straight {points[:6]}... resumed {got[tag][:6]}..."
+    (straight_checkpoint,) = straight_dir.glob("*.cleanrl_model")
+    (resumed_checkpoint,) = resumed_dir.glob("*.cleanrl_model")
+    expected_tensors, got_tensors = checkpoint_tensors(straight_checkpoint), checkpoint_tensors(resumed_checkpoint)
+    assert sorted(got_tensors) == sorted(expected_tensors)
+    for key, tensor in expected_tensors.items():
+        assert torch.equal(got_tensors[key], tensor), key
+
+
 @pytest.fixture
 def resume_check(tmp_path):
     """`check(script, flags, stop_after)`: run A straight through; run B, stopped by SIGTERM as soon as its output has a
@@ -101,18 +118,7 @@ def resume_check(tmp_path):
         assert resumed.returncode == 0, resumed.stderr[-3000:]
         assert "stopped:" not in resumed.stdout
         (straight_dir,) = (straight / "runs").iterdir()
-        skip = set(WALL_CLOCK_TAGS) | set(ignore)
-        expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in skip}
-        got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in skip}
-        assert sorted(got) == sorted(expected)
-        for tag, points in expected.items():
-            assert got[tag] == points, f"{tag}: straight {points[:6]}... resumed {got[tag][:6]}..."
-        (straight_checkpoint,) = straight_dir.glob("*.cleanrl_model")
-        (resumed_checkpoint,) = run_dir.glob("*.cleanrl_model")
-        expected_tensors, got_tensors = checkpoint_tensors(straight_checkpoint), checkpoint_tensors(resumed_checkpoint)
-        assert sorted(got_tensors) == sorted(expected_tensors)
-        for key, tensor in expected_tensors.items():
-            assert torch.equal(got_tensors[key], tensor), key
+        assert_same_run(straight_dir, run_dir, ignore)
         return output
 
     return check

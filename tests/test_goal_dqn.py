@@ -564,7 +564,7 @@ def test_resume_inside_a_dqn_episode_continues_exactly(resume_check):
 def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(tmp_path):
     """A run killed with SIGKILL (no clean stop) goes on from its last periodic resume file (--checkpoint-every 1): the
     points it logged after that file are purged and logged again, none twice, none missing."""
-    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
+    from conftest import assert_same_run
 
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     flags = [*RESUME, "--total-timesteps", "5000", "--checkpoint-every", "1"]  # a DQN phase of seconds: periodic writes
@@ -592,13 +592,7 @@ def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(tmp_path):
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert f"resumed at DQN step {saved_step}" in resumed.stdout
     (straight_dir,) = (straight / "runs").iterdir()
-    expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in WALL_CLOCK_TAGS}
-    got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in WALL_CLOCK_TAGS}
-    assert got == expected
-    expected_tensors = checkpoint_tensors(next(straight_dir.glob("*.cleanrl_model")))
-    got_tensors = checkpoint_tensors(next(run_dir.glob("*.cleanrl_model")))
-    assert sorted(got_tensors) == sorted(expected_tensors)
-    assert all(torch.equal(got_tensors[key], tensor) for key, tensor in expected_tensors.items())
+    assert_same_run(straight_dir, run_dir)
 
 
 def test_resume_refuses_changed_flags_and_accepts_free_ones(tmp_path, run_script):

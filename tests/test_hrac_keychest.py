@@ -633,7 +633,7 @@ def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_pa
     """A run killed outright (SIGKILL: no clean stop) goes on from its last periodic resume file (--checkpoint-every 1,
     written between two steps): TensorBoard drops what the killed run logged after it, and the resumed run's scalars and
     final checkpoint equal a straight run's."""
-    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
+    from conftest import assert_same_run
 
     env = {
         "PATH": "/usr/bin:/bin",
@@ -666,13 +666,7 @@ def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_pa
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert f"resumed at frame {saved_frames}" in resumed.stdout
     (straight_dir,) = (straight / "runs").iterdir()
-    expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in WALL_CLOCK_TAGS}
-    got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in WALL_CLOCK_TAGS}
-    assert got == expected
-    expected_tensors = checkpoint_tensors(next(straight_dir.glob("*.cleanrl_model")))
-    got_tensors = checkpoint_tensors(next(run_dir.glob("*.cleanrl_model")))
-    assert sorted(got_tensors) == sorted(expected_tensors)
-    assert all(torch.equal(got_tensors[key], tensor) for key, tensor in expected_tensors.items())
+    assert_same_run(straight_dir, run_dir)
 
 
 def test_resume_refuses_changed_flags(run_script, tmp_path):

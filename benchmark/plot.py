@@ -25,7 +25,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 @dataclass
 class Args:
     runs_dir: str = "runs"
-    """folder holding one sub-folder of TensorBoard event files per run"""
+    """folder searched (at any depth) for run folders of TensorBoard event files: runs/, or a sweep's folder"""
     match: str = ""
     """regular expression a run's folder name must contain to be included"""
     tags: list[str] = field(default_factory=lambda: ["eval/train_success_rate", "eval/novel_total_steps"])
@@ -46,10 +46,16 @@ def setting_of(run_name: str) -> str:
     return "__".join(run_name.split("__")[:-2])
 
 
-def load_runs(runs_dir: Path, match: str, tags: list[str]) -> dict[str, list[dict[str, tuple[np.ndarray, np.ndarray]]]]:
+def run_folders(runs_dir: Path) -> list[Path]:
+    """Every folder under `runs_dir` (itself included, at any depth) holding TensorBoard event files: runs/{run_name} of
+    the scripts, or the runs of a sweep of benchmark/launch.py (sweeps/{name}/{run_id}/runs/{run_name})."""
+    return sorted({path.parent for path in runs_dir.rglob("events.out.tfevents.*")}, key=lambda path: (path.name, path))
+
+
+def load_runs(run_dirs: list[Path], match: str, tags: list[str]) -> dict[str, list[dict[str, tuple[np.ndarray, np.ndarray]]]]:
     """{setting: [one {tag: (steps, values)} per seed]} for every run folder whose name matches."""
     settings: dict[str, list] = {}
-    for run in sorted(path for path in runs_dir.iterdir() if path.is_dir() and re.search(match, path.name)):
+    for run in sorted((path for path in run_dirs if re.search(match, path.name)), key=lambda path: (path.name, path)):
         accumulator = EventAccumulator(str(run), size_guidance={"scalars": 0})
         accumulator.Reload()
         available = set(accumulator.Tags()["scalars"])
@@ -93,17 +99,17 @@ def summary(values: np.ndarray) -> str:
     return f"{values.mean():.3g} +- {values.std():.2g}"
 
 
-if __name__ == "__main__":
-    args = tyro.cli(Args)
-    runs_dir = Path(args.runs_dir)
-    if not runs_dir.is_dir():
-        raise SystemExit(f"error: --runs-dir {runs_dir} is not a folder")
-    settings = load_runs(runs_dir, args.match, args.tags)
+def plot_study(
+    run_dirs: list[Path], tags: list[str], out: str, match: str = "", panel_by: str = "", title: str = "", bins: int = 0
+) -> str:
+    """Write OUT.png (curves, one panel per tag and row) and OUT.md (the table) for the runs whose folder name matches
+    `match`; returns the table. Raises ValueError when no run matches and logs any of the tags."""
+    settings = load_runs(run_dirs, match, tags)
     if not settings:
-        raise SystemExit(f"error: no run in {runs_dir} matches --match {args.match!r} and logs any of --tags {args.tags}")
+        raise ValueError(f"no run matches --match {match!r} and logs any of --tags {tags}")
 
     def panel_key(setting: str) -> str:
-        found = re.search(args.panel_by, setting) if args.panel_by else None
+        found = re.search(panel_by, setting) if panel_by else None
         return found.group(1) if found and found.groups() else ""
 
     def short_labels(names: list[str]) -> dict[str, str]:
@@ -113,15 +119,15 @@ if __name__ == "__main__":
         return {name: " ".join(f[i] for i in varying if i < len(f)) or name for name, f in zip(names, fields, strict=True)}
 
     panels = sorted({panel_key(setting) for setting in settings})
-    figure, axes = plt.subplots(len(panels), len(args.tags), figsize=(5 * len(args.tags), 3.6 * len(panels)), squeeze=False)
+    figure, axes = plt.subplots(len(panels), len(tags), figsize=(5 * len(tags), 3.6 * len(panels)), squeeze=False)
     rows = []
     for row, panel in enumerate(panels):
         panel_settings = sorted(s for s in settings if panel_key(s) == panel)
         labels = short_labels(panel_settings)
         for setting in panel_settings:
             cells = [setting.replace("__", " "), str(len(settings[setting]))]
-            for column, tag in enumerate(args.tags):
-                aggregated = aggregate(settings[setting], tag, args.bins)
+            for column, tag in enumerate(tags):
+                aggregated = aggregate(settings[setting], tag, bins)
                 if aggregated is None:
                     cells.append("n/a")
                     continue
@@ -137,14 +143,27 @@ if __name__ == "__main__":
         for axis in axes[row]:
             axis.legend(fontsize=7)
             axis.grid(alpha=0.3)
-    if args.title:
-        figure.suptitle(args.title)
+    if title:
+        figure.suptitle(title)
     figure.tight_layout()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out.with_suffix(".png"), dpi=110)
-    header = "| setting | seeds | " + " | ".join(f"{tag}: final (avg over evals)" for tag in args.tags) + " |"
-    table = "\n".join([header, "|" + "---|" * (len(args.tags) + 2)] + ["| " + " | ".join(cells) + " |" for cells in rows])
-    out.with_suffix(".md").write_text(table + "\n")
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path.with_suffix(".png"), dpi=110)
+    plt.close(figure)
+    header = "| setting | seeds | " + " | ".join(f"{tag}: final (avg over evals)" for tag in tags) + " |"
+    table = "\n".join([header, "|" + "---|" * (len(tags) + 2)] + ["| " + " | ".join(cells) + " |" for cells in rows])
+    path.with_suffix(".md").write_text(table + "\n")
     print(table)
-    print(f"\nwrote {out.with_suffix('.png')} and {out.with_suffix('.md')}")
+    print(f"\nwrote {path.with_suffix('.png')} and {path.with_suffix('.md')}")
+    return table
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    runs_dir = Path(args.runs_dir)
+    if not runs_dir.is_dir():
+        raise SystemExit(f"error: --runs-dir {runs_dir} is not a folder")
+    try:
+        plot_study(run_folders(runs_dir), args.tags, args.out, args.match, args.panel_by, args.title, args.bins)
+    except ValueError as error:
+        raise SystemExit(f"error: no run in {runs_dir}: {error}") from None

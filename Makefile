@@ -12,8 +12,9 @@ $(VENV)/installed: requirements.txt requirements-nodeps.txt
 	touch $@
 
 # The main job on its built-in default: goal-DQN vs DGRL on SpiralWorld with novel goals (a few minutes on a CPU).
+# Every study runs through benchmark/launch.py (`$(PY) benchmark/launch.py --list-presets`); its results go to sweeps/.
 run: $(VENV)/installed
-	PYTHON=$(PY) bash benchmark/goal_dqn_quick.sh
+	$(PY) benchmark/launch.py --preset quick
 
 demo-vq: $(VENV)/installed
 	$(PY) vq.py
@@ -30,27 +31,24 @@ bench-vq: $(VENV)/installed
 	$(PY) benchmark/bench_vq.py
 
 study-goal-dqn: $(VENV)/installed
-	PYTHON=$(PY) bash benchmark/goal_dqn.sh
+	$(PY) benchmark/launch.py --preset goal-dqn
 
 study-mnist: $(VENV)/installed
-	PYTHON=$(PY) bash benchmark/mnist.sh
+	$(PY) benchmark/launch.py --preset mnist
 
 study-hrac-keychest: $(VENV)/installed
-	PYTHON=$(PY) bash benchmark/hrac_keychest.sh
+	$(PY) benchmark/launch.py --preset keychest
 
 # The CPU preset of docs/dgrl_ris.md: RIS and RIS+DGRL (G = 16) on PointMaze_UMaze-v3, 3 seeds, 30,000 steps.
 study-ris: $(VENV)/installed
-	PYTHON=$(PY) SEEDS="1 2 3" bash benchmark/ris.sh
+	$(PY) benchmark/launch.py --preset ris-pointmaze
 
 bench-ris: $(VENV)/installed
 	$(PY) benchmark/bench_ris.py
 
 # The scaled-down AMIGo study of docs/dgrl_amigo.md (about 70 min on 2 cores).
 study-amigo: $(VENV)/installed
-	PYTHON=$(PY) bash benchmark/amigo.sh
-	PYTHON=$(PY) ENV=MiniGrid-KeyCorridorS3R1-v0 bash benchmark/amigo.sh
-	PYTHON=$(PY) ENV=MiniGrid-KeyCorridorS3R1-v0 FRAMES=3000000 GROUPS_LIST="0 16" TAG=cpu3m bash benchmark/amigo.sh
-	PYTHON=$(PY) TAG=nochannel EXTRA=--no-goal-channel GROUPS_LIST="0 16" bash benchmark/amigo.sh
+	$(PY) benchmark/launch.py --preset amigo-cpu
 
 bench-amigo: $(VENV)/installed
 	$(PY) benchmark/bench_amigo.py
@@ -58,12 +56,12 @@ bench-amigo: $(VENV)/installed
 # The short CPU run of docs/dgrl_hrac.md: HRAC and HRAC+DGRL (G = 16) on AntMaze, 300k steps (HRAC 84 min on a core;
 # DGRL about 1.7x that).
 study-hrac: $(VENV)/installed
-	PYTHON=$(PY) bash benchmark/hrac.sh
+	$(PY) benchmark/launch.py --preset hrac-antmaze-cpu
 
 # The CPU study of docs/dgrl_ris_sawyer.md: RIS and RIS+DGRL (G = 16) from pixels on push-and-reach, 2 seeds, 30,000 steps
 # (about 70 min on 2 cores).
 study-ris-sawyer: $(VENV)/installed
-	PYTHON=$(PY) SEEDS="1 2" bash benchmark/ris_sawyer.sh
+	$(PY) benchmark/launch.py --preset sawyer-cpu
 
 bench-ris-sawyer: $(VENV)/installed
 	$(PY) benchmark/bench_ris_sawyer.py

@@ -423,6 +423,8 @@ def start(run: Run, python: str, threads: int) -> Attempt:
             "attempts": attempts,
             "command": command,
             "host": os.uname().nodename,
+            "pid": process.pid,
+            "parent_pid": os.getpid(),
             "slurm_job": os.environ.get("SLURM_ARRAY_JOB_ID", os.environ.get("SLURM_JOB_ID")),
         },
     )
@@ -431,8 +433,9 @@ def start(run: Run, python: str, threads: int) -> Attempt:
 
 def write_status(run: Run, status: dict) -> None:
     path = run.folder / STATUS_FILE
-    path.with_suffix(".tmp").write_text(json.dumps(status, indent=1) + "\n")
-    os.replace(path.with_suffix(".tmp"), path)
+    temporary = path.with_name(f"{STATUS_FILE}.{os.getpid()}.tmp")  # the launcher and a job may write at once
+    temporary.write_text(json.dumps(status, indent=1) + "\n")
+    os.replace(temporary, path)
 
 
 def attempt_text(attempt: Attempt) -> str:
@@ -442,9 +445,9 @@ def attempt_text(attempt: Attempt) -> str:
 
 
 def finish(attempt: Attempt) -> dict:
-    """Record how the attempt ended: done (exit 0 and the script's `done:` line), stopped (exit 0 after a stop signal:
-    it resumes on the next launch or requeue) or failed (any other exit)."""
-    rc = attempt.process.wait()
+    """Record how the ended attempt ended: done (exit 0 and the script's `done:` line), stopped (exit 0 after a stop
+    signal: it resumes on the next launch or requeue) or failed (any other exit)."""
+    rc = attempt.process.returncode
     lines = attempt_text(attempt).splitlines()
     if rc == 0 and any(line.startswith("done: ") for line in lines):
         state = "done"
@@ -545,7 +548,7 @@ def run_local(runs: list[Run], workers: int, python: str, threads: int, table_ev
                 active.append(start(run, python, threads))
                 states[run.run_id] = "running"
                 print(f"started {run.run_id}", flush=True)
-            for attempt in [a for a in active if a.process.poll() is not None]:
+            for attempt in [a for a in active if a.process.poll() is not None]:  # poll() sets returncode
                 active.remove(attempt)
                 status = finish(attempt)
                 states[attempt.run.run_id] = status["state"]
@@ -575,40 +578,69 @@ except ImportError:  # the local backend needs nothing beyond the standard libra
     Checkpointable = object
 
 
+STOP_SIGNALS = {signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2}
+
+
+def reaped(attempt: Attempt) -> int | None:
+    """The run's exit status once it has ended, else None. Reaps the process itself, with the stop signals held back
+    meanwhile, so that submitit's signal handler (which waits on the runs too) never finds it half-reaped, nor blocked
+    on a lock of Popen.wait that the interrupted main loop holds."""
+    if attempt.process.returncode is None:
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        try:
+            pid, wait_status = os.waitpid(attempt.process.pid, os.WNOHANG)
+            if pid:
+                attempt.process.returncode = os.waitstatus_to_exitcode(wait_status)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+    return attempt.process.returncode
+
+
 class SlurmTask(Checkpointable):
     """One array task: its runs (several when packed on one GPU), side by side. On Slurm's signal before a time limit
     or on preemption, submitit calls `checkpoint`: every run is asked to stop after its current step, its resume file
     written, and the requeued task continues them with --resume. A run that fails makes the task raise, with its log's
     tail, so that the launcher shows the traceback."""
 
-    def __init__(self, runs: list[Run], python: str, threads: int):
+    def __init__(self, runs: list[Run], python: str, threads: int, stop_wait: float):
         self.runs, self.python, self.threads = runs, python, threads
+        self.stop_wait = stop_wait  # seconds the runs get to stop (then they are killed): less than Slurm's grace
         self.attempts: list[Attempt] = []
 
     def __getstate__(self) -> dict:
-        return {"runs": self.runs, "python": self.python, "threads": self.threads, "attempts": []}
+        return {**self.__dict__, "attempts": []}
 
     def __call__(self) -> list[dict]:
         todo = [run for run in self.runs if run.status().get("state") != "done"]
         self.attempts = [start(run, self.python, self.threads) for run in todo]
+        self.wait()
         statuses = [finish(attempt) for attempt in self.attempts]
         failed = [run for run, status in zip(todo, statuses, strict=True) if status["state"] != "done"]
         if failed:
             raise RuntimeError("\n".join(failure_report(run) for run in failed))
         return statuses
 
+    def wait(self, timeout: float | None = None) -> None:
+        """Until every run has ended; after `timeout` seconds, the ones left are killed."""
+        end = None if timeout is None else time.time() + timeout
+        while any(reaped(attempt) is None for attempt in self.attempts):
+            if end is not None and time.time() > end:
+                for attempt in self.attempts:
+                    if reaped(attempt) is None:
+                        attempt.process.kill()
+            time.sleep(0.2)
+
     def checkpoint(self) -> submitit.helpers.DelayedSubmission:
         # Slurm signals every process of the job: the runs have most likely had SIGTERM and/or SIGUSR2 already. SIGUSR1
         # is a kind they have not had, so sending it is harmless when they have and stops them when they have not.
         for attempt in self.attempts:
-            stop_attempt(attempt, signal.SIGUSR1)
+            if reaped(attempt) is None and not attempt.signalled:
+                attempt.process.send_signal(signal.SIGUSR1)
+                attempt.signalled = True
+        self.wait(timeout=self.stop_wait)
         for attempt in self.attempts:
-            try:
-                attempt.process.wait(timeout=float(os.environ.get("DGRL_STOP_WAIT_S", "600")))
-            except subprocess.TimeoutExpired:
-                attempt.process.kill()
             finish(attempt)
-        return submitit.helpers.DelayedSubmission(SlurmTask(self.runs, self.python, self.threads))
+        return submitit.helpers.DelayedSubmission(SlurmTask(self.runs, self.python, self.threads, self.stop_wait))
 
 
 def slurm_executor(args: Args, folder: Path):
@@ -647,9 +679,10 @@ def run_slurm(runs: list[Run], args: Args, folder: Path) -> dict[str, str]:
                 ]
             )
     chunks = [runs[i : i + args.runs_per_task] for i in range(0, len(runs), args.runs_per_task)]
+    stop_wait = max(args.signal_delay_s - 15, 10)  # the time limit comes signal_delay_s after the stop signal
     executor = slurm_executor(args, folder)
     with executor.batch():
-        jobs = [executor.submit(SlurmTask(chunk, args.python, args.threads)) for chunk in chunks]
+        jobs = [executor.submit(SlurmTask(chunk, args.python, args.threads, stop_wait)) for chunk in chunks]
     jobs_file.write_text(json.dumps([job.job_id for job in jobs]) + "\n")
     print(
         f"submitted {len(jobs)} array tasks of job {jobs[0].job_id.split('_')[0]} ({len(runs)} runs); "

@@ -1,0 +1,376 @@
+"""benchmark/launch.py: grids and presets, the local backend (a table, failures with their log, resume after a stop,
+relaunches that skip what is done), and the Slurm backend against a real cluster (tests marked `slurm`: a sweep equal
+to the local one, a preempted and a timed-out job that requeue and continue exactly, a failure's traceback, a killed
+job reported). `.ci/slurm.sh` starts a single-node cluster; without one the slurm tests are skipped, with the reason."""
+
+import ast
+import json
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import assert_same_run
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmark"))
+import launch  # noqa: E402
+
+# A goal-DQN run of about 5 s (1 ms a step after a 3 s start), with its checkpoint for assert_same_run.
+GOAL_DQN = launch.SMOKE_GOAL_DQN.split()
+PROGRESS = re.compile(r"^step +\d+/\d+  train", re.M)
+
+
+def launcher(sweeps: Path, *argv: str, timeout: int = 600, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run benchmark/launch.py as a user would, its sweeps under `sweeps`."""
+    command = [sys.executable, str(ROOT / "benchmark/launch.py"), "--sweeps-dir", str(sweeps), *argv]
+    environment = dict(os.environ, PYTHONUNBUFFERED="1") | (env or {})
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=environment)
+
+
+def popen_launcher(sweeps: Path, *argv: str) -> subprocess.Popen:
+    command = [sys.executable, str(ROOT / "benchmark/launch.py"), "--sweeps-dir", str(sweeps), *argv]
+    environment = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=environment)
+
+
+def status(sweep: Path, run_id: str) -> dict:
+    return json.loads((sweep / run_id / "status.json").read_text())
+
+
+def run_dir(sweep: Path, run_id: str) -> Path:
+    (found,) = (sweep / run_id / "runs").iterdir()
+    return found
+
+
+def wait_for(predicate, timeout: float, what: str) -> None:
+    end = time.time() + timeout
+    while not predicate():
+        assert time.time() < end, f"timed out after {timeout} s waiting for {what}"
+        time.sleep(0.5)
+
+
+def log_has_progress(sweep: Path, run_id: str, pattern: re.Pattern = PROGRESS) -> bool:
+    log = sweep / run_id / "log.txt"
+    return log.is_file() and pattern.search(log.read_text()) is not None
+
+
+FAILING_SCRIPT = """\
+import sys
+print("step 1/10  loss 0.5  SPS 100  1s elapsed, 9s left", flush=True)
+raise ValueError("boom: this run fails on purpose")
+"""
+
+SLEEPING_SCRIPT = """\
+import time
+print("step 1/10  loss 0.5  SPS 100  1s elapsed, 9s left", flush=True)
+time.sleep(600)
+"""
+
+
+# --- Grids, presets and flags --------------------------------------------------------------------------------------------
+
+
+def test_a_grid_is_the_product_of_its_lists_with_readable_run_ids(tmp_path):
+    arm = launch.Arm("dgrl_ris.py", ("AntU", "AntMaze"), (0, 16), (1, 2, 3), "--total-timesteps 40000")
+    runs = launch.expand((arm,), "study", tmp_path, threads=1)
+    assert len(runs) == 12 and len({run.run_id for run in runs}) == 12
+    assert runs[0].run_id == "ris__AntU__G0__s1" and runs[-1].run_id == "ris__AntMaze__G16__s3"
+    assert runs[0].folder == tmp_path / "ris__AntU__G0__s1"
+    assert runs[0].argv == "--env-id AntU --groups 0 --seed 1 --total-timesteps 40000 --exp-name study --threads 1".split()
+    # Seeds outermost: a sweep stopped early leaves whole seeds.
+    assert [run.run_id.split("__")[-1] for run in runs[:4]] == ["s1"] * 4
+
+
+def test_arms_of_one_script_and_env_need_tags_and_get_their_own_exp_name(tmp_path):
+    untagged = (
+        launch.Arm("dgrl_amigo.py", ("E",), (0,), (1,), "--a 1"),
+        launch.Arm("dgrl_amigo.py", ("E",), (0,), (1,), "--a 2"),
+    )
+    with pytest.raises(ValueError, match="give them tags"):
+        launch.expand(untagged, "s", tmp_path, 1)
+    tagged = (
+        launch.Arm("dgrl_amigo.py", ("E",), (0,), (1,), "--a 1", "x"),
+        launch.Arm("dgrl_amigo.py", ("E",), (0,), (1,), "", "y"),
+    )
+    runs = launch.expand(tagged, "s", tmp_path, 1)
+    assert [run.run_id for run in runs] == ["amigo__E__x__G0__s1", "amigo__E__y__G0__s1"]
+    assert runs[0].argv[runs[0].argv.index("--exp-name") + 1] == "s-x"
+
+
+def test_the_command_line_replaces_a_presets_axes_and_appends_flags():
+    args = launch.cli(["--preset", "ris-pointmaze", "--seeds", "4", "5", "--groups", "8", "--", "--batch-size", "64"])
+    (arm,), preset = launch.arms_of(args)
+    assert preset is launch.PRESETS["ris-pointmaze"]
+    assert arm.seeds == (4, 5) and arm.groups == (8,) and arm.env_ids == ("PointMaze_UMaze-v3",)
+    assert arm.flags.endswith("--save-model --batch-size 64")  # after the preset's --batch-size 128: the later one wins
+
+
+def script_fields(script: str) -> set[str]:
+    """The flags of a script's Args dataclass, read from its source."""
+    tree = ast.parse((ROOT / script).read_text())
+    (args,) = [node for node in tree.body if isinstance(node, ast.ClassDef) and node.name == "Args"]
+    return {node.target.id for node in args.body if isinstance(node, ast.AnnAssign)}
+
+
+@pytest.mark.parametrize("name", sorted(launch.PRESETS))
+def test_every_preset_runs_existing_scripts_with_existing_flags(name, tmp_path):
+    preset = launch.PRESETS[name]
+    runs = launch.expand(preset.arms, name, tmp_path, 1)
+    assert runs and preset.description
+    for run in runs:
+        fields = script_fields(run.script)
+        for token in run.argv:
+            if token.startswith("--"):
+                flag = token[2:].replace("-", "_")
+                assert flag in fields or (flag.startswith("no_") and flag[3:] in fields), f"{name}: {run.script} {token}"
+
+    def value(run, flag, default):
+        return run.argv[run.argv.index(flag) + 1] if flag in run.argv else default
+
+    names = []  # the run names the scripts will give these runs: {env}[__K{k}]__G{groups}__{exp_name}__{seed}__{time}
+    for run in runs:
+        k = f"__K{value(run, '--n-train-goals', 8)}" if run.script == "dgrl_goal_dqn.py" else ""
+        env = value(run, "--env-id", "ENV")
+        names.append(f"{env}{k}__G{value(run, '--groups', 0)}__{value(run, '--exp-name', '')}__{value(run, '--seed', 1)}__0")
+    for plot in preset.plots:  # every plot selects some of the preset's runs
+        assert any(re.search(plot.match, name) for name in names), (name, plot.out, plot.match)
+
+
+def test_the_studies_of_the_docs_are_presets_and_no_fan_out_is_left_in_benchmark():
+    for name in (
+        "quick",
+        "goal-dqn",
+        "mnist",
+        "keychest",
+        "ris-pointmaze",
+        "ris-antu-cpu",
+        "hrac-antmaze-cpu",
+        "sawyer-cpu",
+        "amigo-cpu",
+        "amigo-paper",
+        "hrac-paper",
+        "ris-paper",
+        "sawyer-paper",
+    ):
+        assert name in launch.PRESETS
+    for path in (ROOT / "benchmark").glob("*.sh"):
+        text = path.read_text()
+        assert "xargs" not in text and " & " not in text and "&\n" not in text, path
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--preset", "nope"], "--preset nope: no such preset; the presets: smoke, quick"),
+        (["--script", "nope.py"], "--script nope.py: no such script; the scripts: dgrl_amigo.py"),
+        ([], "pass --preset NAME or --script SCRIPT"),
+        (["--preset", "smoke", "--workers", "0"], "--workers must be >= 1, got 0"),
+        (["--preset", "smoke", "--partition", "gpu"], "are for --backend slurm"),
+        (["--preset", "smoke", "--backend", "slurm", "--sbatch", "account"], "--sbatch account: give KEY=VALUE"),
+        (["--preset", "smoke", "--name", "my sweep"], "--name 'my sweep': use letters"),
+        (["--preset", "smoke", "--flags", "'unclosed"], '--flags "\'unclosed": No closing quotation'),
+    ],
+)
+def test_bad_flags_exit_2_with_a_message_before_anything_runs(flags, message, tmp_path):
+    result = launcher(tmp_path / "sweeps", *flags, timeout=60)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "sweeps").exists()
+
+
+def test_dry_run_prints_every_command_and_runs_nothing(tmp_path):
+    result = launcher(tmp_path, "--preset", "hrac-paper", "--dry-run", timeout=60)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert len(lines) == 90 and "dgrl_hrac.py --env-id AntGather --groups 32 --seed 3 --total-timesteps 5000000" in lines[-1]
+    assert not (tmp_path / "hrac-paper").exists()
+
+
+# --- The local backend ----------------------------------------------------------------------------------------------------
+
+
+def test_a_local_sweep_runs_every_run_plots_it_and_a_relaunch_skips_it(tmp_path):
+    result = launcher(tmp_path, "--preset", "smoke", "--table-every", "2", timeout=300)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    sweep = tmp_path / "smoke"
+    ids = [f"goal_dqn__SpiralWorld__G{g}__s{s}" for s in (1, 2) for g in (0, 4)] + [f"mnist__G2__s{s}" for s in (1, 2)]
+    for run_id in ids:
+        assert status(sweep, run_id)["state"] == "done" and status(sweep, run_id)["attempts"] == 1
+        assert "done: " in (sweep / run_id / "log.txt").read_text()
+    assert re.search(r"goal_dqn__SpiralWorld__G4__s2 +done +3000/3000 +\d+ ", result.stdout)  # the table
+    assert "6 runs: 6 done" in result.stdout
+    table = (sweep / "smoke_goal_dqn.md").read_text()
+    assert "| SpiralWorld K8 G0 smoke | 2 |" in table and "| SpiralWorld K8 G4 smoke | 2 |" in table
+    again = launcher(tmp_path, "--preset", "smoke", timeout=120)
+    assert again.returncode == 0 and "6 done before, 0 failed before (--retry runs them again), 0 to run" in again.stdout
+    assert "started" not in again.stdout and all(status(sweep, run_id)["attempts"] == 1 for run_id in ids)
+
+
+def test_a_failed_run_is_reported_with_its_log_and_rerun_only_with_retry(tmp_path):
+    script = tmp_path / "failing.py"
+    script.write_text(FAILING_SCRIPT)
+    result = launcher(tmp_path / "sweeps", "--script", str(script), "--groups", "0", "--seeds", "1", timeout=120)
+    assert result.returncode == 1
+    assert "FAILED failing__G0__s1: exit code 1;" in result.stdout
+    assert "ValueError: boom: this run fails on purpose" in result.stdout  # the traceback's last line, from the log
+    assert "1 of 1 runs are not done (1 failed)" in result.stdout
+    sweep = tmp_path / "sweeps" / "failing"
+    again = launcher(tmp_path / "sweeps", "--script", str(script), "--groups", "0", "--seeds", "1", timeout=120)
+    assert again.returncode == 1 and "1 failed before" in again.stdout and status(sweep, "failing__G0__s1")["attempts"] == 1
+    retried = launcher(tmp_path / "sweeps", "--script", str(script), "--groups", "0", "--seeds", "1", "--retry", timeout=120)
+    assert retried.returncode == 1 and status(sweep, "failing__G0__s1")["attempts"] == 2
+
+
+def test_ctrl_c_stops_a_local_sweep_cleanly_and_a_relaunch_resumes_it_exactly(tmp_path):
+    """A sweep interrupted by SIGINT mid-run, then launched again, ends with the curves and checkpoint of a sweep that ran
+    straight through."""
+    flags = ["--script", "dgrl_goal_dqn.py", "--groups", "4", "--seeds", "1", "--", *GOAL_DQN, "--total-timesteps", "8000"]
+    straight = popen_launcher(tmp_path / "straight", *flags)
+    stopped = popen_launcher(tmp_path / "stopped", *flags)
+    sweep, run_id = tmp_path / "stopped" / "dgrl_goal_dqn", "goal_dqn__G4__s1"
+    wait_for(lambda: log_has_progress(sweep, run_id), 120, "the first progress line")
+    stopped.send_signal(signal.SIGINT)
+    output = stopped.communicate(timeout=120)[0]
+    assert stopped.returncode == 1, output
+    assert status(sweep, run_id)["state"] == "stopped" and "launch the same command again" in output
+    assert (run_dir(sweep, run_id) / "resume.pt").is_file()
+    resumed = launcher(tmp_path / "stopped", *flags, timeout=300)
+    assert resumed.returncode == 0, resumed.stdout[-3000:]
+    assert "1 to run (1 resuming)" in resumed.stdout and "resumed at" in (sweep / run_id / "log.txt").read_text()
+    assert straight.wait(timeout=300) == 0
+    assert status(sweep, run_id)["attempts"] == 2
+    assert_same_run(run_dir(tmp_path / "straight" / "dgrl_goal_dqn", run_id), run_dir(sweep, run_id))
+
+
+# --- The Slurm backend, on a real cluster ------------------------------------------------------------------------------
+
+
+def slurm_problem() -> str | None:
+    """Why the slurm tests cannot run here, or None."""
+    if shutil.which("sbatch") is None:
+        return "no Slurm on this machine (sbatch not found): `bash .ci/slurm.sh` starts a single-node cluster, as root"
+    for command in (["sinfo", "-h", "-o", "%T"], ["sacct", "-n", "-X", "-S", "now"]):
+        try:
+            result = subprocess.run(command, capture_output=True, text=True, timeout=20)
+        except subprocess.TimeoutExpired:
+            return f"`{shlex.join(command)}` timed out: is the cluster up? (`bash .ci/slurm.sh`)"
+        if result.returncode != 0:
+            return (
+                f"`{shlex.join(command)}` failed ({result.stderr.strip()[:200]}): start the cluster with `bash .ci/slurm.sh`"
+            )
+    return None
+
+
+PROBLEM = slurm_problem()
+if PROBLEM and os.environ.get("DGRL_REQUIRE_SLURM"):
+    raise RuntimeError(f"DGRL_REQUIRE_SLURM is set, but {PROBLEM}")
+needs_slurm = pytest.mark.skipif(PROBLEM is not None, reason=PROBLEM or "")
+
+
+def slurm_job(sweep: Path):
+    """The submitit job of a one-run sweep (for submitit's own preemption and timeout signals)."""
+    import submitit
+
+    wait_for(lambda: (sweep / "slurm_jobs.json").is_file(), 60, "the job's submission")
+    (job_id,) = json.loads((sweep / "slurm_jobs.json").read_text())
+    return submitit.SlurmJob(folder=sweep / "slurm" / "%j", job_id=job_id)
+
+
+@pytest.mark.slurm
+@needs_slurm
+def test_a_slurm_sweep_of_two_scripts_equals_the_same_sweep_run_locally(tmp_path):
+    local = popen_launcher(tmp_path / "local", "--preset", "smoke")
+    result = launcher(tmp_path / "slurm", "--preset", "smoke", "--backend", "slurm", "--table-every", "10", timeout=600)
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-3000:]
+    assert "submitted 6 array tasks of job" in result.stdout and "6 runs: 6 done" in result.stdout
+    assert local.wait(timeout=600) == 0
+    for run in launch.expand(launch.PRESETS["smoke"].arms, "smoke", Path("."), 1):
+        on_slurm = status(tmp_path / "slurm" / "smoke", run.run_id)
+        assert on_slurm["slurm_job"] and on_slurm["state"] == "done"
+        assert_same_run(run_dir(tmp_path / "local" / "smoke", run.run_id), run_dir(tmp_path / "slurm" / "smoke", run.run_id))
+    assert (tmp_path / "slurm" / "smoke" / "smoke_goal_dqn.md").read_text() == (
+        tmp_path / "local" / "smoke" / "smoke_goal_dqn.md"
+    ).read_text()
+
+
+def interrupted_run_resumes_exactly(tmp_path: Path, slurm_flags: list[str], interrupt) -> str:
+    """A one-run goal-DQN sweep on Slurm, interrupted by `interrupt(job)` once training is under way (or by its time
+    limit when `interrupt` is None), must requeue, resume and end equal to the same sweep run locally. Returns the log."""
+    flags = ["--script", "dgrl_goal_dqn.py", "--env-ids", "SpiralWorld", "--groups", "4", "--seeds", "1"]
+    run_flags = ["--", *GOAL_DQN, "--total-timesteps", str(40_000 if interrupt is None else 15_000)]
+    local = popen_launcher(tmp_path / "local", *flags, *run_flags)
+    on_slurm = popen_launcher(
+        tmp_path / "slurm", *flags, "--backend", "slurm", "--table-every", "10", *slurm_flags, *run_flags
+    )
+    sweep, run_id = tmp_path / "slurm" / "dgrl_goal_dqn", "goal_dqn__SpiralWorld__G4__s1"
+    if interrupt is not None:
+        job = slurm_job(sweep)
+        wait_for(lambda: log_has_progress(sweep, run_id), 180, "the first progress line on Slurm")
+        interrupt(job)
+    output = on_slurm.communicate(timeout=900)[0]
+    assert on_slurm.returncode == 0, output[-4000:]
+    assert local.wait(timeout=300) == 0
+    log = (sweep / run_id / "log.txt").read_text()
+    assert status(sweep, run_id)["attempts"] >= 2 and "resumed at" in log, log[-3000:]
+    assert_same_run(run_dir(tmp_path / "local" / "dgrl_goal_dqn", run_id), run_dir(sweep, run_id))
+    return log
+
+
+@pytest.mark.slurm
+@needs_slurm
+def test_a_preempted_slurm_job_requeues_and_ends_equal_to_an_uninterrupted_run(tmp_path):
+    """submitit's preemption path (SIGTERM, then its USR2): the run stops with its resume file, the job requeues."""
+    log = interrupted_run_resumes_exactly(tmp_path, [], lambda job: job._interrupt(timeout=False))
+    assert re.search(r"^stopped: ", log, re.M)
+
+
+@pytest.mark.slurm
+@needs_slurm
+def test_a_slurm_job_at_its_time_limit_requeues_and_ends_equal_to_an_uninterrupted_run(tmp_path):
+    """A 1-minute limit with the stop signal 30 s before it: a run of about a minute needs at least one requeue."""
+    log = interrupted_run_resumes_exactly(tmp_path, ["--time-min", "1", "--signal-delay-s", "30"], None)
+    assert re.search(r"^stopped: ", log, re.M)
+
+
+@pytest.mark.slurm
+@needs_slurm
+def test_a_failing_run_on_slurm_surfaces_its_traceback(tmp_path):
+    script = tmp_path / "failing.py"
+    script.write_text(FAILING_SCRIPT)
+    result = launcher(
+        tmp_path / "sweeps", "--script", str(script), "--groups", "0", "--seeds", "1", "--backend", "slurm", timeout=300
+    )
+    assert result.returncode == 1, result.stdout[-3000:]
+    assert "FAILED failing__G0__s1: exit code 1;" in result.stdout
+    assert "ValueError: boom: this run fails on purpose" in result.stdout
+
+
+@pytest.mark.slurm
+@needs_slurm
+def test_a_killed_slurm_job_is_reported_not_waited_on(tmp_path):
+    """SIGKILL to every process of the job (the run and submitit's own, as the kernel's out-of-memory killer would): no
+    result is ever written; Slurm's accounting tells the launcher that the job is over."""
+    script = tmp_path / "sleeping.py"
+    script.write_text(SLEEPING_SCRIPT)
+    sweeps = tmp_path / "sweeps"
+    process = popen_launcher(sweeps, "--script", str(script), "--groups", "0", "--seeds", "1", "--backend", "slurm")
+    sweep = sweeps / "sleeping"
+    job = slurm_job(sweep)
+    wait_for(lambda: log_has_progress(sweep, "sleeping__G0__s1", re.compile("^step 1/10", re.M)), 180, "the run's start")
+    killed = time.time()
+    running = status(sweep, "sleeping__G0__s1")
+    assert running["slurm_job"] == job.job_id.split("_")[0]
+    for pid in (running["parent_pid"], running["pid"]):  # submitit's process in the job, then the run
+        os.kill(pid, signal.SIGKILL)
+    output = process.communicate(timeout=180)[0]
+    assert process.returncode == 1, output[-3000:]
+    assert "FAILED sleeping__G0__s1" in output and "ended without a result" in output
+    assert time.time() - killed < 150

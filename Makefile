@@ -48,7 +48,10 @@ bench-ris: $(VENV)/installed
 
 # The scaled-down AMIGo study of docs/dgrl_amigo.md (about 70 min on 2 cores).
 study-amigo: $(VENV)/installed
-	$(PY) benchmark/launch.py --preset amigo-cpu
+	$(PY) benchmark/launch.py --preset amigo-doorkey
+	$(PY) benchmark/launch.py --preset amigo-s3r1
+	$(PY) benchmark/launch.py --preset amigo-s3r1-3m
+	$(PY) benchmark/launch.py --preset amigo-nochannel
 
 bench-amigo: $(VENV)/installed
 	$(PY) benchmark/bench_amigo.py

@@ -1,11 +1,12 @@
 """One launcher for every study: a grid of runs of one script (or a named preset), on this machine or on a Slurm cluster.
 
-    python benchmark/launch.py --preset mnist                                  # a study of docs/, two runs at a time
-    python benchmark/launch.py --script dgrl_ris.py --env-ids AntU AntMaze --groups 0 16 --seeds 1 2 3 \
-        --name antmazes -- --total-timesteps 40000                            # any grid; flags after -- go to every run
-    python benchmark/launch.py --preset hrac-paper --backend slurm --partition gpu --gpus-per-task 1 \
-        --runs-per-task 4 --time-min 1440                                      # the paper's HRAC grid on a cluster
-    python benchmark/launch.py --list-presets                                  # every preset, with its size
+    python benchmark/launch.py --list-presets                      # every preset (each study of docs/, each paper figure)
+    python benchmark/launch.py --preset mnist                      # a study of docs/, two runs at a time
+    python benchmark/launch.py --preset mnist --seeds 4 5 6        # the same study, other seeds (a preset's axes change)
+    python benchmark/launch.py --script dgrl_ris.py --env-ids AntU AntMaze --groups 0 16 -- --total-timesteps 40000
+                                                                   # any grid; the flags after a bare -- go to every run
+    python benchmark/launch.py --preset hrac-paper --backend slurm --partition gpu --gpus-per-task 1 --runs-per-task 4
+                                                                   # the paper's HRAC grid as one Slurm job array
 
 A sweep is a product: for each arm (a script, env ids, groups, seeds and extra flags) every combination is one run. Each
 run gets its own folder, `sweeps/{name}/{run_id}/`, and runs there: its log (`log.txt`), its state (`status.json`) and
@@ -214,9 +215,8 @@ PRESETS: dict[str, Preset] = {
         (Arm("dgrl_ris_sawyer.py", (), (0, 16), (1, 2), f"--total-timesteps 30000 {SAWYER_CPU}"),),
         (Plot("ris_sawyer_cpu", (*SAWYER_TAGS, "losses/q_values"), "Sawyer push-and-reach from pixels, 30,000 steps"),),
     ),
-    "amigo-cpu": Preset(
-        "docs/dgrl_amigo.md's scaled-down study: DoorKey-5x5 and KeyCorridorS3R1 at 1M frames (G 0, 8, 16), "
-        "KeyCorridorS3R1 at 3M and DoorKey without the goal channel (G 0, 16); 3 seeds (30 runs)",
+    "amigo-doorkey": Preset(
+        "docs/dgrl_amigo.md: AMIGo vs AMIGo+DGRL (G 8, 16) on MiniGrid-DoorKey-5x5-v0, 1M frames, 3 seeds",
         (
             Arm(
                 "dgrl_amigo.py",
@@ -224,61 +224,52 @@ PRESETS: dict[str, Preset] = {
                 (0, 8, 16),
                 (1, 2, 3),
                 f"--total-timesteps 1000000 {AMIGO_FLAGS}",
-                "1m",
             ),
+        ),
+        (Plot("amigo_doorkey_cpu", AMIGO_TAGS, "MiniGrid-DoorKey-5x5-v0: AMIGo vs AMIGo+DGRL, 1M frames", bins=20),),
+    ),
+    "amigo-s3r1": Preset(
+        "docs/dgrl_amigo.md: AMIGo vs AMIGo+DGRL (G 8, 16) on MiniGrid-KeyCorridorS3R1-v0, 1M frames, 3 seeds",
+        (
             Arm(
                 "dgrl_amigo.py",
                 ("MiniGrid-KeyCorridorS3R1-v0",),
                 (0, 8, 16),
                 (1, 2, 3),
                 f"--total-timesteps 1000000 {AMIGO_FLAGS}",
-                "1m",
             ),
+        ),
+        (Plot("amigo_s3r1_cpu", AMIGO_TAGS, "MiniGrid-KeyCorridorS3R1-v0: AMIGo vs AMIGo+DGRL, 1M frames", bins=20),),
+    ),
+    "amigo-s3r1-3m": Preset(
+        "docs/dgrl_amigo.md: AMIGo vs AMIGo+DGRL (G16) on MiniGrid-KeyCorridorS3R1-v0, 3M frames, 3 seeds",
+        (
             Arm(
                 "dgrl_amigo.py",
                 ("MiniGrid-KeyCorridorS3R1-v0",),
                 (0, 16),
                 (1, 2, 3),
                 f"--total-timesteps 3000000 {AMIGO_FLAGS}",
-                "3m",
             ),
+        ),
+        (Plot("amigo_s3r1_3m", AMIGO_TAGS, "MiniGrid-KeyCorridorS3R1-v0: AMIGo vs AMIGo+DGRL, 3M frames", bins=20),),
+    ),
+    "amigo-nochannel": Preset(
+        "docs/dgrl_amigo.md: DoorKey-5x5 with the goal only through the encoder (--no-goal-channel), G 0 and 16, 3 seeds",
+        (
             Arm(
                 "dgrl_amigo.py",
                 ("MiniGrid-DoorKey-5x5-v0",),
                 (0, 16),
                 (1, 2, 3),
                 f"--total-timesteps 1000000 {AMIGO_FLAGS} --no-goal-channel",
-                "nochannel",
             ),
         ),
-        (
-            Plot(
-                "amigo_doorkey_cpu",
-                AMIGO_TAGS,
-                "DoorKey-5x5: AMIGo vs AMIGo+DGRL, 1M frames",
-                r"^MiniGrid-DoorKey-5x5-v0__G\d+__amigo-cpu-1m__",
-                bins=20,
-            ),
-            Plot(
-                "amigo_doorkey_nochannel",
-                AMIGO_TAGS,
-                "DoorKey-5x5 without the goal channel, 1M frames",
-                r"__amigo-cpu-nochannel__",
-                bins=20,
-            ),
-            Plot(
-                "amigo_s3r1_cpu",
-                AMIGO_TAGS,
-                "KeyCorridorS3R1: AMIGo vs AMIGo+DGRL, 1M frames",
-                r"^MiniGrid-KeyCorridorS3R1-v0__G\d+__amigo-cpu-1m__",
-                bins=20,
-            ),
-            Plot("amigo_s3r1_3m", AMIGO_TAGS, "KeyCorridorS3R1: AMIGo vs AMIGo+DGRL, 3M frames", r"__amigo-cpu-3m__", bins=20),
-        ),
+        (Plot("amigo_doorkey_nochannel", AMIGO_TAGS, "DoorKey-5x5 without the goal channel, 1M frames", bins=20),),
     ),
     # The paper's figures at the paper's budgets: GPU jobs, for a cluster (`--backend slurm`) or a big machine.
     "amigo-paper": Preset(
-        "paper figure 5: AMIGo vs AMIGo+DGRL (G 8, 16) on KCmedium (KeyCorridorS3R3), 3e7 frames, 3 seeds",
+        "the paper's AMIGo figure: AMIGo vs AMIGo+DGRL (G 8, 16) on KCmedium (KeyCorridorS3R3), 3e7 frames, 3 seeds",
         (
             Arm(
                 "dgrl_amigo.py",
@@ -292,14 +283,15 @@ PRESETS: dict[str, Preset] = {
         workers=1,
     ),
     "hrac-paper": Preset(
-        "paper figures 7 and 12: HRAC vs HRAC+DGRL on the five HIRO Ant envs, G in {0, 2, 4, 8, 16, 32}, 5M steps, "
-        "3 seeds (90 runs)",
+        "the paper's HRAC Ant figures (main text and appendix): HRAC vs HRAC+DGRL on the five HIRO Ant envs, "
+        "G in {0, 2, 4, 8, 16, 32}, 5M steps, 3 seeds (90 runs)",
         (Arm("dgrl_hrac.py", HIRO_ENVS, (0, 2, 4, 8, 16, 32), (1, 2, 3), "--total-timesteps 5000000 --save-model"),),
         tuple(Plot(f"hrac_{env}", HRAC_TAGS, f"{env}: HRAC vs HRAC+DGRL, 5M steps", f"^{env}__") for env in HIRO_ENVS),
         workers=1,
     ),
     "ris-paper": Preset(
-        "paper figures 8 and 13: RIS vs RIS+DGRL (G 4, 8, 16) on AntU and AntMaze, 5M steps at batch 2048, 3 seeds",
+        "the paper's RIS Ant figures (main text and appendix): RIS vs RIS+DGRL (G 4, 8, 16) on AntU and AntMaze, "
+        "5M steps at batch 2048, 3 seeds",
         tuple(_ris(env, 5_000_000, 2048, 10_000, 1_000, 5, (0, 4, 8, 16)) for env in ("AntU", "AntMaze")),
         tuple(
             Plot(f"ris_{env}", RIS_TAGS[:2], f"{env}: RIS vs RIS+DGRL, 5M steps", f"^{env}__", bins=50)
@@ -308,7 +300,8 @@ PRESETS: dict[str, Preset] = {
         workers=1,
     ),
     "sawyer-paper": Preset(
-        "paper figures 9 and 14: RIS vs RIS+DGRL (G 4, 8, 16) from pixels on Sawyer push-and-reach, 1M steps, 3 seeds",
+        "the paper's Sawyer figures (main text and appendix): RIS vs RIS+DGRL (G 4, 8, 16) from pixels on Sawyer "
+        "push-and-reach, 1M steps, 3 seeds",
         (
             Arm(
                 "dgrl_ris_sawyer.py",

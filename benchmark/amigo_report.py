@@ -1,10 +1,11 @@
 """The per-window numbers of docs/dgrl_amigo.md, read from the study's TensorBoard logs.
 
-    python benchmark/amigo_report.py --match "MiniGrid-DoorKey-5x5-v0__G.*__cpu__" --window 100000 --end 1000000
-    python benchmark/amigo_report.py --match "MiniGrid-KeyCorridorS3R1-v0__G.*__cpu3m__" --window 200000 --end 3000000
-    python benchmark/amigo_report.py --match "MiniGrid-DoorKey-5x5-v0__G.*__nochannel__"
+    python benchmark/amigo_report.py --runs-dir sweeps/amigo-doorkey --window 100000 --end 1000000
+    python benchmark/amigo_report.py --runs-dir sweeps/amigo-s3r1-3m --window 200000 --end 3000000
+    python benchmark/amigo_report.py --runs-dir sweeps/amigo-nochannel
 
-Prints, for every run folder under --runs-dir whose name matches: the training success rate averaged in consecutive
+(the sweeps of `python benchmark/launch.py --preset amigo-doorkey` and the others). Prints, for every run folder under
+--runs-dir (at any depth) whose name matches: the training success rate averaged in consecutive
 windows of --window frames (one row per seed, then the mean over seeds per setting), the start of the first window at
 90% success or more, the mean success over the run (the mean of the windows), and, for DGRL runs, the median and
 5th-95th percentiles of vq/active_codes and vq/perplexity after the first 100k frames.
@@ -17,15 +18,16 @@ from pathlib import Path
 
 import numpy as np
 import tyro
+from plot import run_folders
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 
 @dataclass
 class Args:
-    match: str
-    """regular expression a run folder's name must contain"""
     runs_dir: str = "runs"
-    """folder of run folders"""
+    """folder searched at any depth for run folders: runs/, or a sweep's folder"""
+    match: str = ""
+    """regular expression a run folder's name must contain"""
     window: int = 100_000
     """frames per window"""
     end: int = 1_000_000
@@ -42,7 +44,7 @@ if __name__ == "__main__":
     edges = np.arange(0, args.end + 1, args.window)
     settings: dict[str, list[np.ndarray]] = {}
     print(f"success per {args.window:,}-frame window, windows starting at {edges[0]:,} .. {edges[-2]:,}")
-    for run in sorted(p for p in Path(args.runs_dir).iterdir() if p.is_dir() and re.search(args.match, p.name)):
+    for run in (path for path in run_folders(Path(args.runs_dir)) if re.search(args.match, path.name)):
         accumulator = EventAccumulator(str(run), size_guidance={"scalars": 0})
         accumulator.Reload()
         steps, success = scalars(accumulator, "charts/success_rate")

@@ -1,6 +1,7 @@
 """How well a dgrl_hrac.py controller reaches subgoals on its own, from checkpoints, against an untrained controller.
 
-    python benchmark/hrac_controller.py runs/AntMaze__G*__cpu__1__*/cpu.cleanrl_model   # the study's checkpoints
+    python benchmark/hrac_controller.py sweeps/hrac-antmaze-cpu/*/runs/*/hrac-antmaze-cpu.cleanrl_model
+    # the checkpoints of `python benchmark/launch.py --preset hrac-antmaze-cpu` (docs/dgrl_hrac.md)
 
 For each checkpoint (and an untrained agent of the same flags, seed 0) the ant starts from a reset of AntMaze's open
 start cell and is given, for 5 segments of k = 10 steps, the relative subgoal that points at one fixed point 4 m away

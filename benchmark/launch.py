@@ -62,7 +62,7 @@ class Arm:
     groups: tuple[int, ...] = (0, 16)
     seeds: tuple[int, ...] = (1, 2, 3)
     flags: str = ""  # extra flags for every run, as typed on a command line
-    tag: str = ""  # tells apart arms of one script and env with other flags: added to the run ids and --exp-name
+    tag: str = ""  # tells apart the run ids of arms of one script and env with other flags (e.g. K8)
 
 
 @dataclass(frozen=True)
@@ -344,17 +344,17 @@ def slug(text: str) -> str:
 
 def expand(arms: tuple[Arm, ...], name: str, sweep_dir: Path, threads: int) -> list[Run]:
     """Every run of the arms, in order (seed outermost, so that an early stop leaves whole seeds). A run is named
-    `{script}__{env}__{tag}__G{groups}__s{seed}` (the parts it has); its --exp-name is the sweep's name, plus the arm's
-    tag, so that arms of one script and env stay apart in the plots."""
+    `{script}__{env}__{tag}__G{groups}__s{seed}` (the parts it has); its --exp-name is the sweep's name (the plots
+    group runs by the script's run name, which holds the env, groups, the exp name and what else the script puts
+    there, such as goal-DQN's K)."""
     runs, seen = [], {}
     for arm in arms:
         flags = shlex.split(arm.flags)
-        exp_name = f"{name}-{arm.tag}" if arm.tag else name
         for seed in arm.seeds:
             for env in arm.env_ids or (None,):
                 for groups in arm.groups:
                     argv = ([] if env is None else ["--env-id", env]) + ["--groups", str(groups), "--seed", str(seed)]
-                    argv += [*flags, "--exp-name", exp_name, "--threads", str(threads)]
+                    argv += [*flags, "--exp-name", name, "--threads", str(threads)]
                     parts = [Path(arm.script).stem.removeprefix("dgrl_"), env or "", arm.tag, f"G{groups}", f"s{seed}"]
                     run_id = "__".join(part for part in parts if part)
                     if run_id in seen:
@@ -527,7 +527,7 @@ def run_local(runs: list[Run], workers: int, python: str, threads: int, table_ev
     pending, active = list(runs), []
     stop = []
     previous = {number: signal.signal(number, lambda n, f: stop.append(n)) for number in (signal.SIGINT, signal.SIGTERM)}
-    last_table = 0.0
+    last_table = time.time()  # the first table after --table-every seconds, when the runs have something to show
     try:
         while pending or active:
             if stop:  # the first Ctrl-C or SIGTERM stops the runs cleanly, a second one at once
@@ -676,6 +676,7 @@ def run_slurm(runs: list[Run], args: Args, folder: Path) -> dict[str, str]:
     executor = slurm_executor(args, folder)
     with executor.batch():
         jobs = [executor.submit(SlurmTask(chunk, args.python, args.threads, stop_wait)) for chunk in chunks]
+    submitted = time.time() - 1  # file times may be a little behind this clock
     jobs_file.write_text(json.dumps([job.job_id for job in jobs]) + "\n")
     print(
         f"submitted {len(jobs)} array tasks of job {jobs[0].job_id.split('_')[0]} ({len(runs)} runs); "
@@ -686,14 +687,14 @@ def run_slurm(runs: list[Run], args: Args, folder: Path) -> dict[str, str]:
     waiting = dict(zip(jobs, chunks, strict=True))
     stop = []
     previous = signal.signal(signal.SIGINT, lambda n, f: stop.append(n))
-    last_table = 0.0
+    last_table = time.time()
     try:
         while waiting and not stop:
             for job, chunk in list(waiting.items()):
-                for run in chunk:
-                    state = run.status().get("state")
-                    if state:
-                        states[run.run_id] = state
+                for run in chunk:  # a status written before this submission is an earlier launch's: still queued
+                    status_file = run.folder / STATUS_FILE
+                    if status_file.is_file() and status_file.stat().st_mtime >= submitted:
+                        states[run.run_id] = run.status().get("state", "queued")
                 if not job.done():
                     continue
                 del waiting[job]

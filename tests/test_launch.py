@@ -89,7 +89,7 @@ def test_a_grid_is_the_product_of_its_lists_with_readable_run_ids(tmp_path):
     assert [run.run_id.split("__")[-1] for run in runs[:4]] == ["s1"] * 4
 
 
-def test_arms_of_one_script_and_env_need_tags_and_get_their_own_exp_name(tmp_path):
+def test_arms_of_one_script_and_env_need_tags(tmp_path):
     untagged = (
         launch.Arm("dgrl_amigo.py", ("E",), (0,), (1,), "--a 1"),
         launch.Arm("dgrl_amigo.py", ("E",), (0,), (1,), "--a 2"),
@@ -102,7 +102,7 @@ def test_arms_of_one_script_and_env_need_tags_and_get_their_own_exp_name(tmp_pat
     )
     runs = launch.expand(tagged, "s", tmp_path, 1)
     assert [run.run_id for run in runs] == ["amigo__E__x__G0__s1", "amigo__E__y__G0__s1"]
-    assert runs[0].argv[runs[0].argv.index("--exp-name") + 1] == "s-x"
+    assert runs[0].argv[runs[0].argv.index("--exp-name") + 1] == "s"
 
 
 def test_the_command_line_replaces_a_presets_axes_and_appends_flags():

@@ -313,14 +313,19 @@ PartitionName=debug Nodes=$HOST Default=YES MaxTime=INFINITE State=UP
 EOF
 }
 
-start_slurmdbd() {
-    if alive slurmdbd "$D/slurmdbd.pid"; then
-        log "slurmdbd already running"
+# start_daemon NAME: start the Slurm daemon NAME (pid file and log $D/NAME.pid, $D/NAME.log) unless it runs already.
+start_daemon() {
+    if alive "$1" "$D/$1.pid"; then
+        log "$1 already running"
     else
-        log "starting slurmdbd"
-        rm -f "$D/slurmdbd.pid"
-        slurmdbd >>"$D/slurmdbd.log" 2>&1 || die "slurmdbd failed to start" "$D/slurmdbd.log"
+        log "starting $1"
+        rm -f "$D/$1.pid"
+        "$1" >>"$D/$1.log" 2>&1 || die "$1 failed to start" "$D/$1.log"
     fi
+}
+
+start_slurmdbd() {
+    start_daemon slurmdbd
     PIDFILE="$D/slurmdbd.pid" wait_for slurmdbd "$D/slurmdbd.log" sacctmgr -n list cluster
     if [[ -z "$(sacctmgr -n -P list cluster format=cluster where cluster="$CLUSTER")" ]]; then
         log "registering cluster $CLUSTER"
@@ -329,21 +334,9 @@ start_slurmdbd() {
 }
 
 start_slurm() {
-    if alive slurmctld "$D/slurmctld.pid"; then
-        log "slurmctld already running"
-    else
-        log "starting slurmctld"
-        rm -f "$D/slurmctld.pid"
-        slurmctld >>"$D/slurmctld.log" 2>&1 || die "slurmctld failed to start" "$D/slurmctld.log"
-    fi
+    start_daemon slurmctld
     PIDFILE="$D/slurmctld.pid" wait_for slurmctld "$D/slurmctld.log" timeout 3 scontrol ping
-    if alive slurmd "$D/slurmd.pid"; then
-        log "slurmd already running"
-    else
-        log "starting slurmd"
-        rm -f "$D/slurmd.pid"
-        slurmd >>"$D/slurmd.log" 2>&1 || die "slurmd failed to start" "$D/slurmd.log"
-    fi
+    start_daemon slurmd
     # Right after a (re)start the node reads "unknown" for a few seconds: wait on its state.
     PIDFILE="$D/slurmd.pid" wait_for "slurmd (node $HOST idle)" "$D/slurmd.log" node_ready
     log "node $HOST is $(node_state)"

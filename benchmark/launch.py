@@ -30,6 +30,7 @@ failed are reported again (or run again with `--retry`).
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -898,6 +899,26 @@ def check(args: Args) -> list[str]:
     return errors
 
 
+def hold_lock(folder: Path):
+    """An exclusive lock on the sweep's folder for as long as this launcher runs (the kernel drops it when the process
+    ends, however it ends), so that two launchers never run the same runs at once."""
+    handle = open(folder / "launch.lock", "a+")  # kept open: closing it would drop the lock
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        exit_on_errors(
+            [
+                f"{folder} is in use by another launcher ({handle.read().strip() or 'pid unknown'}): wait for it "
+                "to end, or stop it with Ctrl-C, before launching this sweep again"
+            ]
+        )
+    handle.truncate(0)
+    handle.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+    handle.flush()
+    return handle
+
+
 def describe_presets() -> str:
     lines = []
     for name, preset in PRESETS.items():
@@ -933,6 +954,7 @@ def main(args: Args) -> int:
             print(f"{run.run_id}: cd {run.folder} && {shlex.join(command_of(run, args.python))}")
         return 0
     folder.mkdir(parents=True, exist_ok=True)
+    lock = hold_lock(folder)  # noqa: F841 (held until the launcher exits)
     (folder / "sweep.json").write_text(
         json.dumps(
             {

@@ -253,6 +253,21 @@ def test_ctrl_c_stops_a_local_sweep_cleanly_and_a_relaunch_resumes_it_exactly(tm
     assert_same_run(run_dir(tmp_path / "straight" / "dgrl_goal_dqn", run_id), run_dir(sweep, run_id))
 
 
+def test_a_second_launcher_of_a_running_sweep_is_refused(tmp_path):
+    """Two launchers of one sweep would run the same runs twice: the second exits with status 2, naming the first."""
+    script = tmp_path / "sleeping.py"
+    script.write_text(SLEEPING_SCRIPT)
+    flags = ["--script", str(script), "--groups", "0", "--seeds", "1"]
+    first = popen_launcher(tmp_path / "sweeps", *flags)
+    sweep = tmp_path / "sweeps" / "sleeping"
+    wait_for(lambda: log_has_progress(sweep, "sleeping__G0__s1", re.compile("^step 1/10", re.M)), 60, "the run's start")
+    second = launcher(tmp_path / "sweeps", *flags, timeout=60)
+    assert second.returncode == 2 and "is in use by another launcher (pid" in second.stderr, second.stderr
+    assert status(sweep, "sleeping__G0__s1")["attempts"] == 1
+    first.send_signal(signal.SIGINT)  # the sleeping run has no stop handler: SIGTERM ends it, and it counts as failed
+    assert first.wait(timeout=60) == 1
+
+
 # --- The Slurm backend, on a real cluster ------------------------------------------------------------------------------
 
 
@@ -354,6 +369,27 @@ def test_a_failing_run_on_slurm_surfaces_its_traceback(tmp_path):
     assert result.returncode == 1, result.stdout[-3000:]
     assert "FAILED failing__G0__s1: exit code 1;" in result.stdout
     assert "ValueError: boom: this run fails on purpose" in result.stdout
+
+
+@pytest.mark.slurm
+@needs_slurm
+def test_a_sweep_whose_jobs_are_still_queued_is_not_submitted_again(tmp_path):
+    """Ctrl-C on the launcher leaves the job running; launching the sweep again then refuses, naming the job."""
+    script = tmp_path / "sleeping.py"
+    script.write_text(SLEEPING_SCRIPT)
+    flags = ["--script", str(script), "--groups", "0", "--seeds", "1", "--backend", "slurm"]
+    first = popen_launcher(tmp_path / "sweeps", *flags)
+    sweep = tmp_path / "sweeps" / "sleeping"
+    job = slurm_job(sweep)
+    try:
+        wait_for(lambda: log_has_progress(sweep, "sleeping__G0__s1", re.compile("^step 1/10", re.M)), 180, "the run's start")
+        first.send_signal(signal.SIGINT)
+        output = first.communicate(timeout=60)[0]
+        assert first.returncode == 130 and "stopped waiting: the jobs go on in the queue" in output, output
+        again = launcher(tmp_path / "sweeps", *flags, timeout=120)
+        assert again.returncode == 2 and f"this sweep already has jobs in the queue ({job.job_id})" in again.stderr
+    finally:
+        subprocess.run(["scancel", job.job_id.split("_")[0]], check=False)
 
 
 @pytest.mark.slurm

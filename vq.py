@@ -145,7 +145,7 @@ class VectorQuantizerEMA(nn.Module):
         finite = segments.isfinite().all(1)
         segments = torch.where(finite.unsqueeze(1), segments, 0.0)
         binned = torch.where(finite, flat_indices, self.n_embed)
-        counts = torch.bincount(binned, minlength=self.n_embed + 1)[: self.n_embed].float()
+        counts = code_counts(binned, self.n_embed + 1)[: self.n_embed]
         sums = code_sums(segments, flat_indices, self.n_embed, use_gemm=segments.device.type != "cpu")
         self.ema_count.mul_(self.decay).add_(counts, alpha=1.0 - self.decay)
         self.ema_sum.mul_(self.decay).add_(sums, alpha=1.0 - self.decay)
@@ -183,6 +183,16 @@ def code_sums(segments: torch.Tensor, indices: torch.Tensor, n_embed: int, use_g
     return one_hot.t() @ segments
 
 
+def code_counts(indices: torch.Tensor, n_bins: int) -> torch.Tensor:
+    """How often each of `n_bins` values occurs in `indices`, as float32 of shape (n_bins,): `torch.bincount` without
+    its host sync (bincount reads the largest index back to size its output, which stalls a GPU stream and breaks CUDA
+    graph capture). Counts are whole numbers, exact in float32 up to 2**24 a bin, so the order of the additions (atomic
+    on CUDA) cannot change them."""
+    flat = indices.flatten()
+    ones = torch.ones(flat.shape, dtype=torch.float32, device=flat.device)
+    return torch.zeros(n_bins, dtype=torch.float32, device=flat.device).index_add_(0, flat, ones)
+
+
 def factor_match(indices_a: torch.Tensor, indices_b: torch.Tensor) -> torch.Tensor:
     """Fraction of the G factors whose code index agrees, shape (...,) in [0, 1]: the DGRL intrinsic reward."""
     if indices_a.shape != indices_b.shape:
@@ -192,14 +202,14 @@ def factor_match(indices_a: torch.Tensor, indices_b: torch.Tensor) -> torch.Tens
 
 def perplexity(indices: torch.Tensor, n_embed: int) -> torch.Tensor:
     """exp(entropy) of the code-usage histogram over every factor in `indices`: 1 = collapse, n_embed = uniform."""
-    probs = torch.bincount(indices.flatten(), minlength=n_embed).float()
+    probs = code_counts(indices, n_embed)
     probs = probs / probs.sum()
     return torch.exp(-(probs * torch.log(probs.clamp_min(1e-12))).sum())
 
 
 def active_codes(indices: torch.Tensor, n_embed: int) -> torch.Tensor:
     """Number of distinct codes used by any factor in `indices`."""
-    return (torch.bincount(indices.flatten(), minlength=n_embed) > 0).sum()
+    return (code_counts(indices, n_embed) > 0).sum()
 
 
 @torch.no_grad()

@@ -9,6 +9,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # headless in-process rendering; read
 
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,6 +39,50 @@ def run_script(tmp_path):
         )
 
     return run
+
+
+class NoHostSync(TorchDispatchMode):
+    """Fails on every op that makes the host wait for the device: reading a value back (`.item()`, `bool(tensor)`:
+    aten._local_scalar_dense), ops whose output size depends on the data (nonzero, masked_select, unique, bincount,
+    which reads its largest index), and copies from a device to the host. Code that runs clean under it on the CPU
+    never stalls a GPU stream and can be captured in a CUDA graph."""
+
+    FORBIDDEN = frozenset(
+        getattr(torch.ops.aten, name)
+        for name in (
+            "_local_scalar_dense",
+            "nonzero",
+            "masked_select",
+            "bincount",
+            "unique",
+            "_unique",
+            "_unique2",
+            "unique_consecutive",
+            "unique_dim",
+            "repeat_interleave",
+            "argwhere",
+            "nonzero_static",
+        )
+        if hasattr(torch.ops.aten, name)
+    )
+
+    INDEXING = frozenset(getattr(torch.ops.aten, name) for name in ("index", "index_put", "index_put_", "_index_put_impl_"))
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func.overloadpacket in self.FORBIDDEN:
+            raise AssertionError(f"{func} makes the host wait for the device")
+        if func.overloadpacket in self.INDEXING and any(
+            index is not None and index.dtype in (torch.bool, torch.uint8) for index in args[1]
+        ):  # a boolean mask as an index is a nonzero on the device
+            raise AssertionError(f"{func} with a boolean mask makes the host wait for the device")
+        out = func(*args, **kwargs)
+        if func.overloadpacket in (torch.ops.aten._to_copy, torch.ops.aten.copy_):
+            source = args[1] if func.overloadpacket is torch.ops.aten.copy_ else args[0]
+            target = args[0] if func.overloadpacket is torch.ops.aten.copy_ else out
+            if source.device.type != "cpu" and target.device.type == "cpu":
+                raise AssertionError(f"{func} copies from {source.device} to the host")
+        return out
 
 
 WALL_CLOCK_TAGS = ("charts/SPS",)  # scalars that measure time, not the run: never compared

@@ -7,7 +7,17 @@ import pytest
 import torch
 import torch.nn as nn
 
-from vq import VectorQuantizerEMA, active_codes, code_sums, factor_match, make_target, perplexity, update_target
+from tests.conftest import NoHostSync
+from vq import (
+    VectorQuantizerEMA,
+    active_codes,
+    code_counts,
+    code_sums,
+    factor_match,
+    make_target,
+    perplexity,
+    update_target,
+)
 
 
 def numpy_vqvae_ema_step(codebook, ema_count, ema_sum, vectors, decay, eps):
@@ -338,6 +348,50 @@ def test_perplexity_and_active_codes():
     assert perplexity(collapsed, 16).item() == pytest.approx(1.0)
     assert active_codes(uniform, 16).item() == 8
     assert active_codes(collapsed, 16).item() == 1
+
+
+# --- no host sync: the update never waits for the device ------------------------------------------------------------
+
+
+def test_code_counts_equal_bincount():
+    indices = torch.randint(0, 37, (5000,))
+    indices[:7] = 36  # the last bin used
+    torch.testing.assert_close(code_counts(indices, 40), torch.bincount(indices, minlength=40).float(), rtol=0, atol=0)
+    assert code_counts(indices.view(50, 100), 40).dtype == torch.float32
+
+
+def test_the_no_host_sync_guard_catches_what_it_names():
+    """The guard the update tests rely on: each of these must fail under it (a guard that lets them pass is useless)."""
+    x = torch.randn(64)
+    for sync in (
+        lambda: x.sum().item(),
+        lambda: torch.bincount(x.long().abs()),
+        lambda: x[x > 0],
+        lambda: x.nonzero(),
+        lambda: bool(x.max() > 0),
+        lambda: torch.unique(x),
+    ):
+        with pytest.raises(AssertionError, match="makes the host wait"), NoHostSync():
+            sync()
+    with NoHostSync():  # what a sync-free update does is allowed
+        (x * 2).sum().add_(1)
+        torch.where(x > 0, x, 0.0).index_add_(0, torch.zeros(64, dtype=torch.long), x)
+
+
+@pytest.mark.parametrize("dead_code_steps", [0, 3])
+def test_a_training_step_never_makes_the_host_wait(dead_code_steps):
+    """Quantization, the loss, the EMA update with a non-finite row dropped, and a dead-code restart: all without a
+    value read back or a data-dependent shape (bincount was one: it reads its largest index)."""
+    vq = VectorQuantizerEMA(dim=16, n_embed=32, groups=4, dead_code_steps=dead_code_steps)
+    z = torch.randn(64, 16, requires_grad=True)
+    bad = z.detach().clone()
+    bad[3, 5] = float("nan")
+    with NoHostSync():
+        for inputs in (z, z, bad, z, z):
+            quantized, loss, indices = vq(inputs)
+        (quantized.sum() + loss).backward()
+        perplexity(indices, 32), active_codes(indices, 32)
+    assert vq.steps_unused.max() < max(dead_code_steps, 1) or dead_code_steps == 0
 
 
 # --- bad input --------------------------------------------------------------------------------------------------------

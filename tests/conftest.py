@@ -68,8 +68,11 @@ class NoHostSync(TorchDispatchMode):
 
     INDEXING = frozenset(getattr(torch.ops.aten, name) for name in ("index", "index_put", "index_put_", "_index_put_impl_"))
 
+    ops = 0  # how many ops ran under the guard: a measure of per-op dispatch overhead
+
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
+        self.ops += 1
         if func.overloadpacket in self.FORBIDDEN:
             raise AssertionError(f"{func} makes the host wait for the device")
         if func.overloadpacket in self.INDEXING and any(

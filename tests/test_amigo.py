@@ -25,6 +25,7 @@ from minigrid.core.world_object import Door
 from minigrid.wrappers import FullyObsWrapper
 
 import dgrl_amigo as amigo
+from tests.conftest import NoHostSync
 
 LEFT, RIGHT, FORWARD, PICKUP, DROP, TOGGLE, DONE = range(7)
 DOORKEY, EMPTY, CORRIDOR = "MiniGrid-DoorKey-5x5-v0", "MiniGrid-Empty-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0"
@@ -503,6 +504,39 @@ def test_vtrace_off_policy_matches_the_truncated_recursion(seed):
     expected_vs, expected_advantages = naive_vtrace(*inputs)
     np.testing.assert_allclose(vs, expected_vs, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(advantages, expected_advantages, rtol=1e-5, atol=1e-5)
+
+
+def float64_vtrace_recursion(behaviour, target, rewards, values, bootstrap, discounts):
+    """V-trace as the backward recursion acc_s = delta_s + gamma_s c_s acc_{s+1}, in float64 (rho_bar = c_bar = 1)."""
+    ratio = np.exp(target - behaviour)
+    rho = c = np.minimum(1.0, ratio)
+    deltas = rho * (rewards + discounts * np.concatenate([values[1:], bootstrap[None]]) - values)
+    acc, corrections = np.zeros_like(bootstrap), np.zeros_like(values)
+    for t in reversed(range(len(values))):
+        acc = deltas[t] + discounts[t] * c[t] * acc
+        corrections[t] = acc
+    vs = values + corrections
+    return vs, rho * (rewards + discounts * np.concatenate([vs[1:], bootstrap[None]]) - values)
+
+
+def test_vtrace_at_the_learners_size_matches_the_recursion_without_a_time_loop():
+    """T = 100 steps x 8 rollouts, sparse rewards, episode ends, off-policy ratios: the matrix form agrees with the
+    float64 recursion to 1e-5, and runs without a host sync (it is one fixed-shape computation)."""
+    rng = np.random.default_rng(0)
+    T, B = 100, 8
+    behaviour = np.log(rng.uniform(0.05, 1.0, (T, B)))
+    target = behaviour + rng.normal(0.0, 0.3, (T, B))
+    rewards = (rng.random((T, B)) < 0.05) * rng.uniform(0.0, 1.0, (T, B))
+    values, bootstrap = rng.normal(size=(T, B)), rng.normal(size=B)
+    discounts = 0.99 * (rng.random((T, B)) >= 0.01)
+    inputs = [torch.tensor(a, dtype=torch.float32) for a in (behaviour, target, rewards, values, bootstrap, discounts)]
+    with NoHostSync() as guard:
+        vs, advantages = amigo.vtrace(*inputs)
+    assert guard.ops < 60, f"{guard.ops} ops: a loop over the {T} time steps takes 4 or more each"
+    expected_vs, expected_advantages = float64_vtrace_recursion(behaviour, target, rewards, values, bootstrap, discounts)
+    np.testing.assert_allclose(vs.double().numpy(), expected_vs, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(advantages.double().numpy(), expected_advantages, rtol=1e-5, atol=1e-5)
+    assert (discounts == 0).any() and (np.exp(target - behaviour) > 1).any()
 
 
 def test_actor_critic_loss_by_hand():

@@ -686,7 +686,7 @@ def tensors(device, *arrays: np.ndarray) -> list[torch.Tensor]:
 def propose_goals(teacher: Teacher, frames: np.ndarray, device) -> tuple[np.ndarray, np.ndarray]:
     """Sample one goal cell per frame from the teacher; (goals, their log-probabilities)."""
     logits, _ = teacher(torch.as_tensor(frames, device=device))
-    dist = torch.distributions.Categorical(logits=logits)
+    dist = torch.distributions.Categorical(logits=logits, validate_args=False)  # validation reads values back: a sync
     goals = dist.sample()
     return goals.cpu().numpy(), dist.log_prob(goals).cpu().numpy()
 
@@ -702,7 +702,7 @@ def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Te
     """The student's sampled actions and their log-probabilities."""
     grids_t, carry_t, goals_t = tensors(device, obs["grid"], obs["carried"], goals)
     logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)
-    actions = torch.distributions.Categorical(logits=logits).sample()
+    actions = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
     return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
 
 
@@ -710,7 +710,7 @@ def renew_goals(agent: Agent, book: GoalBook, mask: np.ndarray, grids: np.ndarra
     """New teacher goals for the envs in `mask`, issued on their current frames, and their embeddings."""
     book.issue(mask, grids[mask], *propose_goals(agent.teacher, grids[mask], device))
     embeddings = embed_goals(agent.goal_encoder, book.frame[mask], book.goal[mask], device)
-    goal_embedding[torch.as_tensor(mask, device=device)] = embeddings
+    goal_embedding[torch.as_tensor(np.flatnonzero(mask), device=device)] = embeddings  # a boolean index would sync
 
 
 def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.ndarray:

@@ -489,6 +489,7 @@ class Actor(nn.Module):
         super().__init__()
         self.net = mlp(state_dim + goal_dim, hidden_dim, action_dim)
         self.register_buffer("max_action", torch.as_tensor(max_action, dtype=torch.float32))  # a float or one per dim
+        self.max_action_numpy = np.asarray(max_action, dtype=np.float32)
 
     def forward(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         return self.max_action * torch.tanh(self.net(torch.cat([states, goals], -1)))
@@ -938,7 +939,8 @@ def controller_action(
     goal_input = controller_goal_input(agent.encoder, goal_input)  # DGRL: z_q of the subgoal
     action = actor(masked_state, goal_input)[0].cpu().numpy()
     if noise > 0:
-        action = np.clip(action + rng.normal(0.0, noise, action.shape), -actor.max_action.item(), actor.max_action.item())
+        limit = actor.max_action_numpy  # on the host: reading the device buffer back every step would be a sync
+        action = np.clip(action + rng.normal(0.0, noise, action.shape), -limit, limit)
     return action
 
 

@@ -675,8 +675,12 @@ def run_slurm(runs: list[Run], args: Args, folder: Path) -> dict[str, str]:
     chunks = [runs[i : i + args.runs_per_task] for i in range(0, len(runs), args.runs_per_task)]
     stop_wait = max(args.signal_delay_s - 15, 10)  # the time limit comes signal_delay_s after the stop signal
     executor = slurm_executor(args, folder)
-    with executor.batch():
-        jobs = [executor.submit(SlurmTask(chunk, args.python, args.threads, stop_wait)) for chunk in chunks]
+    try:
+        with executor.batch():
+            jobs = [executor.submit(SlurmTask(chunk, args.python, args.threads, stop_wait)) for chunk in chunks]
+    except (submitit.core.utils.UncompletedJobError, submitit.core.utils.FailedSubmissionError) as error:
+        message = " ".join(str(error).split())  # sbatch's own words, e.g. an unknown partition or account
+        exit_on_errors([f"sbatch refused the sweep's job array: {message[-600:]}"])
     submitted = time.time() - 1  # file times may be a little behind this clock
     jobs_file.write_text(json.dumps([job.job_id for job in jobs]) + "\n")
     print(

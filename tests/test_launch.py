@@ -360,6 +360,15 @@ def test_a_slurm_job_at_its_time_limit_requeues_and_ends_equal_to_an_uninterrupt
 
 @pytest.mark.slurm
 @needs_slurm
+def test_a_job_array_that_sbatch_refuses_exits_2_with_sbatchs_message(tmp_path):
+    result = launcher(tmp_path, "--preset", "smoke", "--backend", "slurm", "--partition", "no-such-partition", timeout=120)
+    assert result.returncode == 2, result.stdout[-2000:] + result.stderr[-2000:]
+    assert "sbatch refused the sweep's job array" in result.stderr and "invalid partition" in result.stderr.lower()
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.slurm
+@needs_slurm
 def test_a_failing_run_on_slurm_surfaces_its_traceback(tmp_path):
     script = tmp_path / "failing.py"
     script.write_text(FAILING_SCRIPT)

@@ -392,6 +392,9 @@ def command_of(run: Run, python: str) -> list[str]:
     return command
 
 
+STOPPED_BY = (-signal.SIGTERM, -signal.SIGUSR1)  # the launcher's stop signals, as exit statuses of an unhandled one
+
+
 def start(run: Run, python: str, threads: int) -> Attempt:
     """Start the run in its folder, its output appended to log.txt. A run with no resume file starts afresh: whatever
     an earlier attempt left in runs/ is removed, so that every run has one run folder."""
@@ -420,6 +423,7 @@ def start(run: Run, python: str, threads: int) -> Attempt:
             "pid": process.pid,
             "parent_pid": os.getpid(),
             "slurm_job": os.environ.get("SLURM_ARRAY_JOB_ID", os.environ.get("SLURM_JOB_ID")),
+            "seconds": status.get("seconds", 0),  # over every attempt
         },
     )
     return Attempt(run, process, log_start, time.time())
@@ -440,12 +444,13 @@ def attempt_text(attempt: Attempt) -> str:
 
 def finish(attempt: Attempt) -> dict:
     """Record how the ended attempt ended: done (exit 0 and the script's `done:` line), stopped (exit 0 after a stop
-    signal: it resumes on the next launch or requeue) or failed (any other exit)."""
+    signal, or killed by the stop signal this launcher sent before the script could handle it, in its first seconds:
+    it resumes, or starts again, on the next launch or requeue) or failed (any other exit)."""
     rc = attempt.process.returncode
     lines = attempt_text(attempt).splitlines()
     if rc == 0 and any(line.startswith("done: ") for line in lines):
         state = "done"
-    elif rc == 0 and any(line.startswith("stopped: ") for line in lines):
+    elif (rc == 0 and any(line.startswith("stopped: ") for line in lines)) or (attempt.signalled and rc in STOPPED_BY):
         state = "stopped"
     else:
         state = "failed"

@@ -264,8 +264,10 @@ def test_a_second_launcher_of_a_running_sweep_is_refused(tmp_path):
     second = launcher(tmp_path / "sweeps", *flags, timeout=60)
     assert second.returncode == 2 and "is in use by another launcher (pid" in second.stderr, second.stderr
     assert status(sweep, "sleeping__G0__s1")["attempts"] == 1
-    first.send_signal(signal.SIGINT)  # the sleeping run has no stop handler: SIGTERM ends it, and it counts as failed
+    first.send_signal(signal.SIGINT)  # the sleeping run has no stop handler: the launcher's SIGTERM ends it
     assert first.wait(timeout=60) == 1
+    ended = status(sweep, "sleeping__G0__s1")  # stopped by the launcher, not failed: a relaunch runs it again
+    assert ended["state"] == "stopped" and ended["rc"] == -signal.SIGTERM and ended["seconds"] > 0
 
 
 # --- The Slurm backend, on a real cluster ------------------------------------------------------------------------------

@@ -92,6 +92,27 @@ def _ris(env: str, steps: int, batch: int, start: int, every: int, episodes: int
     return Arm("dgrl_ris.py", (env,), groups, seeds, f"{flags} --eval-episodes {episodes} --save-model", "")
 
 
+def _amigo(
+    env: str,
+    frames: int,
+    groups: tuple[int, ...],
+    out: str,
+    source: str,
+    what: str,
+    extra: str = "",
+    bins: int = 20,
+    workers: int = 2,
+) -> Preset:
+    """An AMIGo study: AMIGo (G0) against AMIGo+DGRL on one MiniGrid env, 3 seeds, its curves binned over frames."""
+    dgrl = ", ".join(f"G{g}" for g in groups if g)
+    return Preset(
+        f"{source}: AMIGo vs AMIGo+DGRL ({dgrl}) on {env}, {what}, 3 seeds",
+        (Arm("dgrl_amigo.py", (env,), groups, (1, 2, 3), f"--total-timesteps {frames} {AMIGO_FLAGS} {extra}".strip()),),
+        (Plot(out, AMIGO_TAGS, f"{env}: AMIGo vs AMIGo+DGRL, {what}", bins=bins),),
+        workers=workers,
+    )
+
+
 QUICK_NOTE = """\
 What this shows. The paper's claim (section 5): with discrete factorial codes for state and goal (DGRL, here G = 16),
 a goal-conditioned DQN generalises better to goals it never trained on than the same agent on continuous embeddings
@@ -216,71 +237,33 @@ PRESETS: dict[str, Preset] = {
         (Arm("dgrl_ris_sawyer.py", (), (0, 16), (1, 2), f"--total-timesteps 30000 {SAWYER_CPU}"),),
         (Plot("ris_sawyer_cpu", (*SAWYER_TAGS, "losses/q_values"), "Sawyer push-and-reach from pixels, 30,000 steps"),),
     ),
-    "amigo-doorkey": Preset(
-        "docs/dgrl_amigo.md: AMIGo vs AMIGo+DGRL (G 8, 16) on MiniGrid-DoorKey-5x5-v0, 1M frames, 3 seeds",
-        (
-            Arm(
-                "dgrl_amigo.py",
-                ("MiniGrid-DoorKey-5x5-v0",),
-                (0, 8, 16),
-                (1, 2, 3),
-                f"--total-timesteps 1000000 {AMIGO_FLAGS}",
-            ),
-        ),
-        (Plot("amigo_doorkey_cpu", AMIGO_TAGS, "MiniGrid-DoorKey-5x5-v0: AMIGo vs AMIGo+DGRL, 1M frames", bins=20),),
+    "amigo-doorkey": _amigo(
+        "MiniGrid-DoorKey-5x5-v0", 1_000_000, (0, 8, 16), "amigo_doorkey_cpu", "docs/dgrl_amigo.md", "1M frames"
     ),
-    "amigo-s3r1": Preset(
-        "docs/dgrl_amigo.md: AMIGo vs AMIGo+DGRL (G 8, 16) on MiniGrid-KeyCorridorS3R1-v0, 1M frames, 3 seeds",
-        (
-            Arm(
-                "dgrl_amigo.py",
-                ("MiniGrid-KeyCorridorS3R1-v0",),
-                (0, 8, 16),
-                (1, 2, 3),
-                f"--total-timesteps 1000000 {AMIGO_FLAGS}",
-            ),
-        ),
-        (Plot("amigo_s3r1_cpu", AMIGO_TAGS, "MiniGrid-KeyCorridorS3R1-v0: AMIGo vs AMIGo+DGRL, 1M frames", bins=20),),
+    "amigo-s3r1": _amigo(
+        "MiniGrid-KeyCorridorS3R1-v0", 1_000_000, (0, 8, 16), "amigo_s3r1_cpu", "docs/dgrl_amigo.md", "1M frames"
     ),
-    "amigo-s3r1-3m": Preset(
-        "docs/dgrl_amigo.md: AMIGo vs AMIGo+DGRL (G16) on MiniGrid-KeyCorridorS3R1-v0, 3M frames, 3 seeds",
-        (
-            Arm(
-                "dgrl_amigo.py",
-                ("MiniGrid-KeyCorridorS3R1-v0",),
-                (0, 16),
-                (1, 2, 3),
-                f"--total-timesteps 3000000 {AMIGO_FLAGS}",
-            ),
-        ),
-        (Plot("amigo_s3r1_3m", AMIGO_TAGS, "MiniGrid-KeyCorridorS3R1-v0: AMIGo vs AMIGo+DGRL, 3M frames", bins=20),),
+    "amigo-s3r1-3m": _amigo(
+        "MiniGrid-KeyCorridorS3R1-v0", 3_000_000, (0, 16), "amigo_s3r1_3m", "docs/dgrl_amigo.md", "3M frames"
     ),
-    "amigo-nochannel": Preset(
-        "docs/dgrl_amigo.md: DoorKey-5x5 with the goal only through the encoder (--no-goal-channel), G 0 and 16, 3 seeds",
-        (
-            Arm(
-                "dgrl_amigo.py",
-                ("MiniGrid-DoorKey-5x5-v0",),
-                (0, 16),
-                (1, 2, 3),
-                f"--total-timesteps 1000000 {AMIGO_FLAGS} --no-goal-channel",
-            ),
-        ),
-        (Plot("amigo_doorkey_nochannel", AMIGO_TAGS, "DoorKey-5x5 without the goal channel, 1M frames", bins=20),),
+    "amigo-nochannel": _amigo(
+        "MiniGrid-DoorKey-5x5-v0",
+        1_000_000,
+        (0, 16),
+        "amigo_doorkey_nochannel",
+        "docs/dgrl_amigo.md",
+        "1M frames, the goal only through the encoder (--no-goal-channel)",
+        "--no-goal-channel",
     ),
     # The paper's figures at the paper's budgets: GPU jobs, for a cluster (`--backend slurm`) or a big machine.
-    "amigo-paper": Preset(
-        "the paper's AMIGo figure: AMIGo vs AMIGo+DGRL (G 8, 16) on KCmedium (KeyCorridorS3R3), 3e7 frames, 3 seeds",
-        (
-            Arm(
-                "dgrl_amigo.py",
-                ("MiniGrid-KeyCorridorS3R3-v0",),
-                (0, 8, 16),
-                (1, 2, 3),
-                f"--total-timesteps 30000000 {AMIGO_FLAGS}",
-            ),
-        ),
-        (Plot("amigo_kcmedium", AMIGO_TAGS, "KCmedium: AMIGo vs AMIGo+DGRL, 3e7 frames", bins=30),),
+    "amigo-paper": _amigo(
+        "MiniGrid-KeyCorridorS3R3-v0",
+        30_000_000,
+        (0, 8, 16),
+        "amigo_kcmedium",
+        "the paper's AMIGo figure",
+        "KCmedium, 3e7 frames",
+        bins=30,
         workers=1,
     ),
     "hrac-paper": Preset(

@@ -466,9 +466,27 @@ def progress_of(run: Run) -> dict:
     return {}
 
 
+STOP_SIGNALS = {signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2}
+
+
+def reaped(attempt: Attempt) -> int | None:
+    """The run's exit status once it has ended, else None. Reaps the process itself, with the stop signals held back
+    meanwhile, so that submitit's signal handler (which waits on the runs too) never finds it half-reaped, nor blocked
+    on a lock of Popen.wait that the interrupted main loop holds."""
+    if attempt.process.returncode is None:
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        try:
+            pid, wait_status = os.waitpid(attempt.process.pid, os.WNOHANG)
+            if pid:
+                attempt.process.returncode = os.waitstatus_to_exitcode(wait_status)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+    return attempt.process.returncode
+
+
 def stop_attempt(attempt: Attempt, number: int = signal.SIGTERM) -> None:
     """Ask the run to stop after its current step (once: a second signal of the same kind stops it at once)."""
-    if not attempt.signalled and attempt.process.poll() is None:
+    if not attempt.signalled and reaped(attempt) is None:
         attempt.process.send_signal(number)
         attempt.signalled = True
 
@@ -560,24 +578,6 @@ except ImportError:  # the local backend needs nothing beyond the standard libra
     Checkpointable = object
 
 
-STOP_SIGNALS = {signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2}
-
-
-def reaped(attempt: Attempt) -> int | None:
-    """The run's exit status once it has ended, else None. Reaps the process itself, with the stop signals held back
-    meanwhile, so that submitit's signal handler (which waits on the runs too) never finds it half-reaped, nor blocked
-    on a lock of Popen.wait that the interrupted main loop holds."""
-    if attempt.process.returncode is None:
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-        try:
-            pid, wait_status = os.waitpid(attempt.process.pid, os.WNOHANG)
-            if pid:
-                attempt.process.returncode = os.waitstatus_to_exitcode(wait_status)
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
-    return attempt.process.returncode
-
-
 class SlurmTask(Checkpointable):
     """One array task: its runs (several when packed on one GPU), side by side. On Slurm's signal before a time limit
     or on preemption, submitit calls `checkpoint`: every run is asked to stop after its current step, its resume file
@@ -616,9 +616,7 @@ class SlurmTask(Checkpointable):
         # Slurm signals every process of the job: the runs have most likely had SIGTERM and/or SIGUSR2 already. SIGUSR1
         # is a kind they have not had, so sending it is harmless when they have and stops them when they have not.
         for attempt in self.attempts:
-            if reaped(attempt) is None and not attempt.signalled:
-                attempt.process.send_signal(signal.SIGUSR1)
-                attempt.signalled = True
+            stop_attempt(attempt, signal.SIGUSR1)
         self.wait(timeout=self.stop_wait)
         for attempt in self.attempts:
             finish(attempt)
@@ -969,7 +967,7 @@ def main(args: Args) -> int:
             todo.append(run)
     skipped = sum(state == "skipped" for state in states.values())
     failed_before = [run for run in runs if states.get(run.run_id) == "failed"]
-    resuming = sum(command_of(run, args.python)[-2:-1] == ["--resume"] for run in todo)
+    resuming = sum("--resume" in command_of(run, args.python) for run in todo)
     print(
         f"sweep {name}: {len(runs)} runs in {folder}; {skipped} done before, {len(failed_before)} failed before "
         f"(--retry runs them again), {len(todo)} to run ({resuming} resuming)",

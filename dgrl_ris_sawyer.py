@@ -32,6 +32,7 @@ import importlib.util
 import math
 import os
 import random
+import shutil
 import signal
 import sys
 import time
@@ -78,6 +79,8 @@ class Args:
     """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
+    fast: str = "eager"
+    """the update's speed path: eager (plain PyTorch), compile (torch.compile, one graph), cudagraphs (compiled, CUDA graph)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
     checkpoint_every: int = 1800
@@ -982,7 +985,7 @@ DGRL_MUST_MATCH = ("n_embed",)  # DGRL: the codebook's size, which matters only 
 
 CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
-FREE_FLAGS = ("resume", "checkpoint_every", "threads", "capture_video", "save_model", "track", "wandb_project_name",
+FREE_FLAGS = ("resume", "checkpoint_every", "threads", "fast", "capture_video", "save_model", "track", "wandb_project_name",
               "wandb_entity")  # fmt: skip
 
 
@@ -1031,6 +1034,12 @@ def common_errors(args) -> list[str]:
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
     errors += range_errors(args, "checkpoint_every", 0)
+    if args.fast not in FAST_PATHS:
+        errors.append(f"--fast {args.fast!r} is unknown: use one of {', '.join(FAST_PATHS)}")
+    elif args.fast == "cudagraphs" and not (args.cuda and torch.cuda.is_available()):
+        errors.append("--fast cudagraphs needs a CUDA device (none is visible, or --no-cuda): use --fast compile or eager")
+    elif args.fast != "eager" and not (args.cuda and torch.cuda.is_available()) and shutil.which("g++") is None:
+        errors.append(f"--fast {args.fast} on a CPU needs a C++ compiler (g++) for torch.compile; install one or use eager")
     if args.resume is not None:
         name = os.path.basename(os.path.normpath(args.resume))
         if not os.path.isfile(os.path.join(args.resume, RESUME_FILE)):
@@ -1217,6 +1226,119 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 
     os.makedirs(os.path.dirname(path), exist_ok=True)
     ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+
+
+FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast's choices
+
+
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One gradient step on `loss`: clear the gradients of the optimizer's parameters, backpropagate, clip their global
+    norm to `max_grad_norm` if given, step. Eagerly the step is the optimizer's own; inside torch.compile (--fast compile
+    or cudagraphs) it is functional_step, the same arithmetic without Optimizer.step's graph breaks."""
+    params = [param for group in optimizer.param_groups for param in group["params"]]
+    for param in params:
+        param.grad = None
+    loss.backward()
+    if max_grad_norm is not None:
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    if torch.compiler.is_compiling():
+        functional_step(optimizer)
+    else:
+        optimizer.step()
+
+
+def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
+    """Create the state an Adam or RMSprop step would create on its first call (zeros, the step count as a tensor on the
+    parameter's device), so that a compiled update finds it in place."""
+    for group in optimizer.param_groups:
+        for param in group["params"]:
+            if optimizer.state[param]:
+                continue
+            state = {"step": torch.zeros((), dtype=torch.float32, device=param.device)}
+            names = ("exp_avg", "exp_avg_sq") if isinstance(optimizer, torch.optim.Adam) else ("square_avg",)
+            state.update({name: torch.zeros_like(param, memory_format=torch.preserve_format) for name in names})
+            optimizer.state[param] = state
+
+
+@torch.no_grad()
+def functional_step(optimizer: torch.optim.Optimizer) -> None:
+    """optimizer.step() for torch.optim.Adam and RMSprop (no weight decay, momentum, amsgrad or centring: the options the
+    scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the optimizer's own."""
+    for group in optimizer.param_groups:
+        params = [param for param in group["params"] if param.grad is not None]
+        grads = [param.grad for param in params]
+        states = [optimizer.state[param] for param in params]
+        steps = [state["step"] for state in states]
+        torch._foreach_add_(steps, 1.0)
+        if isinstance(optimizer, torch.optim.Adam):
+            beta1, beta2 = group["betas"]
+            exp_avgs, exp_avg_sqs = [state["exp_avg"] for state in states], [state["exp_avg_sq"] for state in states]
+            torch._foreach_lerp_(exp_avgs, grads, 1.0 - beta1)
+            torch._foreach_mul_(exp_avg_sqs, beta2)
+            torch._foreach_addcmul_(exp_avg_sqs, grads, grads, 1.0 - beta2)
+            for param, exp_avg, exp_avg_sq, step in zip(params, exp_avgs, exp_avg_sqs, steps, strict=True):
+                denom = exp_avg_sq.sqrt() / (1.0 - beta2**step).sqrt() + group["eps"]
+                param.sub_(exp_avg / denom * (group["lr"] / (1.0 - beta1**step)))
+        else:
+            square_avgs = [state["square_avg"] for state in states]
+            torch._foreach_mul_(square_avgs, group["alpha"])
+            torch._foreach_addcmul_(square_avgs, grads, grads, 1.0 - group["alpha"])
+            denoms = torch._foreach_add(torch._foreach_sqrt(square_avgs), group["eps"])
+            torch._foreach_addcdiv_(params, grads, denoms, -group["lr"])
+
+
+def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
+    """--fast: `update` itself (eager), compiled into one graph with its backward passes and optimizer steps (compile),
+    or that graph captured once and replayed as one CUDA graph (cudagraphs). The result is called like `update`."""
+    if fast == "eager":
+        return update
+    for optimizer in optimizers:
+        unsupported = {"weight_decay": 0, "amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
+        for group in optimizer.param_groups:
+            wrong = [key for key, value in unsupported.items() if group.get(key, value) != value]
+            if wrong or not isinstance(optimizer, torch.optim.Adam | torch.optim.RMSprop):
+                raise ValueError(f"--fast {fast}: functional_step has no {type(optimizer).__name__} with {wrong}")
+        init_optimizer_state(optimizer)
+    torch._dynamo.config.trace_autograd_ops = True  # loss.backward() becomes part of the graph instead of breaking it
+    torch._inductor.config.fallback_random = True  # random draws as in eager, so that a seed gives the same numbers
+    compiled = torch.compile(update, fullgraph=True)
+    return compiled if fast == "compile" else CudaGraphUpdate(compiled)
+
+
+class CudaGraphUpdate:
+    """Replay an update as one CUDA graph. The first `warmup` calls run it as it is, on a side stream (compilation,
+    allocations); the next call records it with its arguments copied into static tensors and replays the recording; every
+    later call copies its tensor arguments into those (same shapes; other arguments must not change) and replays. Each
+    call is one real update; the returned tensors are the recording's, overwritten by the next call."""
+
+    def __init__(self, update, warmup: int = 3):
+        self.update, self.warmup, self.calls = update, warmup, 0
+        self.graph, self.static, self.outputs = None, None, None
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        leaves, spec = torch.utils._pytree.tree_flatten((args, kwargs))
+        if self.calls <= self.warmup:
+            stream = torch.cuda.Stream()
+            stream.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(stream):
+                outputs = self.update(*args, **kwargs)
+            torch.cuda.current_stream().wait_stream(stream)
+            return outputs
+        if self.graph is None:
+            self.static = [leaf.clone() if isinstance(leaf, torch.Tensor) else leaf for leaf in leaves]
+            static_args, static_kwargs = torch.utils._pytree.tree_unflatten(self.static, spec)
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph):
+                self.outputs = self.update(*static_args, **static_kwargs)
+        else:
+            for static, leaf in zip(self.static, leaves, strict=True):
+                if isinstance(leaf, torch.Tensor):
+                    static.copy_(leaf)
+                elif leaf is not static and leaf != static:
+                    raise ValueError(f"CudaGraphUpdate: a non-tensor argument changed after capture ({static!r} -> {leaf!r})")
+        self.graph.replay()
+        return self.outputs
 
 
 # --- end of run management ---------------------------------------------------------------------------------------------

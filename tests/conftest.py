@@ -170,3 +170,63 @@ def resume_check(tmp_path):
         return output
 
     return check
+
+
+def training_tensors(agent) -> dict[str, torch.Tensor]:
+    """Every tensor of an agent's training state: its modules' parameters and buffers and its optimizers' state, by
+    name. `agent` is a dataclass whose fields are modules, optimizers, nested such dataclasses, or other values."""
+    import dataclasses
+
+    found = {}
+    for field in dataclasses.fields(agent):
+        value = getattr(agent, field.name)
+        if isinstance(value, torch.nn.Module):
+            found |= {f"{field.name}.{key}": tensor for key, tensor in value.state_dict().items()}
+        elif isinstance(value, torch.optim.Optimizer):
+            for index, state in enumerate(value.state.values()):
+                found |= {f"{field.name}.{index}.{key}": tensor for key, tensor in state.items()}
+        elif dataclasses.is_dataclass(value):
+            found |= {f"{field.name}.{key}": tensor for key, tensor in training_tensors(value).items()}
+    return found
+
+
+def check_fast_update(script, update, agent, call, optimizers, warm: int = 20, updates: int = 10) -> None:
+    """The contract of a script's --fast path for one update function:
+
+    - `torch._dynamo.explain` finds one graph and no graph break (backward passes and optimizer steps included);
+    - from the same state and random state, `updates` compiled updates (--fast compile) equal as many eager ones within
+      rtol = atol = 1e-5: every parameter, buffer (codebooks) and optimizer moment, and every returned metric;
+    - an eager update runs under NoHostSync: nothing in it makes the host wait for the device.
+
+    `call(function, agent, i)` makes the i-th update of `agent` with `function` (the script's update or its compiled
+    version) and returns its metrics; `optimizers(agent)` lists the optimizers the update steps. The comparison starts
+    after `warm` eager updates: at Adam's first steps a parameter moves by lr * sign(gradient), so a gradient that is
+    rounding noise around zero (any reordering of a sum changes it) moves by a whole learning rate either way.
+    """
+    import copy
+
+    for i in range(warm):
+        call(update, agent, i)
+    eager_agent, fast_agent, explained_agent = copy.deepcopy(agent), copy.deepcopy(agent), copy.deepcopy(agent)
+    fast = script.fast_update(update, "compile", optimizers(fast_agent))
+    script.fast_update(update, "compile", optimizers(explained_agent))
+    explanation = torch._dynamo.explain(lambda: call(update, explained_agent, warm))()
+    assert (explanation.graph_count, explanation.graph_break_count) == (1, 0), explanation.break_reasons
+
+    metrics = {}
+    for name, function, state in (("eager", update, eager_agent), ("fast", fast, fast_agent)):
+        torch.manual_seed(7)
+        metrics[name] = [call(function, state, i) for i in range(warm, warm + updates)]
+    eager, compiled = training_tensors(eager_agent), training_tensors(fast_agent)
+    assert eager.keys() == compiled.keys() and eager
+    for key in eager:
+        torch.testing.assert_close(compiled[key], eager[key], rtol=1e-5, atol=1e-5, msg=lambda text, key=key: f"{key}: {text}")
+    for step, (eager_metrics, fast_metrics) in enumerate(zip(metrics["eager"], metrics["fast"], strict=True)):
+        for key in eager_metrics:
+            message = lambda text, key=key, step=step: f"update {step}, {key}: {text}"  # noqa: E731
+            torch.testing.assert_close(fast_metrics[key], eager_metrics[key], rtol=1e-5, atol=1e-5, msg=message)
+
+    guard = NoHostSync()
+    with guard:
+        call(update, copy.deepcopy(agent), warm)
+    assert guard.ops > 0

@@ -20,6 +20,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import dgrl_ris as ris
+from tests.conftest import check_fast_update
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -977,3 +978,19 @@ def test_args_docstrings_are_one_line():
     ]
     assert len(docstrings) == len([node for node in args_class.body if isinstance(node, ast.AnnAssign)])
     assert [text for text in docstrings if "\n" in text] == []
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_fast_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: ris_update traced whole (backward passes, Adam steps, Polyak, codebook EMA with dead-code
+    restarts) and equal to eager."""
+    agent, replay = tiny_agent(groups)
+    if groups:
+        agent.goal_encoder.vq.dead_code_steps = 3
+    batches = [replay.sample(BATCH, GOAL_DIM_UPDATE, 0.45, 0.2, 0.4) for _ in range(31)]
+
+    def call(function, state, i):
+        return function(state, batches[i], goal_dim=GOAL_DIM_UPDATE, **RIS_SETTINGS)
+
+    optimizers = lambda state: [state.critic_optimizer, state.high_optimizer, state.actor_optimizer]  # noqa: E731
+    check_fast_update(ris, ris.ris_update, agent, call, optimizers)

@@ -1,7 +1,7 @@
 """Where the time of dgrl_ris.py goes: environment steps/s of every maze, and one RIS update with and without DGRL.
 
     python benchmark/bench_ris.py                       # about 1 min on 2 CPU cores; run nothing else meanwhile
-    python benchmark/bench_ris.py --device cuda         # the same on a GPU (updates at the paper's batch 2048)
+    python benchmark/bench_ris.py --device cuda --fast eager compile cudagraphs   # on a GPU, every speed path
 
 Prints one line per measurement (median of 5 blocks): each env id stepped alone with random actions (one env, the
 script's default), acting (actor forward + sampling + env step), and one `ris_update` (HER batch sampled on the device,
@@ -35,9 +35,13 @@ def env_speed(env_id: str, steps: int = 1000) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def update_time(state_dim: int, goal_dim: int, action_dim: int, groups: int, batch: int, device: torch.device) -> float:
-    """Median seconds of one ris_update at the script's default hyper-parameters, on the agent the script builds."""
+def update_time(
+    state_dim: int, goal_dim: int, action_dim: int, groups: int, batch: int, device: torch.device, fast: str = "eager"
+) -> float:
+    """Median seconds of one ris_update at the script's default hyper-parameters, on the agent the script builds, run
+    through `--fast fast` (its compilation and capture done before the clock starts)."""
     args = ris.Args(groups=groups, batch_size=batch)
+    torch._dynamo.reset()  # a new agent: compile afresh rather than against the previous agent's guards
     agent = ris.make_agent(
         state_dim,
         goal_dim,
@@ -63,9 +67,11 @@ def update_time(state_dim: int, goal_dim: int, action_dim: int, groups: int, bat
             rng.normal(size=(600, goal_dim)),
         )  # fmt: skip
 
+    update = ris.fast_update(ris.ris_update, fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
+
     def step():
         sample = replay.sample(batch, goal_dim, ris.ANT_THRESHOLD, args.her_goal_frac, args.her_random_frac)
-        ris.ris_update(
+        update(
             agent,
             sample,
             goal_dim=goal_dim,
@@ -79,6 +85,8 @@ def update_time(state_dim: int, goal_dim: int, action_dim: int, groups: int, bat
         if device.type == "cuda":
             torch.cuda.synchronize()
 
+    for _ in range(5):  # compilation, CUDA graph warm-up and capture
+        step()
     return median_time(step, repeats=max(2, 2048 // batch * 2))
 
 
@@ -87,16 +95,23 @@ if __name__ == "__main__":
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--batches", type=int, nargs="+", default=[128, 256, 2048])
+    parser.add_argument("--fast", nargs="+", default=["eager", "compile"], choices=ris.FAST_PATHS)
+    parser.add_argument("--envs", action=argparse.BooleanOptionalAction, default=True, help="time the env steps too")
     options = parser.parse_args()
     torch.set_num_threads(options.threads)
     device = torch.device(options.device)
-    if device.type == "cpu":
+    if device.type == "cpu" and options.envs:
         for env_id in (*ris.ANT_MAZES, "PointMaze_UMaze-v3", "AntMaze_UMaze-v5"):
             print(f"env {env_id:<20} {env_speed(env_id):7.0f} steps/s (random actions, 1 env)")
     for name, dims in (("Ant (31-d goal)", (31, 31, 8)), ("PointMaze (2-d goal)", (6, 2, 2))):
         for batch in options.batches:
-            times = {groups: update_time(*dims, groups, batch, device) for groups in (0, 16)}
-            print(
-                f"update {name:<21} batch {batch:>5}: RIS {times[0] * 1e3:7.1f} ms, RIS+DGRL G16 {times[16] * 1e3:7.1f} ms "
-                f"({times[16] / times[0]:.2f}x), {options.threads} thread(s), {device}"
-            )
+            for groups in (0, 16):
+                times = {fast: update_time(*dims, groups, batch, device, fast) for fast in options.fast}
+                figures = ", ".join(f"{fast} {seconds * 1e3:7.2f} ms" for fast, seconds in times.items())
+                ratios = ", ".join(f"{fast} {times[options.fast[0]] / times[fast]:.2f}x" for fast in options.fast[1:])
+                label = "RIS" if groups == 0 else "RIS+DGRL G16"
+                print(
+                    f"update {name:<21} batch {batch:>5} {label:<12}: {figures} ({ratios} vs {options.fast[0]}), "
+                    f"{options.threads} thread(s), {device}",
+                    flush=True,
+                )

@@ -205,6 +205,7 @@ def check_fast_update(script, update, agent, call, optimizers, warm: int = 20, u
     """
     import copy
 
+    torch._dynamo.reset()  # compiled code of earlier tests holds guards on their agents
     for i in range(warm):
         call(update, agent, i)
     eager_agent, fast_agent, explained_agent = copy.deepcopy(agent), copy.deepcopy(agent), copy.deepcopy(agent)

@@ -562,22 +562,28 @@ def random_translate(images: torch.Tensor, pad: int) -> torch.Tensor:
 
 
 class ImageEpisodeReplay:
-    """Whole episodes of uint8 images and 4-d states in one ring of rows, in host memory.
+    """Whole episodes of uint8 images and 4-d states in one ring of rows, on the training device.
 
     An episode of L transitions takes L + 2 consecutive rows: its observations o_0..o_L (image and state), then its goal
     (image and state). Transition t lives in the row of o_t, which also holds a_t, the row of the episode's last transition
     and the row of its goal; s_t+1 is the next row. So every image is stored once: 21 KB a row, 2.1 GB for 1e5 rows.
     Episodes are written contiguously (a write that would cross the end starts again at row 0), goal last, so whatever
     survives of an overwritten episode is a suffix of it with its goal and its stored rows intact.
+
+    Images, states and actions are tensors on `device`, so a batch is gathered there and only its row numbers cross from
+    the host; the rows' bookkeeping (episode_end, goal_row, is_transition) stays in host arrays, where the sampling
+    generator (numpy) picks the rows.
     """
 
     ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")  # what --resume saves
+    ON_DEVICE = ("images", "states", "actions")
 
-    def __init__(self, capacity: int, image_shape: tuple[int, ...], action_dim: int):
+    def __init__(self, capacity: int, image_shape: tuple[int, ...], action_dim: int, device: torch.device | str = "cpu"):
         self.capacity = capacity
-        self.images = np.zeros((capacity, *image_shape), np.uint8)
-        self.states = np.zeros((capacity, 4), np.float32)
-        self.actions = np.zeros((capacity, action_dim), np.float32)
+        self.device = torch.device(device)
+        self.images = torch.zeros((capacity, *image_shape), dtype=torch.uint8, device=self.device)
+        self.states = torch.zeros((capacity, 4), dtype=torch.float32, device=self.device)
+        self.actions = torch.zeros((capacity, action_dim), dtype=torch.float32, device=self.device)
         self.episode_end = np.zeros(capacity, np.int64)  # row of the episode's last transition
         self.goal_row = np.zeros(capacity, np.int64)
         self.is_transition = np.zeros(capacity, bool)  # False for the o_L and goal rows
@@ -591,9 +597,10 @@ class ImageEpisodeReplay:
         if self.position + length + 2 > self.capacity:
             self.position = 0
         start, goal = self.position, self.position + length + 1
-        self.images[start:goal], self.images[goal] = images, goal_image
-        self.states[start:goal], self.states[goal] = states, goal_state
-        self.actions[start : start + length] = actions
+        rows = slice(start, goal + 1)  # o_0..o_L and the goal: one copy to the device for each tensor
+        self.images[rows] = torch.as_tensor(np.concatenate((images, goal_image[None]))).to(self.device)
+        self.states[rows] = torch.as_tensor(np.concatenate((states, goal_state[None]))).to(self.device)
+        self.actions[start : start + length] = torch.as_tensor(actions).to(self.device)
         self.is_transition[start : goal + 1] = False
         self.is_transition[start : start + length] = True
         self.episode_end[start : goal + 1] = start + length - 1
@@ -602,15 +609,24 @@ class ImageEpisodeReplay:
         self.size = max(self.size, self.position)
 
     def state(self) -> dict:
-        """For --resume: the filled rows, as tensors sharing the arrays' memory (torch.save writes just those rows, uint8
-        images as uint8, with no pickled copy), and where the next episode goes."""
-        filled = {name: torch.from_numpy(getattr(self, name)[: self.size]) for name in self.ARRAYS}
+        """For --resume: the filled rows, as host tensors of their own storage (torch.save writes just those rows, uint8
+        images as uint8, with no pickled copy; on the CPU they share the replay's memory), and where the next episode
+        goes."""
+        filled = {}
+        for name in self.ARRAYS:
+            rows = getattr(self, name)[: self.size]
+            if isinstance(rows, torch.Tensor):  # a slice's storage is all the rows: a host view of the filled ones only
+                rows = rows.numpy() if rows.device.type == "cpu" else rows.cpu().numpy()
+            filled[name] = torch.from_numpy(rows)
         return filled | {"position": self.position, "size": self.size}
 
     def load_state(self, state: dict) -> None:
         self.position, self.size = state["position"], state["size"]
         for name in self.ARRAYS:
-            getattr(self, name)[: self.size] = state[name].numpy()
+            if name in self.ON_DEVICE:
+                getattr(self, name)[: self.size] = state[name].to(self.device)
+            else:
+                getattr(self, name)[: self.size] = state[name].numpy()
 
     def transitions(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """Rows of n transitions, uniform over the stored ones."""
@@ -620,12 +636,13 @@ class ImageEpisodeReplay:
         return rows
 
     def sample(self, batch_size: int, goal_frac: float, random_frac: float, rng: np.random.Generator) -> dict:
-        """A HER batch: images of (s, s', g, s_g) stacked in one (4B, H, W, 3) uint8 array, actions, and the 4-d states of
-        s, s' and g; g relabelled, rewards and done recomputed.
+        """A HER batch of tensors on the replay's device: images of (s, s', g, s_g) stacked in one (4B, H, W, 3) uint8
+        tensor, actions, and the 4-d states of s, s' and g; g relabelled, rewards and done recomputed.
 
         The first `goal_frac` of the batch keeps the rollout goal, the next `random_frac` gets a random replay state, the
         rest a future state of the same episode, uniform over s'_t..s'_end. Rewards are -1; done marks the success test
-        between s' and g. s_g: random replay states, the high level's subgoal candidates.
+        between s' and g. s_g: random replay states, the high level's subgoal candidates. The rows are drawn on the host
+        with `rng`; the one copy to the device is their (4B,) row numbers.
         """
         index = self.transitions(batch_size, rng)
         n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
@@ -633,13 +650,22 @@ class ImageEpisodeReplay:
         offsets = (rng.random(len(future)) * (self.episode_end[future] - future + 1)).astype(np.int64)
         goal_rows = np.concatenate((self.goal_row[index[:n_keep]], self.transitions(n_random, rng), future + 1 + offsets))
         subgoal_rows = self.transitions(batch_size, rng)
-        next_states, goal_states = self.states[index + 1], self.states[goal_rows]
-        rows = np.concatenate((index, index + 1, goal_rows, subgoal_rows))
+        rows = torch.from_numpy(np.concatenate((index, index + 1, goal_rows, subgoal_rows))).to(self.device)
+        states, next_states, goal_states, _ = self.states[rows].chunk(4)
         return dict(
-            images=self.images[rows], actions=self.actions[index], rewards=-np.ones(batch_size, np.float32),
-            done=reached(next_states, goal_states).astype(np.float32), states=self.states[index], next_states=next_states,
-            goal_states=goal_states,
+            images=self.images[rows], actions=self.actions[rows[:batch_size]],
+            rewards=torch.full((batch_size,), -1.0, device=self.device), done=reached_tensor(next_states, goal_states),
+            states=states, next_states=next_states, goal_states=goal_states,
         )  # fmt: skip
+
+
+def reached_tensor(states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+    """reached on tensors, as float32 0/1, computed as numpy's norm does (the sum of the squares, its square root, in
+    float32), so that it agrees with reached bit for bit."""
+    difference = states - goals
+    hand = (difference[..., :2] * difference[..., :2]).sum(-1).sqrt()
+    puck = (difference[..., 2:] * difference[..., 2:]).sum(-1).sqrt()
+    return (torch.maximum(hand, puck) < SUCCESS_DISTANCE).float()
 
 
 # --- Losses -----------------------------------------------------------------------------------------------------------
@@ -803,17 +829,15 @@ def ris_update(
     driml_coef: float,
 ) -> dict[str, torch.Tensor]:
     """One RIS update from pixels (encoder + critic with the DRIML loss, high level, actor, targets) with DGRL's bottleneck;
-    returns detached metrics."""
-    device = next(agent.critic.parameters()).device
-    actions = torch.as_tensor(batch["actions"], device=device)
-    rewards = torch.as_tensor(batch["rewards"], device=device)
-    done = torch.as_tensor(batch["done"], device=device)
+    returns detached metrics. `batch` is ImageEpisodeReplay.sample's, tensors on the agent's device (the uint8 images
+    become floats here); nothing in it waits for the device, so --fast compiles it into one graph."""
+    actions, rewards, done = batch["actions"], batch["rewards"], batch["done"]
     batch_size = len(actions)
     metrics = {}
 
     # Features of the augmented s, s', g, s_g: only s passes through the encoder with gradient (RIS); the target critic
     # and the DRIML loss's global side see the online encoder's features of s' (no target encoder, as in RIS).
-    images = random_translate(torch.as_tensor(batch["images"], device=device), image_pad)
+    images = random_translate(batch["images"], image_pad)
     conv_map = agent.encoder.conv_map(images[:batch_size])
     state_z = agent.encoder.head(conv_map)
     with torch.no_grad():
@@ -834,9 +858,7 @@ def ris_update(
         target_q = rewards + (1.0 - done) * gamma * next_q
     q_values = agent.critic(state_z, actions, goal_in)
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
-    agent.critic_optimizer.zero_grad(set_to_none=True)
-    (critic_loss + representation_loss).backward()
-    agent.critic_optimizer.step()
+    learn(agent.critic_optimizer, critic_loss + representation_loss)
     state_z = state_z.detach()
 
     # High level: advantage-weighted regression onto the features of random replay states.
@@ -849,9 +871,7 @@ def ris_update(
         values = agent.critic(value_states, value_actions, value_goals).min(0).values.view(4, batch_size)
         weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoal_z).sum(-1)).mean()
-    agent.high_optimizer.zero_grad(set_to_none=True)
-    high_loss.backward()
-    agent.high_optimizer.step()
+    learn(agent.high_optimizer, high_loss)
 
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
@@ -862,9 +882,7 @@ def ris_update(
     kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, prior_epsilon)
     actor_q = agent.critic(state_z, torch.tanh(actions_pre_tanh), goal_in).min(0).values
     actor_loss = (alpha * kl - actor_q).mean()
-    agent.actor_optimizer.zero_grad(set_to_none=True)
-    actor_loss.backward()
-    agent.actor_optimizer.step()
+    learn(agent.actor_optimizer, actor_loss)
 
     update_target(agent.critic_target, agent.critic, tau)
     update_target(agent.actor_target, agent.actor, tau)
@@ -1443,7 +1461,7 @@ if __name__ == "__main__":
             write_video(f"videos/{run_name}/checkpoint_eval.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
         raise SystemExit(0)
 
-    replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim)
+    replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim, device)
     episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
     observations, _ = envs.reset(seed=args.seed)
     step = 0
@@ -1467,6 +1485,7 @@ if __name__ == "__main__":
     print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {step}"))
     if device.type == "cpu" and args.batch_size >= 128:
         print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
+    update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
     progress = Progress(args.total_timesteps, start_step=step)
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     if resumed is not None:
@@ -1543,7 +1562,7 @@ if __name__ == "__main__":
         if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
             for _ in range(args.num_envs):
                 batch = replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng)
-                metrics = ris_update(
+                metrics = update(
                     agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
                     n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
                     driml_coef=args.driml_coef,

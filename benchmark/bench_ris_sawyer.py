@@ -3,15 +3,19 @@ pixels, with and without DGRL.
 
     python benchmark/bench_ris_sawyer.py                 # about 2 min on a CPU core; run nothing else meanwhile
     python benchmark/bench_ris_sawyer.py --device cuda   # the same on a GPU (the paper's batch 256)
+    python benchmark/bench_ris_sawyer.py --fast eager compile   # also the update alone, eager beside --fast compile
 
 Prints one line per measurement (median of 5 blocks): one training step's acting (an 84x84 render of the new state, the
 encoder on state and goal images, the actor's sample), and one `ris_update` (HER batch of 4 x batch uint8 images sampled
-from the replay in host memory, moved to the device, random translate, encoder, DRIML loss, critic, high level, actor
+from the replay on the device, random translate, encoder, DRIML loss, critic, high level, actor
 with 10 imagined subgoals, targets) for --groups 0 and 16 at each batch size. RIS does one update per environment
 step, so training steps/s is about 1 / (update time + acting time). The agents come from the script's make_agent.
+Then, for each --fast path (default: eager and compile), the update alone (batches sampled beforehand) of the same agent,
+in one process, after warm-up calls (compile time excluded): `update ... eager X ms, compile Y ms (eager / compile)`.
 """
 
 import argparse
+import copy
 import sys
 from pathlib import Path
 
@@ -24,10 +28,10 @@ from timing import median_time  # benchmark/timing.py
 import dgrl_ris_sawyer as sawyer
 
 
-def filled_replay(episodes: int, rng: np.random.Generator) -> sawyer.ImageEpisodeReplay:
+def filled_replay(episodes: int, rng: np.random.Generator, device: torch.device) -> sawyer.ImageEpisodeReplay:
     """A replay of random-action episodes of the training env (real images, so the DRIML loss sees real inputs)."""
     env = sawyer.SawyerPushAndReachEnv()
-    replay = sawyer.ImageEpisodeReplay(episodes * (sawyer.EPISODE_STEPS + 2), (84, 84, 3), 2)
+    replay = sawyer.ImageEpisodeReplay(episodes * (sawyer.EPISODE_STEPS + 2), (84, 84, 3), 2, device)
     for episode in range(episodes):
         observation, _ = env.reset(seed=episode)
         images, states, actions = [observation["image"]], [observation["state"]], []
@@ -86,16 +90,46 @@ def update_time(replay, groups: int, batch: int, device: torch.device, rng: np.r
     return median_time(step, repeats=max(2, 256 // batch * 2))
 
 
+def fast_update_times(replay, groups: int, batch: int, device: torch.device, rng, paths: list[str]) -> dict[str, float]:
+    """Seconds per ris_update call on each --fast path, on 8 batches sampled beforehand, from the same starting agent."""
+    args = sawyer.Args(groups=groups, batch_size=batch)
+    agent = agent_of(args, device)
+    batches = [replay.sample(batch, args.her_goal_frac, args.her_random_frac, rng) for _ in range(8)]
+    times = {}
+    for path in paths:
+        state = copy.deepcopy(agent)
+        optimizers = [state.critic_optimizer, state.high_optimizer, state.actor_optimizer]
+        update = sawyer.fast_update(sawyer.ris_update, path, optimizers)
+        calls = 0
+
+        def step(update=update, state=state):
+            nonlocal calls
+            update(
+                state, batches[calls % len(batches)], gamma=args.gamma, tau=args.tau, alpha=args.alpha,
+                h_lambda=args.h_lambda, n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon,
+                image_pad=args.image_pad, driml_coef=args.driml_coef,
+            )  # fmt: skip
+            calls += 1
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+
+        for _ in range(3):  # compilation (or CUDA graph capture) and first calls
+            step()
+        times[path] = median_time(step, repeats=max(2, 256 // batch * 2))
+    return times
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--batches", type=int, nargs="+", default=[32, 256])
+    parser.add_argument("--fast", nargs="*", default=["eager", "compile"], choices=sawyer.FAST_PATHS)
     options = parser.parse_args()
     torch.set_num_threads(options.threads)
     device = torch.device(options.device)
     rng = np.random.default_rng(0)
-    replay = filled_replay(20, rng)
+    replay = filled_replay(20, rng, device)
     for groups in (0, 16):
         print(
             f"act + env step, G{groups:<2}: {act_time(groups, device) * 1e3:6.1f} ms ({options.threads} thread(s), {device})"
@@ -106,3 +140,9 @@ if __name__ == "__main__":
             f"update batch {batch:>4}: RIS {times[0] * 1e3:7.1f} ms, RIS+DGRL G16 {times[16] * 1e3:7.1f} ms "
             f"({times[16] / times[0]:.2f}x), {options.threads} thread(s), {device}"
         )
+    for batch in options.batches if options.fast else ():
+        for groups in (0, 16):
+            times = fast_update_times(replay, groups, batch, device, rng, options.fast)
+            figures = ", ".join(f"{path} {seconds * 1e3:.1f} ms" for path, seconds in times.items())
+            ratio = f" ({times['eager'] / times[options.fast[-1]]:.2f}x)" if "eager" in times and len(times) > 1 else ""
+            print(f"update batch {batch:>4} G{groups:<2}: {figures}{ratio}, {options.threads} thread(s), {device}")

@@ -22,6 +22,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_ris_sawyer as sawyer
+from tests.conftest import check_fast_update
 from vq import VectorQuantizerEMA
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -393,8 +394,9 @@ def labelled_episode(episode: int, length: int):
     return images, states.T.astype(np.float32), actions, goal_image, goal_state
 
 
-def decode(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def decode(images: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """(episode, t or 255) of each image."""
+    images = np.asarray(images)
     return images[:, 0, 0, 0].astype(int), images[:, 0, 0, 1].astype(int)
 
 
@@ -406,7 +408,9 @@ def test_relabelled_batches_hold_stored_rows_and_rewards_follow_the_success_test
     assert replay.size == sum(lengths) + 2 * len(lengths)
     n = 1000
     batch = replay.sample(n, 0.2, 0.4, np.random.default_rng(0))
-    assert batch["images"].shape == (4 * n, 84, 84, 3) and batch["images"].dtype == np.uint8
+    assert all(isinstance(value, torch.Tensor) and value.device == replay.device for value in batch.values())
+    assert batch["images"].shape == (4 * n, 84, 84, 3) and batch["images"].dtype == torch.uint8  # converted in the update
+    batch = {key: value.numpy() for key, value in batch.items()}
     ep, t = decode(batch["images"][:n])
     next_ep, next_t = decode(batch["images"][n : 2 * n])
     goal_ep, goal_t = decode(batch["images"][2 * n : 3 * n])
@@ -504,9 +508,9 @@ def tiny_agent(groups: int):
     return args, agent, replay, rng
 
 
-def update(agent: sawyer.Agent, batch: dict, args: sawyer.Args) -> dict:
-    """ris_update with the hyper-parameters of `args`, as the training loop calls it."""
-    return sawyer.ris_update(
+def update(agent: sawyer.Agent, batch: dict, args: sawyer.Args, function=sawyer.ris_update) -> dict:
+    """ris_update (or its --fast version `function`) with the hyper-parameters of `args`, as the training loop calls it."""
+    return function(
         agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda, n_subgoals=args.n_subgoals,
         prior_epsilon=args.prior_epsilon, image_pad=args.image_pad, driml_coef=args.driml_coef,
     )  # fmt: skip
@@ -576,6 +580,44 @@ def test_one_update_moves_every_network_the_codebook_and_the_targets_by_polyak(g
                 assert ((segments[:, None, :] == rows[None]).all(-1)).any(1).all(), name
     else:
         assert "codes" not in metrics and "vq_loss" not in metrics
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_fast_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: ris_update traced whole (random translate, encoder, DRIML loss, backward passes, Adam steps,
+    Polyak, codebook EMA with dead-code restarts) and equal to eager, on batches the replay gathered on its device.
+
+    The DRIML loss is blind to a shift common to the global vectors of the batch, so the gradient of the global head's
+    last bias, and of its first bias at units on for the whole batch, is zero but for rounding; Adam scales any such noise
+    (1e-10 to 1e-8) up to steps of a learning rate, either way. Adam's eps at 1e-4 on that parameter group (the critic and
+    the DRIML heads) keeps rounding noise from moving parameters, so the comparison sees the update's arithmetic."""
+    args, agent, replay, rng = tiny_agent(groups)
+    agent.critic_optimizer.param_groups[0]["eps"] = 1e-4
+    if groups:
+        agent.vq.dead_code_steps = 3
+    batches = [replay.sample(args.batch_size, 0.2, 0.4, rng) for _ in range(31)]
+    optimizers = lambda state: [state.critic_optimizer, state.high_optimizer, state.actor_optimizer]  # noqa: E731
+    check_fast_update(sawyer, sawyer.ris_update, agent, lambda function, state, i: update(state, batches[i], args, function),
+                      optimizers)  # fmt: skip
+
+
+def test_replay_state_round_trips_and_saves_only_the_filled_rows(tmp_path):
+    replay = sawyer.ImageEpisodeReplay(1000, (84, 84, 3), 2)
+    for episode, length in enumerate((12, 7)):
+        replay.add_episode(*labelled_episode(episode, length))
+    state = replay.state()
+    assert {name: state[name].shape[0] for name in replay.ARRAYS} == dict.fromkeys(replay.ARRAYS, 23)
+    torch.save(state, tmp_path / "replay.pt")
+    assert (tmp_path / "replay.pt").stat().st_size < 24 * 84 * 84 * 3  # the filled rows, not the 1000 of the ring
+    other = sawyer.ImageEpisodeReplay(1000, (84, 84, 3), 2)
+    other.load_state(torch.load(tmp_path / "replay.pt", weights_only=True))
+    assert (other.position, other.size) == (replay.position, replay.size)
+    for name in replay.ARRAYS:
+        assert np.array_equal(np.asarray(getattr(other, name)), np.asarray(getattr(replay, name))), name
+    rng, other_rng = np.random.default_rng(3), np.random.default_rng(3)
+    expected, got = replay.sample(16, 0.2, 0.4, rng), other.sample(16, 0.2, 0.4, other_rng)
+    for key, value in expected.items():
+        assert torch.equal(got[key], value), key
 
 
 def test_acting_quantizes_the_goal_without_moving_the_codebook():

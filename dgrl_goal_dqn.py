@@ -31,7 +31,7 @@ import sys
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -486,11 +486,23 @@ class CellEmbedder:
         self.rng = rng
         self.all_images = torch.as_tensor(layout.images, device=device)
 
-    def __call__(self, rep: Representation, cells: torch.Tensor) -> torch.Tensor:
+    def inputs(self, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(images, rows) of the observations of `cells`, as embed_images takes them: the 36 images and the cells as
+        their rows without noise; with noise, the batch's images drawn on the host (outside an update: it reads the
+        cells back and draws from the numpy generator)."""
         if self.noise == 0:
-            return rep.embed(self.all_images)[cells]
+            return self.all_images, cells
         images = self.layout.render(cells.cpu().numpy(), self.noise, self.rng)
-        return rep.embed(torch.as_tensor(images, device=self.device))
+        return torch.as_tensor(images, device=self.device), None
+
+    def __call__(self, rep: Representation, cells: torch.Tensor) -> torch.Tensor:
+        return embed_images(rep, *self.inputs(cells))
+
+
+def embed_images(rep: Representation, images: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+    """phi's embeddings of `images`, or of their `rows` (CellEmbedder.inputs' pair)."""
+    z = rep.embed(images)
+    return z if rows is None else z[rows]
 
 
 @dataclass
@@ -510,19 +522,18 @@ def cell_table(rep: Representation, embedder: CellEmbedder) -> CellTable:
     return CellTable(z, features, codes)
 
 
-def cell_features(model: Representation, embedder: CellEmbedder, cells: torch.Tensor, table: CellTable | None, update=False):
+def cell_features(model: Representation, cells: torch.Tensor, table: CellTable | None, observed: tuple | None, update=False):
     """(features, continuous embedding, commitment loss, codes) of the observations of `cells` under `model`: rows of
-    `table` when there is one (a frozen phi on noiseless images), else encoded."""
+    `table` when there is one (a frozen phi on noiseless images), else the encoded `observed` (CellEmbedder.inputs)."""
     if table is not None:
         codes = None if table.codes is None else table.codes[cells]  # DGRL
         return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
-    z = embedder(model, cells)
+    z = embed_images(model, *observed)
     features, vq_loss, codes = model(z, update=update)
     return features, z, vq_loss, codes
 
 
-@dataclass
-class Batch:
+class Batch(NamedTuple):  # a pytree: CudaGraphUpdate copies its tensors
     cells: torch.Tensor  # (batch, 3): cell, next cell, goal cell
     actions: torch.Tensor
     rewards: torch.Tensor
@@ -530,67 +541,82 @@ class Batch:
 
 
 class ReplayBuffer:
-    """Transitions as (cell, next cell, goal cell, action, reward, terminated). The cells fix the raw images (with
-    --noise, up to the noise), so the replay never stores code indices."""
+    """Transitions as (cell, next cell, goal cell, action, reward, terminated), stored on the training device. The cells
+    fix the raw images (with --noise, up to the noise), so the replay never stores code indices. The batch's rows are
+    drawn on the host from the run's numpy generator and gathered on the device: one small copy per batch."""
 
-    def __init__(self, size: int):
-        self.cells = np.zeros((size, 3), dtype=np.int64)
-        self.actions = np.zeros(size, dtype=np.int64)
-        self.rewards = np.zeros(size, dtype=np.float32)
-        self.terminated = np.zeros(size, dtype=np.float32)
+    FIELDS = ("cells", "actions", "rewards", "terminated")
+
+    def __init__(self, size: int, device: torch.device):
+        self.device = device
+        self.cells = torch.zeros((size, 3), dtype=torch.int64, device=device)
+        self.actions = torch.zeros(size, dtype=torch.int64, device=device)
+        self.rewards = torch.zeros(size, dtype=torch.float32, device=device)
+        self.terminated = torch.zeros(size, dtype=torch.float32, device=device)
         self.position = 0
         self.count = 0
 
     def add(self, cell: int, next_cell: int, goal_cell: int, action: int, reward: float, terminated: bool) -> None:
-        self.cells[self.position] = (cell, next_cell, goal_cell)
-        self.actions[self.position] = action
-        self.rewards[self.position] = reward
-        self.terminated[self.position] = terminated
+        """Python numbers written in place: on a GPU, fills launched without a copy from the host or a wait."""
+        row = self.position
+        self.cells[row, 0], self.cells[row, 1], self.cells[row, 2] = int(cell), int(next_cell), int(goal_cell)
+        self.actions[row] = int(action)
+        self.rewards[row] = float(reward)
+        self.terminated[row] = float(terminated)
         self.position = (self.position + 1) % len(self.actions)
         self.count = min(self.count + 1, len(self.actions))
 
-    def sample(self, batch_size: int, rng: np.random.Generator, device: torch.device) -> Batch:
-        rows = rng.integers(self.count, size=batch_size)
-        return Batch(
-            cells=torch.as_tensor(self.cells[rows], device=device),
-            actions=torch.as_tensor(self.actions[rows], device=device),
-            rewards=torch.as_tensor(self.rewards[rows], device=device),
-            terminated=torch.as_tensor(self.terminated[rows], device=device),
-        )
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+        rows = torch.as_tensor(rng.integers(self.count, size=batch_size), device=self.device)
+        return Batch(self.cells[rows], self.actions[rows], self.rewards[rows], self.terminated[rows])
 
     def state_dict(self) -> dict:
-        """The stored rows and the write position. Until the memory wraps, rows [0, count) are the filled ones; after,
-        count is the size: so only the filled part is kept."""
-        stored = {name: getattr(self, name)[: self.count] for name in ("cells", "actions", "rewards", "terminated")}
+        """The stored rows (a copy on the CPU) and the write position. Until the memory wraps, rows [0, count) are the filled
+        ones; after, count is the size: so only the filled part is kept."""
+        stored = {name: getattr(self, name)[: self.count].to("cpu", copy=True) for name in self.FIELDS}
         return stored | {"position": self.position, "count": self.count}
 
     def load_state_dict(self, state: dict) -> None:
         self.position, self.count = state["position"], state["count"]
-        for name in ("cells", "actions", "rewards", "terminated"):
-            getattr(self, name)[: self.count] = state[name]
+        for name in self.FIELDS:
+            getattr(self, name)[: self.count] = torch.as_tensor(state[name], device=self.device)
+
+
+def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor, objective: str) -> tuple:
+    """pretrain_step's tensors for the random-walk transitions `rows` of `walks` (cells, actions, next cells): the
+    observations of the states then the next states as (images, rows) of embed_images (with --noise, drawn here), the
+    actions, and the clean images of the states (the autoencoder's targets; None for infomax)."""
+    cells, actions, next_cells = walks
+    images, image_rows = embedder.inputs(torch.cat([cells[rows], next_cells[rows]]))
+    clean_images = embedder.all_images[cells[rows]] if objective == "autoencoder" else None
+    return images, image_rows, actions[rows], clean_images
 
 
 def pretrain_step(
-    agent: Agent, embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """One Adam step of phi's self-supervised objective on the random-walk transitions `rows` of `walks` (cells,
-    actions, next cells), plus, for DGRL, the commitment loss and one EMA update of the codebook. Returns the detached
-    (objective loss, commitment loss, codes)."""
+    agent: Agent,
+    images: torch.Tensor,
+    image_rows: torch.Tensor | None,
+    actions: torch.Tensor,
+    clean_images: torch.Tensor | None,
+) -> dict[str, torch.Tensor]:
+    """One Adam step of phi's self-supervised objective on a batch of random-walk transitions (pretrain_inputs), plus,
+    for DGRL, the commitment loss and one EMA update of the codebook. Returns the detached metrics: the objective's
+    loss, the commitment loss and (DGRL) the perplexity of the batch's codes."""
     rep = agent.rep
-    cells, actions, next_cells = walks
-    z = embedder(rep, torch.cat([cells[rows], next_cells[rows]]))
+    z = embed_images(rep, images, image_rows)
     _, vq_loss, codes = rep(z, update=True)  # DGRL: one pooled update for s and s', the mean of their commitment losses
     z_state, z_next = z.chunk(2)
     if rep.objective == "infomax":
-        anchors = rep.psi_state_action(torch.cat([z_state, F.one_hot(actions[rows], len(MOVES)).float()], 1))
+        one_hot = (actions.unsqueeze(1) == torch.arange(len(MOVES), device=actions.device)).float()  # F.one_hot reads back
+        anchors = rep.psi_state_action(torch.cat([z_state, one_hot], 1))  # its largest index on a CPU
         rep_loss = infonce_loss(anchors, rep.psi_next(z_next))
     else:  # with --noise, the clean image is the target: a denoising autoencoder
-        clean_images = embedder.all_images[cells[rows]].flatten(1).float() / 255.0
-        rep_loss = F.mse_loss(torch.sigmoid(rep.decoder(z_state)), clean_images)
-    agent.rep_optimizer.zero_grad()
-    (rep_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
-    agent.rep_optimizer.step()
-    return rep_loss.detach(), vq_loss.detach(), codes
+        rep_loss = F.mse_loss(torch.sigmoid(rep.decoder(z_state)), clean_images.flatten(1).float() / 255.0)
+    learn(agent.rep_optimizer, rep_loss + vq_loss)  # DGRL: vq_loss is 0 for the baseline
+    metrics = {"rep_loss": rep_loss.detach(), "vq_loss": vq_loss.detach()}
+    if codes is not None:  # DGRL
+        metrics["perplexity"] = perplexity(codes, rep.vq.n_embed)  # DGRL
+    return metrics
 
 
 @torch.no_grad()
@@ -606,24 +632,38 @@ def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, in
     return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()
 
 
+def td_inputs(embedder: CellEmbedder, batch: Batch, table: CellTable | None, finetune: bool, double_dqn: bool):
+    """td_update's observations when it has no table, as CellEmbedder.inputs' (images, rows), in the order it encodes
+    them: (next state, goal) for the targets, the same again for the online network's Double DQN choice with --finetune
+    (else None), (state, goal) for the loss. With --noise each draws fresh noise, here on the host."""
+    if table is not None:
+        return None
+    next_goal_cells = torch.cat([batch.cells[:, 1], batch.cells[:, 2]])
+    next_goal = embedder.inputs(next_goal_cells)
+    online_next_goal = embedder.inputs(next_goal_cells) if finetune and double_dqn else None
+    return next_goal, online_next_goal, embedder.inputs(torch.cat([batch.cells[:, 0], batch.cells[:, 2]]))
+
+
 def td_update(
     agent: Agent,
     batch: Batch,
-    embedder: CellEmbedder,
     table: CellTable | None,
+    observed: tuple | None,
     *,
     gamma: float,
     bonus_coef: float,
     double_dqn: bool,
 ) -> dict[str, torch.Tensor]:
     """One DQN step: smooth-L1 between Q(s, g, a) and r + bonus_coef * bonus(s', g) + gamma * Q_target(s', g, a'), a'
-    from the online network (Double DQN) or the target's max. With a target phi (--finetune) the TD loss trains phi's
-    encoder and the codebook updates on the (state, goal) batch. Returns the detached metrics."""
+    from the online network (Double DQN) or the target's max. Features are rows of `table` (frozen phi, no noise), else
+    encoded from `observed` (td_inputs). With a target phi (--finetune) the TD loss trains phi's encoder and the codebook
+    updates on the (state, goal) batch. Returns the detached metrics."""
     finetune = agent.target_rep is not None
+    next_goal, online_next_goal, state_goal = (None, None, None) if observed is None else observed
     with torch.no_grad():
         target_rep = agent.target_rep if finetune else agent.rep
         next_goal_cells = torch.cat([batch.cells[:, 1], batch.cells[:, 2]])
-        next_goal_features, next_goal_z, _, next_goal_codes = cell_features(target_rep, embedder, next_goal_cells, table)
+        next_goal_features, next_goal_z, _, next_goal_codes = cell_features(target_rep, next_goal_cells, table, next_goal)
         next_codes = None  # DGRL
         goal_codes = None  # DGRL
         if next_goal_codes is not None:  # DGRL
@@ -632,7 +672,9 @@ def td_update(
         rewards = batch.rewards + bonus_coef * bonus
         target_q = agent.target_q_network(*next_goal_features.chunk(2))
         if double_dqn:
-            online_features = cell_features(agent.rep, embedder, next_goal_cells, table)[0] if finetune else next_goal_features
+            online_features = next_goal_features
+            if finetune:
+                online_features = cell_features(agent.rep, next_goal_cells, table, online_next_goal)[0]
             next_actions = agent.q_network(*online_features.chunk(2)).argmax(1, keepdim=True)
             next_values = target_q.gather(1, next_actions).squeeze(1)
         else:
@@ -640,13 +682,10 @@ def td_update(
         td_target = rewards + gamma * (1 - batch.terminated) * next_values
     # State and goal in one call: one pooled codebook update, and the mean of their commitment losses.
     state_goal_cells = torch.cat([batch.cells[:, 0], batch.cells[:, 2]])
-    state_goal_features, _, vq_loss, _ = cell_features(agent.rep, embedder, state_goal_cells, table, update=finetune)
+    state_goal_features, _, vq_loss, _ = cell_features(agent.rep, state_goal_cells, table, state_goal, update=finetune)
     q_values = agent.q_network(*state_goal_features.chunk(2)).gather(1, batch.actions.unsqueeze(1)).squeeze(1)
     td_loss = F.smooth_l1_loss(q_values, td_target)
-    loss = td_loss + vq_loss  # DGRL: zero unless the codebook is fine-tuned
-    agent.q_optimizer.zero_grad()
-    loss.backward()
-    agent.q_optimizer.step()
+    learn(agent.q_optimizer, td_loss + vq_loss)  # DGRL: vq_loss is zero unless the codebook is fine-tuned
     return {
         "td_loss": td_loss.detach(),
         "q_values": q_values.detach().mean(),
@@ -1270,7 +1309,7 @@ if __name__ == "__main__":
     )
     envs.action_space.seed(args.seed)
     observations, infos = envs.reset(seed=args.seed)
-    replay = ReplayBuffer(args.buffer_size)
+    replay = ReplayBuffer(args.buffer_size, device)
     recent_success = deque(maxlen=100)
     exploration_steps = args.exploration_fraction * args.total_timesteps
     rep_step, next_rep_log, rep_loss = 0, 0, None
@@ -1313,17 +1352,22 @@ if __name__ == "__main__":
         set_rng_states(saved["rng"])  # last: building the agent drew from the global generators (nothing below does until
         # the loops, and nothing between the two loops draws, so this also holds for a run resumed in the DQN phase)
 
+    # The two updates as --fast asks (eagerly, compiled, or replayed as CUDA graphs), each made once.
+    pretrain = fast_update(pretrain_step, args.fast, [agent.rep_optimizer])
+    td = fast_update(td_update, args.fast, [agent.q_optimizer])
+
     # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
     pretraining = Progress(args.rep_steps, unit="pre-training step", start_step=rep_step)
     while rep_step < args.rep_steps and not stop:
         rows = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
-        rep_loss, vq_loss, codes = pretrain_step(agent, embedder, walks, rows)
+        rep_metrics = pretrain(agent, *pretrain_inputs(embedder, walks, rows, args.rep))
+        rep_loss = rep_metrics["rep_loss"]
         if rep_step >= next_rep_log or rep_step == args.rep_steps - 1:
             next_rep_log += 100
             add_kept_scalar(writer, pretraining_log, "losses/rep_loss", rep_loss.item(), rep_step)
             if dgrl:  # DGRL
-                code_perplexity = perplexity(codes, args.n_embed).item()  # DGRL
-                add_kept_scalar(writer, pretraining_log, "vq/commit_loss", vq_loss.item(), rep_step)  # DGRL
+                code_perplexity = rep_metrics["perplexity"].item()  # DGRL
+                add_kept_scalar(writer, pretraining_log, "vq/commit_loss", rep_metrics["vq_loss"].item(), rep_step)  # DGRL
                 add_kept_scalar(writer, pretraining_log, "vq/perplexity", code_perplexity, rep_step)  # DGRL
             pretraining.line(rep_step + 1, f"{args.rep} loss {rep_loss.item():.3f}")
         rep_step += 1
@@ -1392,10 +1436,10 @@ if __name__ == "__main__":
 
         # Learn
         if global_step >= args.learning_starts and global_step % args.train_frequency == 0:
-            batch = replay.sample(args.batch_size, rng, device)
-            metrics = td_update(
-                agent, batch, embedder, lookup, gamma=args.gamma, bonus_coef=args.bonus_coef, double_dqn=args.double_dqn
-            )
+            batch = replay.sample(args.batch_size, rng)
+            observed = td_inputs(embedder, batch, lookup, args.finetune, args.double_dqn)
+            settings = {"gamma": args.gamma, "bonus_coef": args.bonus_coef, "double_dqn": args.double_dqn}
+            metrics = td(agent, batch, lookup, observed, **settings)
             train_steps += 1
             if train_steps % args.target_network_frequency == 0:
                 update_target(agent.target_q_network, agent.q_network)

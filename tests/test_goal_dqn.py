@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 import dgrl_goal_dqn as gdqn
+from tests.conftest import check_fast_update
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -308,15 +309,15 @@ def test_pretrain_step_trains_phi_and_moves_the_codebook(objective):
     rows = torch.arange(32)
     agent = small_agent(groups=4, objective=objective)
     before = snapshot(agent.rep)
-    rep_loss, vq_loss, codes = gdqn.pretrain_step(agent, embedder, walks, rows)
-    assert rep_loss > 0 and vq_loss > 0 and codes.shape == (64, 4)
+    metrics = gdqn.pretrain_step(agent, *gdqn.pretrain_inputs(embedder, walks, rows, objective))
+    assert metrics["rep_loss"] > 0 and metrics["vq_loss"] > 0 and 1 <= metrics["perplexity"] <= 8
     moved = changed(before, agent.rep)
     assert {"encoder.0.weight", "vq.codebook", "vq.ema_count"} <= moved
     head = "psi_next.weight" if objective == "infomax" else "decoder.0.weight"
     assert head in moved
     baseline = small_agent(groups=0, objective=objective)
-    _, vq_loss, codes = gdqn.pretrain_step(baseline, embedder, walks, rows)
-    assert vq_loss == 0 and codes is None
+    metrics = gdqn.pretrain_step(baseline, *gdqn.pretrain_inputs(embedder, walks, rows, objective))
+    assert metrics["vq_loss"] == 0 and "perplexity" not in metrics
 
 
 def transitions_batch() -> gdqn.Batch:
@@ -357,7 +358,8 @@ def test_td_update_minimises_the_double_dqn_loss_with_the_bonus_and_leaves_a_fro
         expected_loss = F.smooth_l1_loss(q_taken, target)
     assert bonus[1] == 1.0  # at the goal every factor matches
     rep_before, q_before, target_before = snapshot(agent.rep), snapshot(agent.q_network), snapshot(agent.target_q_network)
-    metrics = gdqn.td_update(agent, batch, embedder, table, gamma=gamma, bonus_coef=bonus_coef, double_dqn=double_dqn)
+    assert gdqn.td_inputs(embedder, batch, table, finetune=False, double_dqn=double_dqn) is None
+    metrics = gdqn.td_update(agent, batch, table, None, gamma=gamma, bonus_coef=bonus_coef, double_dqn=double_dqn)
     torch.testing.assert_close(metrics["td_loss"], expected_loss)
     torch.testing.assert_close(metrics["bonus"], bonus.mean())
     assert changed(rep_before, agent.rep) == set()  # frozen phi and codebook
@@ -370,7 +372,9 @@ def test_td_update_with_finetune_trains_the_encoder_and_the_codebook_but_not_the
     embedder = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))
     agent = small_agent(groups=4, finetune=True)
     rep_before, target_before = snapshot(agent.rep), snapshot(agent.target_rep)
-    metrics = gdqn.td_update(agent, transitions_batch(), embedder, None, gamma=0.9, bonus_coef=0.5, double_dqn=True)
+    batch = transitions_batch()
+    observed = gdqn.td_inputs(embedder, batch, None, finetune=True, double_dqn=True)
+    metrics = gdqn.td_update(agent, batch, None, observed, gamma=0.9, bonus_coef=0.5, double_dqn=True)
     assert metrics["vq_loss"] > 0
     assert {"encoder.0.weight", "vq.codebook", "vq.ema_sum"} <= changed(rep_before, agent.rep)
     assert not any(name.startswith("psi") for name in changed(rep_before, agent.rep))  # the heads are not in the TD loss
@@ -395,16 +399,95 @@ def test_greedy_actions_agree_with_the_table_and_never_update_the_codebook():
 
 
 def test_replay_buffer_wraps_around_and_samples_only_stored_rows():
-    replay = gdqn.ReplayBuffer(3)
+    replay = gdqn.ReplayBuffer(3, CPU)
     replay.add(1, 2, 9, 0, -1.0, False)
-    rows = replay.sample(50, np.random.default_rng(0), CPU)
+    rows = replay.sample(50, np.random.default_rng(0))
     assert (rows.cells == torch.tensor([1, 2, 9])).all() and rows.rewards.dtype == torch.float32
     for cell in range(2, 6):
         replay.add(cell, cell + 1, 9, cell % 4, 5.0, cell == 5)
     assert replay.count == 3
     np.testing.assert_array_equal(replay.cells[:, 0], [4, 5, 3])  # 4 and 5 overwrote the two oldest rows
     np.testing.assert_array_equal(replay.terminated, [0.0, 1.0, 0.0])
-    assert (replay.sample(50, np.random.default_rng(0), CPU).cells[:, 2] == 9).all()
+    assert (replay.sample(50, np.random.default_rng(0)).cells[:, 2] == 9).all()
+    restored = gdqn.ReplayBuffer(3, CPU)
+    restored.load_state_dict(replay.state_dict())
+    for name in gdqn.ReplayBuffer.FIELDS:
+        assert torch.equal(getattr(restored, name), getattr(replay, name))
+    assert (restored.position, restored.count) == (replay.position, replay.count)
+
+
+def test_cell_embedder_inputs_draw_noise_on_the_host_and_embed_like_the_embedder():
+    """inputs: the 36 clean images and the cells as rows without noise; with noise, one freshly drawn image per cell."""
+    layout = gdqn.MazeLayout("SpiralWorld")
+    rep = gdqn.Representation(16, "infomax", 4, 8, 0.25, 0.99)
+    cells = torch.tensor([3, 3, 7])
+    clean = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))
+    images, rows = clean.inputs(cells)
+    assert images is clean.all_images and rows is cells
+    torch.testing.assert_close(gdqn.embed_images(rep, images, rows), clean(rep, cells))
+    noisy = gdqn.CellEmbedder(layout, 0.5, CPU, np.random.default_rng(0))
+    images, rows = noisy.inputs(cells)
+    assert rows is None and images.shape == (3, 80, 80, 3) and not torch.equal(images[0], images[1])
+    again = gdqn.CellEmbedder(layout, 0.5, CPU, np.random.default_rng(0))
+    torch.testing.assert_close(gdqn.embed_images(rep, images, None), again(rep, cells))
+
+
+# --- --fast: each update is one graph, equal to eager, free of host syncs ---------------------------------------------
+
+FAST_BATCH = 32
+
+
+@pytest.mark.parametrize("groups, objective", [(0, "infomax"), (4, "autoencoder")])
+def test_fast_pretrain_step_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups, objective):
+    """--fast compile: pretrain_step traced whole (phi, its objective, Adam, and for DGRL the codebook EMA with dead-code
+    restarts and the codes' perplexity) and equal to eager. InfoNCE does not change when a row's scores all shift by
+    the same amount, so psi_next's bias has a gradient of exactly zero but for rounding, which Adam turns into steps of
+    a whole learning rate that differ with any summation order: the infomax case leaves it out of the optimizer."""
+    layout = gdqn.MazeLayout("SpiralWorld")
+    walks = tuple(torch.as_tensor(c) for c in gdqn.random_walks(layout, 500, 20, np.random.default_rng(0)))
+    embedder = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))
+    agent = small_agent(groups=groups, objective=objective)
+    if groups:
+        agent.rep.vq.dead_code_steps = 3
+        agent.rep.vq.decay = 0.99  # the script's: at small_agent's 0.9 the EMA sums carry 10x the rounding of each step
+    if objective == "infomax":
+        trained = [parameter for name, parameter in agent.rep.named_parameters() if name != "psi_next.bias"]
+        agent.rep_optimizer = torch.optim.Adam(trained, lr=1e-3, fused=True)
+    rng = np.random.default_rng(1)
+    rows = [torch.as_tensor(rng.integers(500, size=FAST_BATCH)) for _ in range(31)]
+    inputs = [gdqn.pretrain_inputs(embedder, walks, batch_rows, objective) for batch_rows in rows]
+
+    def call(function, state, i):
+        return function(state, *inputs[i])
+
+    check_fast_update(gdqn, gdqn.pretrain_step, agent, call, lambda state: [state.rep_optimizer])
+
+
+@pytest.mark.parametrize("groups, finetune", [(0, False), (4, True)], ids=["baseline-frozen-table", "dgrl-finetune"])
+def test_fast_td_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups, finetune):
+    """--fast compile: td_update traced whole (Double DQN targets, the bonus, the TD loss and Adam; with --finetune phi's
+    encoder and, for DGRL, the codebook EMA on the (state, goal) batch) and equal to eager."""
+    layout = gdqn.MazeLayout("SpiralWorld")
+    embedder = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))
+    agent = small_agent(groups=groups, finetune=finetune)
+    table = None
+    if not finetune:
+        agent.rep.eval()
+        agent.rep.requires_grad_(False)
+        table = gdqn.cell_table(agent.rep, embedder)
+    replay = gdqn.ReplayBuffer(200, CPU)
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        cell, goal, action = rng.integers(36), rng.integers(36), rng.integers(4)
+        following = layout.next_cell[cell, action]
+        replay.add(cell, following, goal, action, 5.0 if following == goal else -1.0, following == goal)
+    batches = [replay.sample(FAST_BATCH, rng) for _ in range(31)]
+    observed = [gdqn.td_inputs(embedder, batch, table, finetune, True) for batch in batches]
+
+    def call(function, state, i):
+        return function(state, batches[i], table, observed[i], gamma=0.99, bonus_coef=0.5, double_dqn=True)
+
+    check_fast_update(gdqn, gdqn.td_update, agent, call, lambda state: [state.q_optimizer])
 
 
 # --- the script, end to end ---------------------------------------------------------------------------------------------

@@ -408,7 +408,8 @@ class GridEmbedding(nn.Module):
         x = torch.cat([self.object(grids[..., 0]), self.color(grids[..., 1]), self.state(grids[..., 2])], -1)
         x = x.permute(0, 3, 1, 2)  # (B, 10, W, H)
         if goals is not None:
-            one_hot = F.one_hot(goals, x.shape[2] * x.shape[3]).view(-1, 1, x.shape[2], x.shape[3])
+            cells = torch.arange(x.shape[2] * x.shape[3], device=goals.device)  # F.one_hot reads the goals' range: a sync
+            one_hot = (goals[:, None] == cells).view(-1, 1, x.shape[2], x.shape[3])
             x = torch.cat([x, one_hot.to(x.dtype)], 1)
         return x
 
@@ -609,13 +610,20 @@ def actor_critic_loss(logits, values, actions, vs, advantages, baseline_coef: fl
     return policy_loss + baseline_coef * baseline_loss - entropy_coef * entropy, policy_loss, baseline_loss, entropy
 
 
-def teacher_loss(teacher: Teacher, batch: dict, rewards: np.ndarray, device, *, baseline_coef: float, entropy_coef: float):
-    """The teacher's contextual-bandit update (discount 0): V-trace with one step reduces to an importance-weighted
-    policy gradient, rho = min(1, pi/mu), with advantage rho * (r - b) and baseline target b + rho * (r - b)."""
-    logits, baseline = teacher(torch.as_tensor(batch["frame"], device=device))
-    goals = torch.as_tensor(batch["goal"], device=device)
+def teacher_tensors(batch: dict, rewards: np.ndarray, device) -> dict[str, torch.Tensor]:
+    """A teacher batch of goal outcomes (numpy, from OutcomeBuffer.pop) and their rewards as the tensors teacher_loss
+    and teacher_update take: frame, goal, logp (of the proposing teacher), reward (float32)."""
+    frames, goals, logps = tensors(device, batch["frame"], batch["goal"], batch["logp"])
     rewards_t = torch.as_tensor(rewards, dtype=torch.float32, device=device)
-    behaviour = torch.as_tensor(batch["logp"], device=device)
+    return {"frame": frames, "goal": goals, "logp": logps, "reward": rewards_t}
+
+
+def teacher_loss(teacher: Teacher, batch: dict[str, torch.Tensor], *, baseline_coef: float, entropy_coef: float):
+    """The teacher's contextual-bandit update (discount 0): V-trace with one step reduces to an importance-weighted
+    policy gradient, rho = min(1, pi/mu), with advantage rho * (r - b) and baseline target b + rho * (r - b). `batch`
+    holds teacher_tensors' tensors."""
+    logits, baseline = teacher(batch["frame"])
+    goals, rewards_t, behaviour = batch["goal"], batch["reward"], batch["logp"]
     log_probs = F.log_softmax(logits, -1)
     logp = log_probs.gather(1, goals[:, None]).squeeze(1)
     no_discount = torch.zeros_like(rewards_t)
@@ -628,47 +636,48 @@ def teacher_loss(teacher: Teacher, batch: dict, rewards: np.ndarray, device, *, 
     return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy / len(goals)}
 
 
-def teacher_update(agent: Agent, batch: dict, rewards: np.ndarray, device, *, baseline_coef, entropy_coef, max_grad_norm):
-    """One teacher step on a batch of goal outcomes (frame, goal, logp of the proposing teacher) and their rewards."""
-    losses = teacher_loss(agent.teacher, batch, rewards, device, baseline_coef=baseline_coef, entropy_coef=entropy_coef)
-    agent.teacher_optimizer.zero_grad(set_to_none=True)
-    losses["loss"].backward()
-    nn.utils.clip_grad_norm_(agent.teacher.parameters(), max_grad_norm)
-    agent.teacher_optimizer.step()
-    return losses
+def teacher_update(agent: Agent, batch: dict[str, torch.Tensor], *, baseline_coef, entropy_coef, max_grad_norm) -> dict:
+    """One teacher step on a batch of goal outcomes (teacher_tensors: frame, goal, logp of the proposing teacher, reward);
+    tensors in, detached loss tensors out, nothing read back to the host (--fast compiles it whole)."""
+    losses = teacher_loss(agent.teacher, batch, baseline_coef=baseline_coef, entropy_coef=entropy_coef)
+    learn(agent.teacher_optimizer, losses["loss"], max_grad_norm)
+    return {name: value.detach() for name, value in losses.items()}
 
 
-def student_update(
-    agent: Agent, rollout: dict, last: dict, device, *, gamma, baseline_coef, entropy_coef, max_grad_norm
-) -> dict:
-    """One learner step on a batch of rollouts: `rollout` holds (T, B, ...) arrays (grids, carried, goal_frames, goals,
-    actions, logps of the acting policy, rewards, dones), `last` the (B, ...) observation after the rollout, whose value
-    bootstraps. The goal encoder trains through the student's loss, plus the commitment loss under DGRL."""
+def student_batch(rollout: dict, last: dict, device) -> dict[str, torch.Tensor]:
+    """A learner batch as the tensors student_update takes, from `rollout`'s (T, B, ...) arrays (grids, carried,
+    goal_frames, goals, actions, logps of the acting policy, rewards, dones) and `last`, the (B, ...) observation after
+    the rollout: the observations flattened to (T * B + B, ...) with the bootstrap rows last, the rest (T, B)."""
     T, B = rollout["actions"].shape
     obs = {key: np.concatenate([rollout[key].reshape(T * B, *rollout[key].shape[2:]), last[key]]) for key in last}
-    grids, carry, frames, goals = tensors(device, obs["grids"], obs["carried"], obs["goal_frames"], obs["goals"])
-    embedding, vq_loss, codes = agent.goal_encoder(frames, goals, update=True)  # DGRL: the codebook moves in learner batches
-    logits, values = agent.student(grids, carry, goals, embedding)
+    keys = ("actions", "logps", "rewards", "dones")
+    return dict(zip([*obs, *keys], tensors(device, *obs.values(), *(rollout[key] for key in keys)), strict=True))
+
+
+def student_update(agent: Agent, batch: dict[str, torch.Tensor], *, gamma, baseline_coef, entropy_coef, max_grad_norm):
+    """One learner step on a batch of rollouts (student_batch's tensors; the last B observation rows bootstrap). The goal
+    encoder trains through the student's loss, plus the commitment loss under DGRL. Tensors in, detached metric tensors
+    out, nothing read back to the host (--fast compiles it whole)."""
+    T, B = batch["actions"].shape
+    goals = batch["goals"]
+    embedding, vq_loss, codes = agent.goal_encoder(batch["goal_frames"], goals, update=True)  # DGRL: the codebook moves
+    logits, values = agent.student(batch["grids"], batch["carried"], goals, embedding)
     values = values.view(T + 1, B)  # row T: the bootstrap values
     logits = logits[: T * B].view(T, B, -1)
-    actions, behaviour, rewards, dones = tensors(
-        device, rollout["actions"], rollout["logps"], rollout["rewards"], rollout["dones"]
-    )
+    actions = batch["actions"]
     target_logp = F.log_softmax(logits, -1).gather(-1, actions[..., None]).squeeze(-1).detach()
-    discounts = gamma * (1.0 - dones)
-    vs, advantages = vtrace(behaviour, target_logp, rewards, values[:T].detach(), values[T].detach(), discounts)
+    discounts = gamma * (1.0 - batch["dones"])
+    vs, advantages = vtrace(batch["logps"], target_logp, batch["rewards"], values[:T].detach(), values[T].detach(), discounts)
     loss, policy_loss, baseline_loss, entropy = actor_critic_loss(
         logits, values[:T], actions, vs, advantages, baseline_coef, entropy_coef
     )
-    agent.student_optimizer.zero_grad(set_to_none=True)
-    (loss + vq_loss * len(goals)).backward()  # DGRL: summed over the batch's goals like the RL losses (zero for AMIGo)
-    nn.utils.clip_grad_norm_([*agent.student.parameters(), *agent.goal_encoder.parameters()], max_grad_norm)
-    agent.student_optimizer.step()
+    # DGRL: the commitment loss summed over the batch's goals like the RL losses (zero for AMIGo)
+    learn(agent.student_optimizer, loss + vq_loss * len(goals), max_grad_norm)
     return {
-        "policy_loss": policy_loss,
-        "baseline_loss": baseline_loss,
-        "entropy": entropy / (T * B),
-        "vq_loss": vq_loss,  # DGRL
+        "policy_loss": policy_loss.detach(),
+        "baseline_loss": baseline_loss.detach(),
+        "entropy": entropy.detach() / (T * B),
+        "vq_loss": vq_loss.detach(),  # DGRL
         "codes": codes,  # DGRL
     }
 
@@ -676,6 +685,28 @@ def student_update(
 def linear_decay(frames: int, total: int) -> float:
     """The learning-rate factor after `frames` of a `total`-frame run: 1 at the start, 0 at the end."""
     return max(1.0 - frames / total, 0.0)
+
+
+def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Set the learning rate of every group: in place where it is a tensor (learning_rates_as_tensors), so that a compiled
+    update reads the new value instead of compiling again for it; as a float otherwise (eager, the same arithmetic)."""
+    for group in optimizer.param_groups:
+        if isinstance(group["lr"], torch.Tensor):
+            group["lr"].fill_(lr)
+        else:
+            group["lr"] = lr
+
+
+def learning_rates_as_tensors(optimizers: list[torch.optim.Optimizer], as_tensors: bool) -> None:
+    """Make each group's learning rate a 0-d float32 tensor on its parameters' device (--fast compile, cudagraphs), or a
+    float (eager). torch.compile bakes a float learning rate into the graph, so a decaying one would recompile it every
+    update; it reads a tensor's value at each call instead. Eager RMSprop steps equal with either (the float is rounded
+    to float32 in the kernel either way), but an eager step reads a tensor learning rate back to the host, so eager
+    keeps floats. Called after a resume, whose optimizer state holds the learning rate of the run that saved it."""
+    for optimizer in optimizers:
+        for group in optimizer.param_groups:
+            lr = float(group["lr"])
+            group["lr"] = torch.tensor(lr, dtype=torch.float32, device=group["params"][0].device) if as_tensors else lr
 
 
 # --- Acting, evaluation -----------------------------------------------------------------------------------------------
@@ -1073,7 +1104,8 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
     parameter's device), so that a compiled update finds it in place."""
     for group in optimizer.param_groups:
         for param in group["params"]:
-            if optimizer.state[param]:
+            if optimizer.state[param]:  # a resumed optimizer's: its step count as this function would create it
+                optimizer.state[param]["step"] = optimizer.state[param]["step"].to(param.device, torch.float32)
                 continue
             state = {"step": torch.zeros((), dtype=torch.float32, device=param.device)}
             names = ("exp_avg", "exp_avg_sq") if isinstance(optimizer, torch.optim.Adam) else ("square_avg",)
@@ -1083,14 +1115,17 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
 
 @torch.no_grad()
 def functional_step(optimizer: torch.optim.Optimizer) -> None:
-    """optimizer.step() for torch.optim.Adam and RMSprop (no weight decay, momentum, amsgrad or centring: the options the
-    scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the optimizer's own."""
+    """optimizer.step() for torch.optim.Adam and RMSprop (with L2 weight decay; no momentum, amsgrad or centring: the
+    options the scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the
+    optimizer's own, and a learning rate may be a 0-d tensor (changed in place, it needs no recompilation)."""
     for group in optimizer.param_groups:
         params = [param for param in group["params"] if param.grad is not None]
         grads = [param.grad for param in params]
         states = [optimizer.state[param] for param in params]
         steps = [state["step"] for state in states]
         torch._foreach_add_(steps, 1.0)
+        if group["weight_decay"]:
+            grads = torch._foreach_add(grads, params, alpha=group["weight_decay"])
         if isinstance(optimizer, torch.optim.Adam):
             beta1, beta2 = group["betas"]
             exp_avgs, exp_avg_sqs = [state["exp_avg"] for state in states], [state["exp_avg_sq"] for state in states]
@@ -1105,7 +1140,7 @@ def functional_step(optimizer: torch.optim.Optimizer) -> None:
             torch._foreach_mul_(square_avgs, group["alpha"])
             torch._foreach_addcmul_(square_avgs, grads, grads, 1.0 - group["alpha"])
             denoms = torch._foreach_add(torch._foreach_sqrt(square_avgs), group["eps"])
-            torch._foreach_addcdiv_(params, grads, denoms, -group["lr"])
+            torch._foreach_addcdiv_(params, torch._foreach_mul(grads, -group["lr"]), denoms)
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
@@ -1114,7 +1149,7 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     if fast == "eager":
         return update
     for optimizer in optimizers:
-        unsupported = {"weight_decay": 0, "amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
+        unsupported = {"amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
         for group in optimizer.param_groups:
             wrong = [key for key, value in unsupported.items() if group.get(key, value) != value]
             if wrong or not isinstance(optimizer, torch.optim.Adam | torch.optim.RMSprop):
@@ -1301,6 +1336,10 @@ if __name__ == "__main__":
         video = loop["video"] if envs.record else []
         print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {step}")
         set_rng_states(saved["rng"])  # last: building the run above drew from them
+    optimizers = [agent.student_optimizer, agent.teacher_optimizer]
+    learning_rates_as_tensors(optimizers, as_tensors=args.fast != "eager")  # compiled: no recompile for a new LR
+    update_student = fast_update(student_update, args.fast, [agent.student_optimizer])
+    update_teacher = fast_update(teacher_update, args.fast, [agent.teacher_optimizer])
     progress = Progress(args.total_timesteps, unit="frame", start_step=step)
     while step < args.total_timesteps and not stop:
         # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
@@ -1354,16 +1393,19 @@ if __name__ == "__main__":
                 video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
 
         # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
-        lr_scale = linear_decay(step - n_envs * T, args.total_timesteps)  # from the collection's first frame
-        agent.student_optimizer.param_groups[0]["lr"] = args.learning_rate * lr_scale
+        student_lr = args.learning_rate * linear_decay(step - n_envs * T, args.total_timesteps)  # from the collection's start
+        set_learning_rate(agent.student_optimizer, student_lr)
         last = {"grids": obs["grid"], "carried": obs["carried"], "goal_frames": book.frame, "goals": book.goal}
         for first in range(0, n_envs, args.batch_envs):
             envs_slice = slice(first, first + args.batch_envs)
-            metrics = student_update(
-                agent,
+            learner_batch = student_batch(
                 {key: value[:, envs_slice] for key, value in rollout.items()},
                 {key: value[envs_slice] for key, value in last.items()},
                 device,
+            )
+            metrics = update_student(
+                agent,
+                learner_batch,
                 gamma=args.gamma,
                 baseline_coef=args.baseline_coef,
                 entropy_coef=args.entropy_coef,
@@ -1382,13 +1424,10 @@ if __name__ == "__main__":
                 args.teacher_reward_negative,
                 args.teacher_reward_positive,
             )
-            teacher_lr = args.teacher_learning_rate * linear_decay(step, args.total_timesteps)
-            agent.teacher_optimizer.param_groups[0]["lr"] = teacher_lr
-            losses = teacher_update(
+            set_learning_rate(agent.teacher_optimizer, args.teacher_learning_rate * linear_decay(step, args.total_timesteps))
+            losses = update_teacher(
                 agent,
-                batch,
-                rewards,
-                device,
+                teacher_tensors(batch, rewards, device),
                 baseline_coef=args.teacher_baseline_coef,
                 entropy_coef=args.teacher_entropy_coef,
                 max_grad_norm=args.max_grad_norm,
@@ -1408,7 +1447,7 @@ if __name__ == "__main__":
             next_loss_log += LOSS_LOG_UPDATES
             for name in ("policy_loss", "baseline_loss", "entropy"):
                 writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
-            writer.add_scalar("charts/learning_rate", agent.student_optimizer.param_groups[0]["lr"], step)
+            writer.add_scalar("charts/learning_rate", student_lr, step)
             if dgrl:  # DGRL
                 writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
                 writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL

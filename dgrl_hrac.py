@@ -728,40 +728,41 @@ def controller_reward(states, subgoals, next_states):
 @torch.no_grad()
 def off_policy_correction(
     controller: Actor,
-    states: np.ndarray,
-    actions: np.ndarray,
-    subgoals: np.ndarray,
-    scale: np.ndarray,
-    rng: np.random.Generator,
-    n_samples: int = 10,
+    states: torch.Tensor,
+    actions: torch.Tensor,
+    subgoals: torch.Tensor,
+    scale: torch.Tensor,
+    noise: torch.Tensor,
     goal_encoder: SubgoalEncoder | None = None,  # DGRL
-) -> np.ndarray:
+) -> torch.Tensor:
     """HIRO's relabelling of stored manager transitions. `states` (B, k + 1, S), `actions` (B, k, A), `subgoals` (B, d):
-    the candidates are the stored subgoal, the achieved offset s_k - s_0 and `n_samples` draws from
-    N(s_k - s_0, (0.5 scale)^2) clipped to +-scale; each is rolled through the k stored states with the subgoal
-    transition, and the one under which the current controller is most likely to have taken the stored actions,
-    argmax of -0.5 sum_t ||pi(s_t, g_t) - a_t||^2, replaces the stored subgoal. Returns (B, d). Under DGRL the
-    controller sees each candidate through `goal_encoder` (its discrete embedding), as it does when acting."""
+    the candidates are the stored subgoal, the achieved offset s_k - s_0 and the draws of N(s_k - s_0, (0.5 scale)^2)
+    clipped to +-scale, s_k - s_0 + `noise` ((B, n_samples, d) of N(0, (0.5 scale)^2), drawn by correction_noise); each
+    is rolled through the k stored states with the subgoal transition, and the one under which the current controller
+    is most likely to have taken the stored actions, argmax of -0.5 sum_t ||pi(s_t, g_t) - a_t||^2, replaces the stored
+    subgoal. Returns (B, d) in the candidates' precision (float64 with float64 noise, as the numpy version computed
+    them). All on the tensors' device, without a host sync. Under DGRL the controller sees each candidate through
+    `goal_encoder` (its discrete embedding), as it does when acting."""
     batch, k = actions.shape[:2]
     d = subgoals.shape[-1]
     achieved = states[:, -1, :d] - states[:, 0, :d]
-    noise = rng.normal(0.0, 0.5 * scale, (batch, n_samples, d))
-    candidates = np.concatenate(
-        [subgoals[:, None], achieved[:, None], np.clip(achieved[:, None] + noise, -scale, scale)], 1
-    )  # (B, 2 + n_samples, d)
-    n = candidates.shape[1]
-    goals = np.empty((batch, n, k, d))
-    goals[:, :, 0] = candidates
+    clipped = torch.clamp(achieved[:, None] + noise, -scale, scale)
+    candidates = torch.cat([subgoals[:, None].to(clipped.dtype), achieved[:, None].to(clipped.dtype), clipped], 1)
+    goals = [candidates]  # (B, 2 + n_samples, d) at each of the k steps
     for t in range(1, k):
-        goals[:, :, t] = subgoal_transition(states[:, None, t - 1], goals[:, :, t - 1], states[:, None, t])
-    observed = np.broadcast_to(states[:, None, :k], (batch, n, k, states.shape[-1]))
-    device = next(controller.parameters()).device
-    observed_in = torch.as_tensor(controller_input(observed), dtype=torch.float32, device=device)
-    goals_in = torch.as_tensor(goals, dtype=torch.float32, device=device)
+        goals.append(subgoal_transition(states[:, None, t - 1], goals[-1], states[:, None, t]))
+    goals_in = torch.stack(goals, 2).float()  # (B, n, k, d)
+    observed_in = controller_input(states[:, None, :k]).float().expand(batch, candidates.shape[1], k, states.shape[-1])
     goals_in = controller_goal_input(goal_encoder, goals_in)  # DGRL: the candidates' discrete embeddings
-    predicted = controller(observed_in, goals_in).cpu().numpy()
+    predicted = controller(observed_in, goals_in)
     log_likelihood = -0.5 * ((predicted - actions[:, None]) ** 2).sum(-1).sum(-1)  # (B, n)
-    return candidates[np.arange(batch), log_likelihood.argmax(1)]
+    return candidates[torch.arange(batch, device=candidates.device), log_likelihood.argmax(1)]
+
+
+def correction_noise(rng: np.random.Generator, batch: int, n_samples: int, scale: np.ndarray) -> np.ndarray:
+    """The off-policy correction's Gaussian draws, N(0, (0.5 scale)^2) of shape (batch, n_samples, d), from the run's
+    numpy generator on the host (drawn after the sample's indices, so a seed gives the same numbers as ever)."""
+    return rng.normal(0.0, 0.5 * scale, (batch, n_samples, len(scale)))
 
 
 def contrastive_loss(
@@ -871,17 +872,13 @@ def td3_update(
         target = batch["rewards"] + gamma * (1.0 - batch["dones"]) * target_q
     q1, q2 = level.critic(batch["states"], batch["goals"], batch["actions"])
     critic_loss = nn.functional.smooth_l1_loss(q1, target) + nn.functional.smooth_l1_loss(q2, target)
-    level.critic_optimizer.zero_grad(set_to_none=True)
-    (critic_loss + critic_extra).backward()
-    level.critic_optimizer.step()
+    learn(level.critic_optimizer, critic_loss + critic_extra)
     goals = batch["goals"].detach()
     actions = level.actor(batch["states"], goals)
     actor_loss = -level.critic(batch["states"], goals, actions)[0].mean()
     if actor_extra is not None:
         actor_loss = actor_loss + actor_extra(actions)
-    level.actor_optimizer.zero_grad(set_to_none=True)
-    actor_loss.backward()
-    level.actor_optimizer.step()
+    learn(level.actor_optimizer, actor_loss)
     update_target(level.actor_target, level.actor, tau)
     update_target(level.critic_target, level.critic, tau)
     metrics = {"critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(), "q": q1.detach().mean()}
@@ -948,20 +945,13 @@ def controller_action(
 
 
 def controller_update(
-    agent: Agent,
-    sample: dict[str, np.ndarray],
-    *,
-    device: torch.device | str,
-    gamma: float,
-    tau: float,
-    policy_noise: float,
-    noise_clip: float,
+    agent: Agent, batch: dict[str, torch.Tensor], *, gamma: float, tau: float, policy_noise: float, noise_clip: float
 ) -> dict[str, torch.Tensor]:
-    """One controller TD3 step on a replay sample. DGRL: the batch's subgoals and re-targeted next subgoals go through
-    the encoder and the quantizer in one call (one EMA step of the codebook); the controller's critic and actor see z_q;
-    the critic loss reaches the encoder through the straight-through estimator, with the reconstruction loss and the
-    commitment loss (the mean over the subgoals and the next subgoals) added."""
-    batch = as_tensors(sample, device)
+    """One controller TD3 step on a replay sample (`batch`: as_tensors of it, on the agent's device). DGRL: the batch's
+    subgoals and re-targeted next subgoals go through the encoder and the quantizer in one call (one EMA step of the
+    codebook); the controller's critic and actor see z_q; the critic loss reaches the encoder through the
+    straight-through estimator, with the reconstruction loss and the commitment loss (the mean over the subgoals and the
+    next subgoals) added. Free of host syncs: --fast compiles it into one graph."""
     encoder = agent.encoder  # DGRL
     extra = 0.0  # DGRL: the encoder's losses, added to the critic loss
     metrics = {}  # DGRL: the encoder's losses and codes, for the logs
@@ -984,14 +974,24 @@ def controller_update(
     return metrics
 
 
-def manager_update(
-    agent: Agent,
+def manager_batch(
     sample: dict[str, np.ndarray],
-    *,
     rng: np.random.Generator,
-    device: torch.device | str,
+    *,
     bounds: np.ndarray,
     correction_samples: int,
+    device: torch.device | str,
+) -> dict[str, torch.Tensor]:
+    """A manager replay sample as tensors on `device`, with `noise`: the off-policy correction's Gaussian draws."""
+    noise = correction_noise(rng, len(sample["actions"]), correction_samples, bounds)
+    return as_tensors(sample | {"noise": noise}, device)
+
+
+def manager_update(
+    agent: Agent,
+    batch: dict[str, torch.Tensor],
+    *,
+    bounds: torch.Tensor,
     gamma: float,
     tau: float,
     policy_noise: float,
@@ -999,21 +999,21 @@ def manager_update(
     adj_weight: float,
     adj_threshold: float,
 ) -> dict[str, torch.Tensor]:
-    """One manager TD3 step: the sample's subgoals are relabelled by HIRO's off-policy correction under the current
-    controller, and the actor loss adds adj_weight x the adjacency loss of its subgoals (on their xy part)."""
+    """One manager TD3 step on `batch` (manager_batch: a replay sample with the correction's noise; `bounds`, the subgoal
+    bounds as a float64 tensor on the same device): the sample's subgoals are relabelled by HIRO's off-policy correction
+    under the current controller, and the actor loss adds adj_weight x the adjacency loss of its subgoals (on their xy
+    part). Free of host syncs: --fast compiles it, correction included, into one graph."""
     actions = off_policy_correction(
         agent.controller.actor,
-        sample["state_seq"],
-        sample["action_seq"],
-        sample["actions"],
+        batch["state_seq"],
+        batch["action_seq"],
+        batch["actions"],
         bounds,
-        rng,
-        correction_samples,
+        batch["noise"],
         goal_encoder=agent.encoder,  # DGRL: the controller sees the candidates as it does when acting
     )
     names = ("states", "goals", "rewards", "next_states", "dones")
-    batch = as_tensors({name: sample[name] for name in names} | {"actions": actions.astype(np.float32)}, device)
-    batch["next_goals"] = batch["goals"]
+    batch = {name: batch[name] for name in names} | {"actions": actions.float(), "next_goals": batch["goals"]}
 
     def adjacency_term(subgoals: torch.Tensor) -> torch.Tensor:
         return adj_weight * adjacency_loss(agent.adjacency, batch["states"][:, :2], subgoals[:, :2], adj_threshold)
@@ -1392,7 +1392,8 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
     parameter's device), so that a compiled update finds it in place."""
     for group in optimizer.param_groups:
         for param in group["params"]:
-            if optimizer.state[param]:
+            if optimizer.state[param]:  # a resumed optimizer's: its step count as this function would create it
+                optimizer.state[param]["step"] = optimizer.state[param]["step"].to(param.device, torch.float32)
                 continue
             state = {"step": torch.zeros((), dtype=torch.float32, device=param.device)}
             names = ("exp_avg", "exp_avg_sq") if isinstance(optimizer, torch.optim.Adam) else ("square_avg",)
@@ -1402,14 +1403,17 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
 
 @torch.no_grad()
 def functional_step(optimizer: torch.optim.Optimizer) -> None:
-    """optimizer.step() for torch.optim.Adam and RMSprop (no weight decay, momentum, amsgrad or centring: the options the
-    scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the optimizer's own."""
+    """optimizer.step() for torch.optim.Adam and RMSprop (with L2 weight decay; no momentum, amsgrad or centring: the
+    options the scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the
+    optimizer's own, and a learning rate may be a 0-d tensor (changed in place, it needs no recompilation)."""
     for group in optimizer.param_groups:
         params = [param for param in group["params"] if param.grad is not None]
         grads = [param.grad for param in params]
         states = [optimizer.state[param] for param in params]
         steps = [state["step"] for state in states]
         torch._foreach_add_(steps, 1.0)
+        if group["weight_decay"]:
+            grads = torch._foreach_add(grads, params, alpha=group["weight_decay"])
         if isinstance(optimizer, torch.optim.Adam):
             beta1, beta2 = group["betas"]
             exp_avgs, exp_avg_sqs = [state["exp_avg"] for state in states], [state["exp_avg_sq"] for state in states]
@@ -1424,7 +1428,7 @@ def functional_step(optimizer: torch.optim.Optimizer) -> None:
             torch._foreach_mul_(square_avgs, group["alpha"])
             torch._foreach_addcmul_(square_avgs, grads, grads, 1.0 - group["alpha"])
             denoms = torch._foreach_add(torch._foreach_sqrt(square_avgs), group["eps"])
-            torch._foreach_addcdiv_(params, grads, denoms, -group["lr"])
+            torch._foreach_addcdiv_(params, torch._foreach_mul(grads, -group["lr"]), denoms)
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
@@ -1433,7 +1437,7 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     if fast == "eager":
         return update
     for optimizer in optimizers:
-        unsupported = {"weight_decay": 0, "amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
+        unsupported = {"amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
         for group in optimizer.param_groups:
             wrong = [key for key, value in unsupported.items() if group.get(key, value) != value]
             if wrong or not isinstance(optimizer, torch.optim.Adam | torch.optim.RMSprop):
@@ -1681,6 +1685,12 @@ if __name__ == "__main__":
             seg_states, seg_actions = episode["seg_states"], episode["seg_actions"]
         print(f"resuming at step {step}: {episodes} episodes done, {episode_steps} steps into the current one")
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
+    # --fast: each level's TD3 update (the manager's with its off-policy correction) compiled into one graph, after a
+    # resumed run's optimizer states are loaded (a fresh run's are created here). The adjacency training stays eager.
+    level_optimizers = lambda level: [level.critic_optimizer, level.actor_optimizer]  # noqa: E731
+    update_controller = fast_update(controller_update, args.fast, level_optimizers(agent.controller))
+    update_manager = fast_update(manager_update, args.fast, level_optimizers(agent.manager))
+    bounds_tensor = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
     progress = Progress(args.total_timesteps, start_step=step)
     # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps (an
     # episode end's updates finish first), or between two epochs of an adjacency training.
@@ -1816,10 +1826,9 @@ if __name__ == "__main__":
                 writer.add_scalar("charts/success_rate", float(info["success"]), step)
             ctrl_metrics = {}
             for _ in range(args.ctrl_updates or episode_steps):
-                ctrl_metrics = controller_update(
+                ctrl_metrics = update_controller(
                     agent,
-                    ctrl_replay.sample(args.batch_size, rng),
-                    device=device,
+                    as_tensors(ctrl_replay.sample(args.batch_size, rng), device),
                     gamma=args.ctrl_gamma,
                     tau=args.tau,
                     policy_noise=args.policy_noise,
@@ -1827,13 +1836,11 @@ if __name__ == "__main__":
                 )
             man_metrics = {}
             for _ in range((args.man_updates or -(-episode_steps // args.k)) if man_replay.size else 0):
-                man_metrics = manager_update(
+                sample = man_replay.sample(args.batch_size, rng)  # then the correction's noise, from the same generator
+                man_metrics = update_manager(
                     agent,
-                    man_replay.sample(args.batch_size, rng),
-                    rng=rng,
-                    device=device,
-                    bounds=bounds,
-                    correction_samples=args.correction_samples,
+                    manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device),
+                    bounds=bounds_tensor,
                     gamma=args.man_gamma,
                     tau=args.tau,
                     policy_noise=args.policy_noise,

@@ -535,28 +535,30 @@ def make_agent(
 
 
 class ManagerReplay:
-    """Preallocated ring buffer of k-step high-level transitions (state, subgoal, summed reward, next state, terminal)."""
+    """Preallocated ring buffer of k-step high-level transitions (state, subgoal, summed reward, next state, terminal),
+    float32 columns on `device` (the training device: a batch is gathered there, not copied over column by column); the
+    batch indices are drawn on the host from `rng`."""
 
     COLUMNS = ("states", "goals", "rewards", "next_states", "terminals")
 
-    def __init__(self, capacity: int, rng: np.random.Generator):
+    def __init__(self, capacity: int, rng: np.random.Generator, device: torch.device | str = "cpu"):
         self.capacity = capacity
         self.rng = rng
         self.size = 0
         self.pointer = 0
-        self.states = np.zeros((capacity, 3), dtype=np.float32)
-        self.goals = np.zeros((capacity, 2), dtype=np.float32)
-        self.rewards = np.zeros(capacity, dtype=np.float32)
-        self.next_states = np.zeros((capacity, 3), dtype=np.float32)
-        self.terminals = np.zeros(capacity, dtype=np.float32)
+        self.states = torch.zeros((capacity, 3), device=device)
+        self.goals = torch.zeros((capacity, 2), device=device)
+        self.rewards = torch.zeros(capacity, device=device)
+        self.next_states = torch.zeros((capacity, 3), device=device)
+        self.terminals = torch.zeros(capacity, device=device)
 
     def add(self, states, goals, rewards, next_states, terminals) -> None:
-        slots = (self.pointer + np.arange(len(states))) % self.capacity
-        self.states[slots] = states
-        self.goals[slots] = goals
-        self.rewards[slots] = rewards
-        self.next_states[slots] = next_states
-        self.terminals[slots] = terminals
+        """Append host (numpy) rows, cast to float32 as the columns are (one copy to the device per column)."""
+        device = self.states.device
+        slots = torch.as_tensor((self.pointer + np.arange(len(states))) % self.capacity, device=device)
+        for name, rows in zip(self.COLUMNS, (states, goals, rewards, next_states, terminals), strict=True):
+            column = getattr(self, name)
+            column[slots] = torch.as_tensor(np.asarray(rows, dtype=np.float32), device=device)
         self.pointer = int((self.pointer + len(states)) % self.capacity)
         self.size = min(self.size + len(states), self.capacity)
 
@@ -564,14 +566,15 @@ class ManagerReplay:
         return self.size >= self.capacity // 2
 
     def state(self) -> dict:
-        """The filled part and the write position (for --resume; the generator is shared and saved by its owner)."""
-        columns = {name: getattr(self, name)[: self.size] for name in self.COLUMNS}
+        """The filled part (on the CPU) and the write position (for --resume; the generator is shared and saved by its
+        owner)."""
+        columns = {name: getattr(self, name)[: self.size].cpu() for name in self.COLUMNS}
         return {"size": self.size, "pointer": self.pointer, "columns": columns}
 
     def load_state(self, state: dict) -> None:
         self.size, self.pointer = state["size"], state["pointer"]
         for name, column in state["columns"].items():
-            getattr(self, name)[: self.size] = column
+            getattr(self, name)[: self.size] = torch.as_tensor(column)
 
     def sample(self, batch_size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
         """A uniform batch of distinct transitions (as the original). From a large buffer, redrawing the rare batch with a
@@ -582,19 +585,25 @@ class ManagerReplay:
             batch = self.rng.integers(self.size, size=batch_size)
             while len(np.unique(batch)) < batch_size:
                 batch = self.rng.integers(self.size, size=batch_size)
-        columns = (self.states, self.goals, self.rewards, self.next_states, self.terminals)
-        return tuple(torch.as_tensor(column[batch], device=device) for column in columns)
+        batch = torch.as_tensor(batch, device=self.states.device)
+        return tuple(getattr(self, name).index_select(0, batch).to(device) for name in self.COLUMNS)
 
 
-def segment_returns(rewards: np.ndarray, gamma: float, k: int) -> np.ndarray:
-    """Discounted returns that stop at the end of each k-step segment (steps 0..k-1, k..2k-1, ...), with no bootstrap:
-    HRAC's low-level A2C target, one subgoal per segment."""
-    n_segments = -(-len(rewards) // k)
-    padded = np.zeros(n_segments * k, dtype=np.float64)
-    padded[: len(rewards)] = rewards
+def segment_discounts(gamma: float, k: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """(k, k) float64: [i, j] = gamma^(j - i) for j >= i, else 0. Made once by numpy, whose powers segment_returns has
+    always used (torch.pow differs from them in the last bit), and passed to controller_update."""
     offsets = np.arange(k)[None, :] - np.arange(k)[:, None]  # offsets[i, j] = j - i
-    discount = np.where(offsets >= 0, gamma ** np.maximum(offsets, 0), 0.0)
-    return (padded.reshape(n_segments, k) @ discount.T).reshape(-1)[: len(rewards)]
+    return torch.as_tensor(np.where(offsets >= 0, gamma ** np.maximum(offsets, 0), 0.0), device=device)
+
+
+def segment_returns(rewards: torch.Tensor, discounts: torch.Tensor) -> torch.Tensor:
+    """Discounted returns that stop at the end of each k-step segment (steps 0..k-1, k..2k-1, ...), with no bootstrap:
+    HRAC's low-level A2C target, one subgoal per segment. float64, as one matrix product with segment_discounts(gamma,
+    k): the padded rewards as (segments, k) rows."""
+    k = discounts.shape[0]
+    n_segments = -(-len(rewards) // k)
+    padded = F.pad(rewards.double(), (0, n_segments * k - len(rewards)))
+    return (padded.view(n_segments, k) @ discounts.T).reshape(-1)[: len(rewards)]
 
 
 def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -767,10 +776,16 @@ class ControllerRollout:
 def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> torch.Tensor:  # DGRL
     """One Adam step of the subgoal autoencoder on reconstruction (MSE in [0, 1]^2 units) + the commitment loss."""
     reconstruction_loss = F.mse_loss(reconstruction, goals / agent.goal_ae.scale)  # DGRL
-    agent.ae_optimizer.zero_grad()  # DGRL
-    (reconstruction_loss + vq_loss).backward()  # DGRL
-    agent.ae_optimizer.step()  # DGRL
+    learn(agent.ae_optimizer, reconstruction_loss + vq_loss)  # DGRL
     return reconstruction_loss  # DGRL
+
+
+def goal_autoencoder_update(agent: Agent, goals: torch.Tensor) -> dict[str, torch.Tensor]:  # DGRL
+    """The autoencoder's pre-training update on a batch of raw subgoals: the codebook's EMA step, then the Adam step.
+    Returns detached metrics (the fast path compiles it: --fast)."""
+    _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
+    reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
+    return {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}  # DGRL
 
 
 def controller_update(
@@ -780,15 +795,16 @@ def controller_update(
     actions: torch.Tensor,
     next_states: torch.Tensor,
     *,
-    k: int,
-    gamma: float,
+    discounts: torch.Tensor,
     entropy_coef: float,
     reward_scale: float,
     goal_threshold: float,
-) -> dict[str, torch.Tensor | float]:
+) -> dict[str, torch.Tensor]:
     """HRAC's low-level A2C update on one episode (raw subgoals as stored), returns truncated at each k-step segment's
-    end. Under DGRL the low level's goals are recomputed by the current autoencoder, whose training step this is (the
-    codebook moves here); the low level's loss does not shape the codes. Returns the figures to log."""
+    end (`discounts`: segment_discounts(gamma, k)). Under DGRL the low level's goals are recomputed by the current
+    autoencoder, whose training step this is (the codebook moves here); the low level's loss does not shape the codes.
+    Returns the figures to log, as detached tensors: nothing in it waits for the device (--fast compiles it; the
+    episode's length varies, so its graph has a dynamic length)."""
     goal_inputs, target_goals, ae_outputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal, update=True)
     figures = {}
     if agent.goal_ae is not None:  # DGRL
@@ -799,18 +815,18 @@ def controller_update(
         figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)  # DGRL
         figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)  # DGRL
     intrinsic = reward_scale * goal_reached(next_states, target_goals, goal_threshold)
-    intrinsic_np = intrinsic.cpu().numpy()
-    returns = torch.as_tensor(segment_returns(intrinsic_np, gamma, k), dtype=torch.float32, device=states.device)
+    returns = segment_returns(intrinsic, discounts).float()
     logits, values = agent.controller(states, goal_inputs)
     loss, policy_loss, value_loss, entropy = a2c_loss(logits, values, actions, returns, entropy_coef)
-    agent.controller_optimizer.zero_grad()
-    loss.backward()
-    agent.controller_optimizer.step()
+    learn(agent.controller_optimizer, loss)
+    k = discounts.shape[0]
+    n_segments = -(-len(intrinsic) // k)
+    segment_rewards = F.pad(intrinsic, (0, n_segments * k - len(intrinsic))).view(n_segments, k).sum(1)
     figures["losses/ctrl_policy_loss"] = policy_loss.detach()
     figures["losses/ctrl_value_loss"] = value_loss.detach()
     figures["losses/ctrl_entropy"] = entropy.detach()
     figures["charts/intrinsic_reward"] = intrinsic.mean()
-    figures["charts/subgoal_reach_rate"] = (np.add.reduceat(intrinsic_np, np.arange(0, len(intrinsic_np), k)) > 0).mean()
+    figures["charts/subgoal_reach_rate"] = (segment_rewards > 0).double().mean()  # segments with a reaching step
     return figures
 
 
@@ -822,28 +838,29 @@ def manager_update(
     tau: float,
     adj_weight: float,
     threshold: float,
-    policy_term: bool,
+    policy_term: bool | torch.Tensor,
 ) -> dict[str, torch.Tensor]:
     """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), then
     the actor on -Q1(s, pi(s)) (only when `policy_term`, TD3's delay) + adj_weight x the adjacency loss, then Polyak
-    targets. Returns the figures to log."""
+    targets. Returns the figures to log, as detached tensors. `policy_term` is a bool (False: Q1 is not evaluated) or a
+    0-d float tensor, 1.0 or 0.0, that multiplies the critic term: the same values (times 1 exact, times 0 adds zeros
+    to the gradients), with one graph for both, as --fast cudagraphs needs."""
     states, goals, rewards, next_states, terminals = batch
     with torch.no_grad():
         next_q = torch.min(*agent.critic_target(next_states, agent.actor_target(next_states)))
         td_target = rewards + gamma * (1 - terminals) * next_q
     q1, q2 = agent.critic(states, goals)
     critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
-    agent.critic_optimizer.zero_grad()
-    critic_loss.backward()
-    agent.critic_optimizer.step()
+    learn(agent.critic_optimizer, critic_loss)
     proposed = agent.actor(states)
-    actor_q_loss = -agent.critic.q1(torch.cat([states, proposed], 1)).mean() if policy_term else 0.0
+    if isinstance(policy_term, torch.Tensor):
+        actor_q_loss = -agent.critic.q1(torch.cat([states, proposed], 1)).mean() * policy_term
+    else:
+        actor_q_loss = -agent.critic.q1(torch.cat([states, proposed], 1)).mean() if policy_term else 0.0
     with torch.no_grad():
         state_embeddings = agent.adjacency(states[:, :2])
     goal_loss = ((agent.adjacency(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
-    agent.actor_optimizer.zero_grad()
-    (actor_q_loss + adj_weight * goal_loss).backward()
-    agent.actor_optimizer.step()
+    learn(agent.actor_optimizer, actor_q_loss + adj_weight * goal_loss)
     update_target(agent.actor_target, agent.actor, tau)
     update_target(agent.critic_target, agent.critic, tau)
     return {
@@ -1174,7 +1191,8 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
     parameter's device), so that a compiled update finds it in place."""
     for group in optimizer.param_groups:
         for param in group["params"]:
-            if optimizer.state[param]:
+            if optimizer.state[param]:  # a resumed optimizer's: its step count as this function would create it
+                optimizer.state[param]["step"] = optimizer.state[param]["step"].to(param.device, torch.float32)
                 continue
             state = {"step": torch.zeros((), dtype=torch.float32, device=param.device)}
             names = ("exp_avg", "exp_avg_sq") if isinstance(optimizer, torch.optim.Adam) else ("square_avg",)
@@ -1184,14 +1202,17 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
 
 @torch.no_grad()
 def functional_step(optimizer: torch.optim.Optimizer) -> None:
-    """optimizer.step() for torch.optim.Adam and RMSprop (no weight decay, momentum, amsgrad or centring: the options the
-    scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the optimizer's own."""
+    """optimizer.step() for torch.optim.Adam and RMSprop (with L2 weight decay; no momentum, amsgrad or centring: the
+    options the scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the
+    optimizer's own, and a learning rate may be a 0-d tensor (changed in place, it needs no recompilation)."""
     for group in optimizer.param_groups:
         params = [param for param in group["params"] if param.grad is not None]
         grads = [param.grad for param in params]
         states = [optimizer.state[param] for param in params]
         steps = [state["step"] for state in states]
         torch._foreach_add_(steps, 1.0)
+        if group["weight_decay"]:
+            grads = torch._foreach_add(grads, params, alpha=group["weight_decay"])
         if isinstance(optimizer, torch.optim.Adam):
             beta1, beta2 = group["betas"]
             exp_avgs, exp_avg_sqs = [state["exp_avg"] for state in states], [state["exp_avg_sq"] for state in states]
@@ -1206,7 +1227,7 @@ def functional_step(optimizer: torch.optim.Optimizer) -> None:
             torch._foreach_mul_(square_avgs, group["alpha"])
             torch._foreach_addcmul_(square_avgs, grads, grads, 1.0 - group["alpha"])
             denoms = torch._foreach_add(torch._foreach_sqrt(square_avgs), group["eps"])
-            torch._foreach_addcdiv_(params, grads, denoms, -group["lr"])
+            torch._foreach_addcdiv_(params, torch._foreach_mul(grads, -group["lr"]), denoms)
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
@@ -1215,7 +1236,7 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     if fast == "eager":
         return update
     for optimizer in optimizers:
-        unsupported = {"weight_decay": 0, "amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
+        unsupported = {"amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
         for group in optimizer.param_groups:
             wrong = [key for key, value in unsupported.items() if group.get(key, value) != value]
             if wrong or not isinstance(optimizer, torch.optim.Adam | torch.optim.RMSprop):
@@ -1387,7 +1408,7 @@ if __name__ == "__main__":
         args.k,
     )
 
-    replay = ManagerReplay(args.man_buffer_size, rng)
+    replay = ManagerReplay(args.man_buffer_size, rng, device)
     envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
     noise = {"n_noisy_goals": args.n_noisy_goals, "noise": args.man_noise}
 
@@ -1461,6 +1482,16 @@ if __name__ == "__main__":
         segment_start, segment_reward = variables["segment_start"], variables["segment_reward"]
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
 
+    # The updates, compiled with --fast (after the restore: fast_update gives each optimizer its state if it has none).
+    # An episode's A2C update has the episode's length, which a CUDA graph cannot vary: it stays compiled under
+    # cudagraphs. The TD3 delay's switch is then a device tensor, which the graph reads, instead of a Python bool.
+    ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # DGRL: its step is in it
+    update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
+    update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
+    update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None  # DGRL
+    policy_terms = (torch.zeros((), device=device), torch.ones((), device=device))  # cudagraphs: policy_terms[True]
+    discounts = segment_discounts(args.ctrl_gamma, args.k, device)
+
     # Every save follows all logging of its frame, so a resumed run logs from the next frame on.
     writer = make_writer(args, run_name, purge_step=None if saved is None else frames + 1)
     progress = Progress(args.total_timesteps, unit="frame", start_step=frames)
@@ -1492,9 +1523,7 @@ if __name__ == "__main__":
         writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
         if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
             for _ in range(args.ae_init_steps):  # DGRL
-                goals = uniform_subgoals(args.ae_batch_size, device)  # DGRL
-                _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
-                goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
+                update_goal_ae(agent, uniform_subgoals(args.ae_batch_size, device))  # DGRL
         pretrained = True
         print(
             f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
@@ -1538,27 +1567,28 @@ if __name__ == "__main__":
             mark_adjacent(adjacency, visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
             if not replay.started():
                 continue
-            figures = controller_update(
+            figures = update_controller(
                 agent,
                 torch.as_tensor(episode_states[env, :length], device=device),
                 torch.as_tensor(episode_goals[env, :length], device=device),
                 torch.as_tensor(episode_actions[env, :length], device=device),
                 torch.as_tensor(episode_next[env, :length], device=device),
-                k=args.k,
-                gamma=args.ctrl_gamma,
+                discounts=discounts,
                 entropy_coef=args.ctrl_entropy,
                 reward_scale=args.ctrl_reward_scale,
                 goal_threshold=args.goal_threshold,
             )
+            figures = dict(figures)  # (under cudagraphs the update's own dict, which must stay as it is)
             for _ in range(max(length // args.k, 1)):
-                figures |= manager_update(
+                policy_term = man_updates % args.man_policy_delay == 0
+                figures |= update_manager(
                     agent,
                     replay.sample(args.man_batch_size, device),
                     gamma=args.man_gamma,
                     tau=args.man_tau,
                     adj_weight=args.adj_weight,
                     threshold=threshold,
-                    policy_term=man_updates % args.man_policy_delay == 0,
+                    policy_term=policy_terms[policy_term] if args.fast == "cudagraphs" else policy_term,
                 )
                 man_updates += 1
 

@@ -275,19 +275,23 @@ def make_model(
     """The autoencoder on `device` and its optimizer: the one construction used by training, tests and benchmarks."""
     autoencoder = FactorAutoencoder(latent_dim, hidden_dim, groups, n_embed, vq_beta, vq_decay, vq_dead_code_steps)
     autoencoder = autoencoder.to(device)
-    return Model(autoencoder, torch.optim.Adam(autoencoder.parameters(), lr=learning_rate))
+    fused = device.type in ("cpu", "cuda")  # one kernel, its step count on the device: no host read per step
+    return Model(autoencoder, torch.optim.Adam(autoencoder.parameters(), lr=learning_rate, fused=fused))
 
 
-def train_step(model: Model, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """One Adam step of the autoencoder on a batch of images: (reconstruction loss, VQ loss, code indices)."""
+def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
+    """One Adam step of the autoencoder on a batch of images. Returns the detached metrics: the reconstruction loss, the
+    VQ loss and (DGRL) the batch's code indices with their perplexity and number of active codes."""
     latent, vq_loss, codes = model.autoencoder.quantize(images)  # DGRL: the baseline's vq_loss is 0, its codes None
     # Squared error summed over an image's pixels, averaged over images (see the docs: a per-pixel mean is ~2,000 times
     # smaller, the commitment loss then dominates the encoder and the codebook collapses).
     reconstruction_loss = F.mse_loss(model.autoencoder.decode(latent), images, reduction="sum") / len(images)
-    model.optimizer.zero_grad()
-    (reconstruction_loss + vq_loss).backward()  # DGRL: vq_loss is 0 for the baseline
-    model.optimizer.step()
-    return reconstruction_loss.detach(), vq_loss.detach(), codes  # DGRL: the VQ loss and codes for the logs
+    learn(model.optimizer, reconstruction_loss + vq_loss)  # DGRL: vq_loss is 0 for the baseline
+    metrics = {"reconstruction": reconstruction_loss.detach(), "vq_loss": vq_loss.detach()}
+    if codes is not None:  # DGRL: the codes' statistics for the logs
+        n_embed = model.autoencoder.vq.n_embed  # DGRL
+        metrics |= {"codes": codes, "perplexity": perplexity(codes, n_embed), "active_codes": active_codes(codes, n_embed)}
+    return metrics
 
 
 def training_state(
@@ -694,7 +698,8 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
     parameter's device), so that a compiled update finds it in place."""
     for group in optimizer.param_groups:
         for param in group["params"]:
-            if optimizer.state[param]:
+            if optimizer.state[param]:  # a resumed optimizer's: its step count as this function would create it
+                optimizer.state[param]["step"] = optimizer.state[param]["step"].to(param.device, torch.float32)
                 continue
             state = {"step": torch.zeros((), dtype=torch.float32, device=param.device)}
             names = ("exp_avg", "exp_avg_sq") if isinstance(optimizer, torch.optim.Adam) else ("square_avg",)
@@ -704,14 +709,17 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
 
 @torch.no_grad()
 def functional_step(optimizer: torch.optim.Optimizer) -> None:
-    """optimizer.step() for torch.optim.Adam and RMSprop (no weight decay, momentum, amsgrad or centring: the options the
-    scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the optimizer's own."""
+    """optimizer.step() for torch.optim.Adam and RMSprop (with L2 weight decay; no momentum, amsgrad or centring: the
+    options the scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the
+    optimizer's own, and a learning rate may be a 0-d tensor (changed in place, it needs no recompilation)."""
     for group in optimizer.param_groups:
         params = [param for param in group["params"] if param.grad is not None]
         grads = [param.grad for param in params]
         states = [optimizer.state[param] for param in params]
         steps = [state["step"] for state in states]
         torch._foreach_add_(steps, 1.0)
+        if group["weight_decay"]:
+            grads = torch._foreach_add(grads, params, alpha=group["weight_decay"])
         if isinstance(optimizer, torch.optim.Adam):
             beta1, beta2 = group["betas"]
             exp_avgs, exp_avg_sqs = [state["exp_avg"] for state in states], [state["exp_avg_sq"] for state in states]
@@ -726,7 +734,7 @@ def functional_step(optimizer: torch.optim.Optimizer) -> None:
             torch._foreach_mul_(square_avgs, group["alpha"])
             torch._foreach_addcmul_(square_avgs, grads, grads, 1.0 - group["alpha"])
             denoms = torch._foreach_add(torch._foreach_sqrt(square_avgs), group["eps"])
-            torch._foreach_addcdiv_(params, grads, denoms, -group["lr"])
+            torch._foreach_addcdiv_(params, torch._foreach_mul(grads, -group["lr"]), denoms)
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
@@ -735,7 +743,7 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     if fast == "eager":
         return update
     for optimizer in optimizers:
-        unsupported = {"weight_decay": 0, "amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
+        unsupported = {"amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
         for group in optimizer.param_groups:
             wrong = [key for key, value in unsupported.items() if group.get(key, value) != value]
             if wrong or not isinstance(optimizer, torch.optim.Adam | torch.optim.RMSprop):
@@ -883,13 +891,17 @@ if __name__ == "__main__":
         print(f"resuming at image {images_seen} of {epochs * n_train} (minibatch {step})")
 
     # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
+    # --fast makes the step once. An epoch's last, smaller minibatch (train_size not a multiple of batch_size) takes the
+    # eager step: the compiled one keeps one input shape (no recompilation) and a CUDA graph can only replay its own.
+    update = fast_update(train_step, args.fast, [model.optimizer])
     progress = Progress(epochs * n_train, unit="image", start_step=images_seen)
     while step < epochs * batches_per_epoch and not stop:
         position = step % batches_per_epoch
         if position == 0:
             order = torch.randperm(n_train, generator=generator).to(device)
         batch = order[position * args.batch_size : (position + 1) * args.batch_size]
-        reconstruction_loss, vq_loss, codes = train_step(model, painted("train", batch))
+        metrics = (update if len(batch) == args.batch_size else train_step)(model, painted("train", batch))
+        reconstruction_loss = metrics["reconstruction"]
         step += 1
         images_seen += len(batch)
         progress.heartbeat(images_seen)
@@ -899,13 +911,13 @@ if __name__ == "__main__":
             next_log += 100
             writer.add_scalar("losses/reconstruction", reconstruction_loss.item(), step)
             if dgrl:  # DGRL
-                writer.add_scalar("vq/commit_loss", vq_loss.item(), step)  # DGRL
-                writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), step)  # DGRL
-                writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), step)  # DGRL
+                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
+                writer.add_scalar("vq/perplexity", metrics["perplexity"].item(), step)  # DGRL
+                writer.add_scalar("vq/active_codes", metrics["active_codes"].item(), step)  # DGRL
         if step % batches_per_epoch == 0:
             epoch += 1
             writer.add_scalar("charts/SPS", progress.sps(images_seen), step)
-            usage = f", {active_codes(codes, args.n_embed).item()} codes in the last batch" if dgrl else ""  # DGRL
+            usage = f", {metrics['active_codes'].item()} codes in the last batch" if dgrl else ""  # DGRL
             progress.line(
                 images_seen, f"epoch {epoch}/{epochs}  reconstruction error {reconstruction_loss.item():.2f}/image{usage}"
             )

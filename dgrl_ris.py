@@ -1150,7 +1150,8 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
     parameter's device), so that a compiled update finds it in place."""
     for group in optimizer.param_groups:
         for param in group["params"]:
-            if optimizer.state[param]:
+            if optimizer.state[param]:  # a resumed optimizer's: its step count as this function would create it
+                optimizer.state[param]["step"] = optimizer.state[param]["step"].to(param.device, torch.float32)
                 continue
             state = {"step": torch.zeros((), dtype=torch.float32, device=param.device)}
             names = ("exp_avg", "exp_avg_sq") if isinstance(optimizer, torch.optim.Adam) else ("square_avg",)
@@ -1160,14 +1161,17 @@ def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
 
 @torch.no_grad()
 def functional_step(optimizer: torch.optim.Optimizer) -> None:
-    """optimizer.step() for torch.optim.Adam and RMSprop (no weight decay, momentum, amsgrad or centring: the options the
-    scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the optimizer's own."""
+    """optimizer.step() for torch.optim.Adam and RMSprop (with L2 weight decay; no momentum, amsgrad or centring: the
+    options the scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the
+    optimizer's own, and a learning rate may be a 0-d tensor (changed in place, it needs no recompilation)."""
     for group in optimizer.param_groups:
         params = [param for param in group["params"] if param.grad is not None]
         grads = [param.grad for param in params]
         states = [optimizer.state[param] for param in params]
         steps = [state["step"] for state in states]
         torch._foreach_add_(steps, 1.0)
+        if group["weight_decay"]:
+            grads = torch._foreach_add(grads, params, alpha=group["weight_decay"])
         if isinstance(optimizer, torch.optim.Adam):
             beta1, beta2 = group["betas"]
             exp_avgs, exp_avg_sqs = [state["exp_avg"] for state in states], [state["exp_avg_sq"] for state in states]
@@ -1182,7 +1186,7 @@ def functional_step(optimizer: torch.optim.Optimizer) -> None:
             torch._foreach_mul_(square_avgs, group["alpha"])
             torch._foreach_addcmul_(square_avgs, grads, grads, 1.0 - group["alpha"])
             denoms = torch._foreach_add(torch._foreach_sqrt(square_avgs), group["eps"])
-            torch._foreach_addcdiv_(params, grads, denoms, -group["lr"])
+            torch._foreach_addcdiv_(params, torch._foreach_mul(grads, -group["lr"]), denoms)
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
@@ -1191,7 +1195,7 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     if fast == "eager":
         return update
     for optimizer in optimizers:
-        unsupported = {"weight_decay": 0, "amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
+        unsupported = {"amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
         for group in optimizer.param_groups:
             wrong = [key for key, value in unsupported.items() if group.get(key, value) != value]
             if wrong or not isinstance(optimizer, torch.optim.Adam | torch.optim.RMSprop):

@@ -2,6 +2,7 @@
 
     python benchmark/bench_hrac.py               # about 4 min on a CPU core; run nothing else meanwhile
     python benchmark/bench_hrac.py --device cuda # the same updates on a GPU (acting and training runs on the CPU path)
+    python benchmark/bench_hrac.py --train-steps 0 --fast eager compile   # only the updates' speed paths side by side
 
 Prints one line per measurement (env steps/s per env: benchmark/hrac_envs.py):
 - act: one controller action (state masked, subgoal through the encoder under DGRL), batch 1;
@@ -10,7 +11,9 @@ Prints one line per measurement (env steps/s per env: benchmark/hrac_envs.py):
   stored steps: 15,360 controller forward passes) and the adjacency term;
 - per 500-step episode: 500 acts + 500 controller updates + 50 manager updates, the steady-state training cost;
 - training: the script itself on AntMaze for --train-steps steps, one process on one thread, its final SPS (env steps,
-  acting, all updates, one evaluation of 5 episodes; the adjacency network not yet trained).
+  acting, all updates, one evaluation of 5 episodes; the adjacency network not yet trained);
+- update ... (--fast): each level's update through every speed path of --fast, side by side in one process, as
+  milliseconds per update (the median of benchmark/timing.py, compilation done before the clock starts), at batch 128.
 """
 
 import re
@@ -25,6 +28,8 @@ import torch
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from timing import median_time  # benchmark/timing.py
+
 import dgrl_hrac as hrac
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,11 +43,14 @@ class Args:
     """torch CPU threads"""
     train_steps: int = 5000
     """steps of the whole-script measurement (0 skips it)"""
+    fast: tuple[str, ...] = ("eager", "compile")
+    """the speed paths of the side-by-side update measurement (none skips it; cudagraphs needs --device cuda)"""
 
 
-def build(groups: int, device: str) -> tuple[hrac.Args, np.ndarray, hrac.Agent]:
-    """The script's agent on AntMaze (30-d state, 8 torques) with the script's default flags, built by its make_agent."""
-    args = hrac.Args(groups=groups)
+def build(groups: int, device: str, **overrides) -> tuple[hrac.Args, np.ndarray, hrac.Agent]:
+    """The script's agent on AntMaze (30-d state, 8 torques) with the script's default flags (but `overrides`), built by
+    its make_agent."""
+    args = hrac.Args(groups=groups, **overrides)
     bounds = hrac.subgoal_bounds(args.env_id, args.subgoal_scale)
     agent = hrac.make_agent(
         30,
@@ -80,8 +88,8 @@ def timed(fn, repeats: int) -> float:
     return (time.perf_counter() - start) / repeats
 
 
-def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
-    args, bounds, agent = build(groups, cli.device)
+def filled_replays(rng: np.random.Generator) -> tuple[hrac.Replay, hrac.Replay]:
+    """A full controller replay and a full manager replay of AntMaze's shapes, of standard normal numbers."""
     ctrl_replay = hrac.Replay(20_000, states=(30,), goals=(2,), actions=(8,), rewards=(), next_states=(30,),
                               next_goals=(2,), dones=())  # fmt: skip
     man_replay = hrac.Replay(2_000, states=(30,), goals=(2,), actions=(2,), rewards=(), next_states=(30,), dones=(),
@@ -90,24 +98,27 @@ def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
         for array in replay.fields.values():
             array[:] = rng.normal(size=array.shape)
         replay.size = replay.capacity
+    return ctrl_replay, man_replay
+
+
+def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
+    args, bounds, agent = build(groups, cli.device)
+    ctrl_replay, man_replay = filled_replays(rng)
     td3 = {"tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
     threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2
 
     def controller_step():
-        sample = ctrl_replay.sample(args.batch_size, rng)
-        hrac.controller_update(agent, sample, device=cli.device, gamma=args.ctrl_gamma, **td3)
+        sample = hrac.as_tensors(ctrl_replay.sample(args.batch_size, rng), cli.device)
+        hrac.controller_update(agent, sample, gamma=args.ctrl_gamma, **td3)
 
     def manager_step():
         sample = man_replay.sample(args.batch_size, rng)
         hrac.manager_update(
             agent,
-            sample,
-            rng=rng,
-            device=cli.device,
-            bounds=bounds,
+            hrac.manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=cli.device),
+            bounds=torch.as_tensor(bounds, device=cli.device),
             gamma=args.man_gamma,
             **td3,
-            correction_samples=args.correction_samples,
             adj_weight=args.adj_weight,
             adj_threshold=threshold,
         )
@@ -123,6 +134,57 @@ def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
     )
 
 
+def update_time(level: str, groups: int, cli: Args, fast: str) -> float:
+    """Seconds per update of `level` ("controller" or "manager") through `--fast fast`, on batches sampled beforehand
+    (the update alone is timed); compiled and warmed up before the clock starts."""
+    rng = np.random.default_rng(0)
+    args, bounds, agent = build(groups, cli.device)
+    ctrl_replay, man_replay = filled_replays(rng)
+    td3 = {"tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
+    if level == "controller":
+        batches = [hrac.as_tensors(ctrl_replay.sample(args.batch_size, rng), cli.device) for _ in range(16)]
+        flags = td3 | {"gamma": args.ctrl_gamma}
+        optimizers = [agent.controller.critic_optimizer, agent.controller.actor_optimizer]
+        update = hrac.fast_update(hrac.controller_update, fast, optimizers)
+    else:
+        batches = [
+            hrac.manager_batch(
+                man_replay.sample(args.batch_size, rng), rng, bounds=bounds, correction_samples=args.correction_samples,
+                device=cli.device,
+            )
+            for _ in range(16)
+        ]  # fmt: skip
+        threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2
+        flags = td3 | {"gamma": args.man_gamma, "adj_weight": args.adj_weight, "adj_threshold": threshold}
+        flags["bounds"] = torch.as_tensor(bounds, device=cli.device)
+        optimizers = [agent.manager.critic_optimizer, agent.manager.actor_optimizer]
+        update = hrac.fast_update(hrac.manager_update, fast, optimizers)
+    calls = [0]
+
+    def step():
+        update(agent, batches[calls[0] % len(batches)], **flags)
+        calls[0] += 1
+        if cli.device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    for _ in range(5):  # compilation (and a CUDA graph's capture) before the clock starts
+        step()
+    return median_time(step, repeats=20 if level == "controller" else 5)
+
+
+def measure_fast(cli: Args) -> None:
+    for level in ("controller", "manager"):
+        for groups in (0, 16):
+            times = {fast: update_time(level, groups, cli, fast) for fast in cli.fast}
+            figures = ", ".join(f"{fast} {seconds * 1e3:.2f} ms" for fast, seconds in times.items())
+            ratios = ", ".join(f"{fast} {times[cli.fast[0]] / times[fast]:.2f}x" for fast in cli.fast[1:])
+            print(
+                f"update {level:<10} G{groups:<2} batch 128 ({cli.device}, {cli.threads} thread): {figures}"
+                + (f" ({ratios} vs {cli.fast[0]})" if ratios else ""),
+                flush=True,
+            )
+
+
 if __name__ == "__main__":
     cli = tyro.cli(Args)
     torch.set_num_threads(cli.threads)
@@ -130,6 +192,8 @@ if __name__ == "__main__":
     rng = np.random.default_rng(0)
     for groups in (0, 16):
         measure_updates(groups, cli, rng)
+    if cli.fast:
+        measure_fast(cli)
     for groups in (0, 16) if cli.train_steps else ():
         out = subprocess.run(
             [sys.executable, str(ROOT / "dgrl_hrac.py"), "--env-id", "AntMaze", "--groups", str(groups), "--total-timesteps",

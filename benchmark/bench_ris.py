@@ -97,13 +97,15 @@ if __name__ == "__main__":
     parser.add_argument("--batches", type=int, nargs="+", default=[128, 256, 2048])
     parser.add_argument("--fast", nargs="+", default=["eager", "compile"], choices=ris.FAST_PATHS)
     parser.add_argument("--envs", action=argparse.BooleanOptionalAction, default=True, help="time the env steps too")
+    parser.add_argument("--goals", nargs="+", default=["ant", "point"], choices=["ant", "point"], help="state sizes")
     options = parser.parse_args()
     torch.set_num_threads(options.threads)
     device = torch.device(options.device)
     if device.type == "cpu" and options.envs:
         for env_id in (*ris.ANT_MAZES, "PointMaze_UMaze-v3", "AntMaze_UMaze-v5"):
             print(f"env {env_id:<20} {env_speed(env_id):7.0f} steps/s (random actions, 1 env)")
-    for name, dims in (("Ant (31-d goal)", (31, 31, 8)), ("PointMaze (2-d goal)", (6, 2, 2))):
+    sizes = {"ant": ("Ant (31-d goal)", (31, 31, 8)), "point": ("PointMaze (2-d goal)", (6, 2, 2))}
+    for name, dims in (sizes[goal] for goal in options.goals):
         for batch in options.batches:
             for groups in (0, 16):
                 times = {fast: update_time(*dims, groups, batch, device, fast) for fast in options.fast}

@@ -25,7 +25,7 @@ from minigrid.core.world_object import Door
 from minigrid.wrappers import FullyObsWrapper
 
 import dgrl_amigo as amigo
-from tests.conftest import NoHostSync
+from tests.conftest import NoHostSync, check_fast_update, training_tensors
 
 LEFT, RIGHT, FORWARD, PICKUP, DROP, TOGGLE, DONE = range(7)
 DOORKEY, EMPTY, CORRIDOR = "MiniGrid-DoorKey-5x5-v0", "MiniGrid-Empty-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0"
@@ -582,7 +582,7 @@ def test_teacher_loss_on_policy_values():
     teacher = amigo.Teacher(5, 5)
     batch = teacher_batch(teacher, cell(3, 2, 5), 3)
     rewards = np.array([0.7, -0.3, 1.0])
-    losses = amigo.teacher_loss(teacher, batch, rewards, "cpu", baseline_coef=0.5, entropy_coef=0.05)
+    losses = amigo.teacher_loss(teacher, amigo.teacher_tensors(batch, rewards, "cpu"), baseline_coef=0.5, entropy_coef=0.05)
     with torch.no_grad():
         logits, baseline = teacher(torch.as_tensor(batch["frame"]))
         log_probs = F.log_softmax(logits, -1)
@@ -605,7 +605,8 @@ def test_teacher_loss_off_policy_truncates_the_importance_weight():
     advantage = torch.tensor(rewards) - baseline.double()
     for shift, rho in ((-1.0, 1.0), (1.0, math.exp(-1.0))):  # pi/mu = e (truncated to 1) or 1/e
         batch = teacher_batch(teacher, 12, 2, behaviour_shift=shift)
-        losses = amigo.teacher_loss(teacher, batch, rewards, "cpu", baseline_coef=0.5, entropy_coef=0.0)
+        batch = amigo.teacher_tensors(batch, rewards, "cpu")
+        losses = amigo.teacher_loss(teacher, batch, baseline_coef=0.5, entropy_coef=0.0)
         assert losses["policy_loss"].item() == pytest.approx(-(logp * rho * advantage).sum().item(), rel=1e-4)
         vs = baseline.double() + rho * advantage
         assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((vs - baseline) ** 2).sum().item(), rel=1e-4)
@@ -620,7 +621,7 @@ def test_teacher_update_pushes_a_goal_up_or_down_with_its_reward(direction):
         _, baseline = teacher(torch.as_tensor(batch["frame"]))
     rewards = baseline.numpy() + direction  # above or below the baseline by 1
     optimizer = torch.optim.SGD(teacher.parameters(), lr=1e-2)
-    losses = amigo.teacher_loss(teacher, batch, rewards, "cpu", baseline_coef=0.0, entropy_coef=0.0)
+    losses = amigo.teacher_loss(teacher, amigo.teacher_tensors(batch, rewards, "cpu"), baseline_coef=0.0, entropy_coef=0.0)
     optimizer.zero_grad()
     losses["loss"].backward()
     optimizer.step()
@@ -633,9 +634,8 @@ def test_teacher_update_steps_the_teacher_only_with_clipped_gradients():
     batch = teacher_batch(agent.teacher, cell(3, 3, 5), 4)
     student = {name: p.detach().clone() for name, p in agent.student.named_parameters()}
     teacher = {name: p.detach().clone() for name, p in agent.teacher.named_parameters()}
-    losses = amigo.teacher_update(
-        agent, batch, np.array([1.0, -0.3, 0.7, 1.0]), "cpu", baseline_coef=0.5, entropy_coef=0.05, max_grad_norm=1e-3
-    )
+    batch = amigo.teacher_tensors(batch, np.array([1.0, -0.3, 0.7, 1.0]), "cpu")
+    losses = amigo.teacher_update(agent, batch, baseline_coef=0.5, entropy_coef=0.05, max_grad_norm=1e-3)
     assert set(losses) == {"loss", "policy_loss", "baseline_loss", "entropy"}
     for name, p in agent.student.named_parameters():
         torch.testing.assert_close(p, student[name])
@@ -697,7 +697,7 @@ def test_student_update_under_dgrl_moves_the_codebook_and_every_parameter():
         torch.testing.assert_close(value, buffers[name])
     teacher = {name: p.detach().clone() for name, p in agent.teacher.named_parameters()}
     params = {name: p.detach().clone() for name, p in [*agent.student.named_parameters(), *encoder.named_parameters()]}
-    metrics = amigo.student_update(agent, rollout, last, "cpu", **STUDENT_HYPER)
+    metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), **STUDENT_HYPER)
     assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
     assert not torch.equal(encoder.vq.ema_count, buffers["ema_count"])
     for name, p in [*agent.student.named_parameters(), *encoder.named_parameters()]:
@@ -749,7 +749,7 @@ def test_student_update_without_dgrl_matches_the_n_step_targets():
     discounts = 0.99 * (1.0 - rollout["dones"])
     vs, _ = naive_vtrace(rollout["logps"], rollout["logps"], rollout["rewards"], values[:T], values[T], discounts)
     params = {name: p.detach().clone() for name, p in [*student.named_parameters(), *encoder.named_parameters()]}
-    metrics = amigo.student_update(agent, rollout, last, "cpu", **STUDENT_HYPER)
+    metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), **STUDENT_HYPER)
     assert metrics["baseline_loss"].item() == pytest.approx(0.5 * ((vs - values[:T]) ** 2).sum(), rel=1e-4)
     assert metrics["codes"] is None and metrics["vq_loss"].item() == 0
     for name, p in [*student.named_parameters(), *encoder.named_parameters()]:
@@ -758,6 +758,107 @@ def test_student_update_without_dgrl_matches_the_n_step_targets():
 
 def test_linear_decay_reaches_zero_at_the_budget():
     assert [amigo.linear_decay(frames, 1000) for frames in (0, 250, 1000, 1200)] == [1.0, 0.75, 0.0, 0.0]
+
+
+# --- the --fast path --------------------------------------------------------------------------------------------------
+
+
+def student_batches(agent, n: int) -> list[dict[str, torch.Tensor]]:
+    """`n` learner batches of 2 rollouts of 8 steps from one collected rollout, each with its own rewards, episode ends
+    and behaviour log-probabilities (off-policy ratios), as student_batch's tensors."""
+    rollout, last = collect(amigo.MiniGridVecEnv(DOORKEY, 2), agent, steps=8)
+    rng = np.random.default_rng(1)
+    batches = []
+    for _ in range(n):
+        varied = rollout | {
+            "rewards": (rng.random((8, 2)) < 0.3).astype(np.float32),
+            "dones": (rng.random((8, 2)) < 0.1).astype(np.float32),
+            "logps": (rollout["logps"] + rng.normal(0.0, 0.3, (8, 2))).astype(np.float32),
+        }
+        batches.append(amigo.student_batch(varied, last, "cpu"))
+    return batches
+
+
+def teacher_batches(n: int, size: int = 8) -> list[dict[str, torch.Tensor]]:
+    """`n` teacher batches of `size` goal outcomes on the reset frames of `size` envs, as teacher_tensors' tensors."""
+    frames = amigo.MiniGridVecEnv(DOORKEY, size).reset(seed=0)[0]["grid"]
+    rng = np.random.default_rng(2)
+    batches = []
+    for _ in range(n):
+        batch = {
+            "frame": frames,
+            "goal": rng.integers(25, size=size),
+            "logp": rng.uniform(-4.0, -2.0, size).astype(np.float32),
+        }
+        batches.append(amigo.teacher_tensors(batch, rng.choice([-0.3, 0.7, 1.0], size), "cpu"))
+    return batches
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_fast_student_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: student_update traced whole (goal encoder with the codebook's EMA and dead-code restarts under
+    DGRL, V-trace, backward, gradient clipping, RMSprop step) and equal to eager."""
+    agent = tiny_agent(groups, vq_dead_code_steps=3)
+    batches = student_batches(agent, 31)
+
+    def call(function, state, i):
+        metrics = function(state, batches[i], **STUDENT_HYPER)
+        return {name: value for name, value in metrics.items() if value is not None}  # AMIGo has no codes
+
+    check_fast_update(amigo, amigo.student_update, agent, call, lambda state: [state.student_optimizer])
+
+
+def test_fast_teacher_update_is_one_graph_equal_to_eager_and_free_of_host_syncs():
+    """--fast compile: teacher_update traced whole (the teacher's loss, backward, gradient clipping, RMSprop step)."""
+    agent = tiny_agent(groups=0)
+    batches = teacher_batches(31)
+
+    def call(function, state, i):
+        return function(state, batches[i], baseline_coef=0.5, entropy_coef=0.05, max_grad_norm=40.0)
+
+    check_fast_update(amigo, amigo.teacher_update, agent, call, lambda state: [state.teacher_optimizer])
+
+
+def test_learning_rates_as_tensors_keep_eager_steps_identical():
+    """The decaying learning rate as a 0-d tensor set in place (what --fast compile uses) steps RMSprop exactly as the
+    float it replaces; and back to floats for eager."""
+    import copy
+
+    agents = [tiny_agent(groups=4)]
+    agents.append(copy.deepcopy(agents[0]))
+    amigo.learning_rates_as_tensors([agents[1].student_optimizer], as_tensors=True)
+    assert agents[1].student_optimizer.param_groups[0]["lr"].shape == ()
+    batches = student_batches(agents[0], 3)
+    for i, batch in enumerate(batches):
+        for agent in agents:
+            amigo.set_learning_rate(agent.student_optimizer, 1e-3 * amigo.linear_decay(i * 300, 1000))
+            amigo.student_update(agent, batch, **STUDENT_HYPER)
+    expected, got = training_tensors(agents[0]), training_tensors(agents[1])
+    assert expected.keys() == got.keys()
+    for key, tensor in expected.items():
+        assert torch.equal(got[key], tensor), key
+    amigo.learning_rates_as_tensors([agents[1].student_optimizer], as_tensors=False)
+    assert agents[1].student_optimizer.param_groups[0]["lr"] == pytest.approx(1e-3 * 0.4)
+
+
+def test_fast_student_update_follows_a_decaying_learning_rate_without_recompiling():
+    """--fast compile with the run's schedule: a 0-d tensor learning rate written in place before every update; the
+    compiled update equals the eager one with float learning rates, and never recompiles."""
+    import copy
+
+    torch._dynamo.reset()
+    agent = tiny_agent(groups=4)
+    batches = student_batches(agent, 6)
+    eager, fast = agent, copy.deepcopy(agent)
+    amigo.learning_rates_as_tensors([fast.student_optimizer], as_tensors=True)
+    update = amigo.fast_update(amigo.student_update, "compile", [fast.student_optimizer])
+    with torch._dynamo.config.patch(recompile_limit=1):
+        for i, batch in enumerate(batches):
+            for state, function in ((eager, amigo.student_update), (fast, update)):
+                amigo.set_learning_rate(state.student_optimizer, 1e-3 * amigo.linear_decay(i * 100, 1000))
+                function(state, batch, **STUDENT_HYPER)
+    for key, value in training_tensors(eager).items():
+        torch.testing.assert_close(training_tensors(fast)[key], value, rtol=1e-5, atol=1e-5)
 
 
 # --- evaluation with scripted networks --------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
+from conftest import WALL_CLOCK_TAGS, check_fast_update, checkpoint_tensors, tensorboard_scalars
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_hrac as hrac
@@ -253,18 +253,62 @@ def actions_for(controller, states, first_goals):
         return controller(states_t, torch.as_tensor(goals, dtype=torch.float32)).numpy()
 
 
+def correct(controller, states, actions, subgoals, scale, rng, n_samples=10, goal_encoder=None) -> np.ndarray:
+    """off_policy_correction on numpy inputs, its noise drawn from `rng` as the training loop draws it."""
+    noise = hrac.correction_noise(rng, len(subgoals), n_samples, scale)
+    inputs = (torch.as_tensor(x) for x in (states, actions, subgoals, scale, noise))
+    return hrac.off_policy_correction(controller, *inputs, goal_encoder=goal_encoder).numpy()
+
+
+def numpy_correction(controller, states, actions, subgoals, scale, rng, n_samples=10, goal_encoder=None) -> np.ndarray:
+    """The script's former numpy off-policy correction (the device's predictions read back to the host), the reference
+    that the torch one must reproduce exactly, so that seeded runs are unchanged."""
+    batch, k = actions.shape[:2]
+    d = subgoals.shape[-1]
+    achieved = states[:, -1, :d] - states[:, 0, :d]
+    noise = rng.normal(0.0, 0.5 * scale, (batch, n_samples, d))
+    candidates = np.concatenate([subgoals[:, None], achieved[:, None], np.clip(achieved[:, None] + noise, -scale, scale)], 1)
+    n = candidates.shape[1]
+    goals = np.empty((batch, n, k, d))
+    goals[:, :, 0] = candidates
+    for t in range(1, k):
+        goals[:, :, t] = hrac.subgoal_transition(states[:, None, t - 1], goals[:, :, t - 1], states[:, None, t])
+    observed = np.broadcast_to(states[:, None, :k], (batch, n, k, states.shape[-1]))
+    with torch.no_grad():
+        goals_in = hrac.controller_goal_input(goal_encoder, torch.as_tensor(goals, dtype=torch.float32))
+        observed_in = torch.as_tensor(hrac.controller_input(observed), dtype=torch.float32)
+        predicted = controller(observed_in, goals_in).numpy()
+    log_likelihood = -0.5 * ((predicted - actions[:, None]) ** 2).sum(-1).sum(-1)
+    return candidates[np.arange(batch), log_likelihood.argmax(1)]
+
+
 def test_off_policy_correction_keeps_a_true_stored_subgoal_and_finds_a_true_achieved_one():
     rng = np.random.default_rng(0)
     controller, scale = LinearController(), np.array([10.0, 10.0])
     states = np.cumsum(rng.normal(0, 0.3, (16, 11, 30)), 1)  # 16 segments of k = 10 steps
     true_goals = rng.uniform(-5, 5, (16, 2))
-    kept = hrac.off_policy_correction(controller, states, actions_for(controller, states, true_goals), true_goals, scale, rng)
+    kept = correct(controller, states, actions_for(controller, states, true_goals), true_goals, scale, rng)
     np.testing.assert_allclose(kept, true_goals)
     # The stored subgoals are stale (an older manager's); the actions were taken for the achieved offset s_k - s_0.
     achieved = states[:, -1, :2] - states[:, 0, :2]
     stale = rng.uniform(-5, 5, (16, 2))
-    corrected = hrac.off_policy_correction(controller, states, actions_for(controller, states, achieved), stale, scale, rng)
+    corrected = correct(controller, states, actions_for(controller, states, achieved), stale, scale, rng)
     np.testing.assert_allclose(corrected, achieved, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("groups", [0, 16])
+def test_off_policy_correction_on_the_device_equals_the_former_numpy_one_exactly(groups):
+    """On float32 replay samples, with the noise from the same generator: the same candidates, picked the same way,
+    bit for bit (AntFall's 3-d subgoals, the real controller, under DGRL through the encoder)."""
+    _, bounds, trained = agent(groups=groups, env_id="AntFall")
+    rng = np.random.default_rng(5)
+    states = np.cumsum(rng.normal(0, 0.3, (64, 11, 30)), 1).astype(np.float32)
+    actions = rng.uniform(-30, 30, (64, 10, 8)).astype(np.float32)
+    subgoals = rng.uniform(-bounds, bounds, (64, 3)).astype(np.float32)
+    inputs = (trained.controller.actor, states, actions, subgoals, bounds)
+    expected = numpy_correction(*inputs, np.random.default_rng(6), goal_encoder=trained.encoder)
+    got = correct(*inputs, np.random.default_rng(6), goal_encoder=trained.encoder)
+    assert got.dtype == expected.dtype == np.float64 and np.array_equal(got, expected)
 
 
 def test_off_policy_correction_candidates_are_clipped_to_the_scale():
@@ -274,7 +318,7 @@ def test_off_policy_correction_candidates_are_clipped_to_the_scale():
     states[:, -1, :2] = 100.0  # an achieved offset far outside the subgoal range
     actions = np.zeros((4, 10, 8))
     scale = np.array([10.0, 10.0])
-    chosen = hrac.off_policy_correction(controller, states, actions, np.zeros((4, 2)), scale, rng)
+    chosen = correct(controller, states, actions, np.zeros((4, 2)), scale, rng)
     assert np.all(np.abs(chosen) <= 100.0)
     np.testing.assert_allclose(chosen, 0.0)  # zero actions are explained exactly by the stored zero subgoal
 
@@ -463,7 +507,7 @@ def test_controller_update_under_dgrl_moves_the_codebook_the_encoder_and_both_ne
     rng = np.random.default_rng(0)
     buffers = {name: value.clone() for name, value in encoder.vq.named_buffers()}
     hrac.controller_action(dgrl_agent, rng.normal(size=30), np.array([3.0, -2.0]), noise=1.0, rng=rng)  # no EMA update
-    hrac.off_policy_correction(
+    correct(
         controller.actor,
         rng.normal(size=(4, 11, 30)),
         rng.normal(size=(4, 10, 8)),
@@ -476,8 +520,8 @@ def test_controller_update_under_dgrl_moves_the_codebook_the_encoder_and_both_ne
         torch.testing.assert_close(value, buffers[name])
     watched = [*controller.actor.named_parameters(), *controller.critic.named_parameters(), *encoder.named_parameters()]
     before = {name: p.detach().clone() for name, p in watched}
-    sample = filled_controller_replay(rng).sample(args.batch_size, rng)
-    metrics = hrac.controller_update(dgrl_agent, sample, device="cpu", **td3_flags(args, args.ctrl_gamma))
+    sample = hrac.as_tensors(filled_controller_replay(rng).sample(args.batch_size, rng), "cpu")
+    metrics = hrac.controller_update(dgrl_agent, sample, **td3_flags(args, args.ctrl_gamma))
     assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
     for name, p in watched:
         assert not torch.equal(p, before[name]), name  # the encoder's decoder too: the reconstruction loss reaches it
@@ -494,8 +538,8 @@ def test_the_controller_critic_loss_shapes_the_subgoal_encoder():
         args, _, dgrl_agent = agent(groups=16)
         replay = filled_controller_replay(np.random.default_rng(0))
         replay.fields["rewards"][:] = reward
-        sample = replay.sample(args.batch_size, np.random.default_rng(1))
-        hrac.controller_update(dgrl_agent, sample, device="cpu", **td3_flags(args, args.ctrl_gamma))
+        sample = hrac.as_tensors(replay.sample(args.batch_size, np.random.default_rng(1)), "cpu")
+        hrac.controller_update(dgrl_agent, sample, **td3_flags(args, args.ctrl_gamma))
         return [p.detach().clone() for p in dgrl_agent.encoder.encoder.parameters()]
 
     same = [torch.equal(a, b) for a, b in zip(encoder_after_update(0.0), encoder_after_update(0.0), strict=True)]
@@ -563,11 +607,10 @@ def test_manager_update_learns_from_corrected_subgoals_with_the_weighted_adjacen
     sampler = np.random.default_rng(2)
     hrac.manager_update(
         hrac_agent,
-        replay.sample(n, sampler),
-        rng=sampler,
-        device="cpu",
-        bounds=bounds,
-        correction_samples=args.correction_samples,
+        hrac.manager_batch(
+            replay.sample(n, sampler), sampler, bounds=bounds, correction_samples=args.correction_samples, device="cpu"
+        ),
+        bounds=torch.as_tensor(bounds),
         adj_weight=args.adj_weight,
         adj_threshold=1.1,
         **td3_flags(args, args.man_gamma),
@@ -578,6 +621,55 @@ def test_manager_update_learns_from_corrected_subgoals_with_the_weighted_adjacen
     proposals = torch.full((n, 2), 9.0)
     expected = 7.0 * hrac.adjacency_loss(hrac_agent.adjacency, seen["states"][:, :2], proposals, threshold=1.1)
     torch.testing.assert_close(seen["extra"](proposals), expected)
+
+
+def filled_manager_replay(rng, n=64, k=4, goal_dim=3):
+    """AntFall's shapes: its task goal and its subgoals are 3-d (xyz)."""
+    replay = hrac.Replay(n, states=(30,), goals=(goal_dim,), actions=(goal_dim,), rewards=(), next_states=(30,), dones=(),
+                         state_seq=(k + 1, 30), action_seq=(k, 8))  # fmt: skip
+    for _ in range(n):
+        seq = np.cumsum(rng.normal(0, 0.3, (k + 1, 30)), 0)
+        replay.add(states=seq[0], goals=rng.uniform(-4, 20, goal_dim), actions=rng.uniform(-10, 10, goal_dim),
+                   rewards=-rng.uniform(0, 2), next_states=seq[-1], dones=0.0, state_seq=seq,
+                   action_seq=rng.uniform(-30, 30, (k, 8)))  # fmt: skip
+    return replay
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_fast_controller_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: controller_update traced whole (both backward passes, both Adam steps, Polyak, under DGRL the
+    encoder and the codebook's EMA with dead-code restarts, the critic's weight decay) and equal to eager."""
+    args, _, trained = agent(groups=groups)
+    if groups:
+        trained.encoder.vq.dead_code_steps = 3
+    rng = np.random.default_rng(0)
+    replay = filled_controller_replay(rng)
+    batches = [hrac.as_tensors(replay.sample(32, rng), "cpu") for _ in range(31)]
+
+    def call(function, state, i):
+        return function(state, batches[i], **td3_flags(args, args.ctrl_gamma))
+
+    optimizers = lambda state: [state.controller.critic_optimizer, state.controller.actor_optimizer]  # noqa: E731
+    check_fast_update(hrac, hrac.controller_update, trained, call, optimizers)
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_fast_manager_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: manager_update traced whole, HIRO's off-policy correction (under DGRL through the encoder, its
+    codebook untouched) and the adjacency term included, and equal to eager. On AntFall: 3-d subgoals."""
+    args, bounds, trained = agent(groups=groups, env_id="AntFall")
+    rng = np.random.default_rng(0)
+    replay = filled_manager_replay(rng)
+    batches = [
+        hrac.manager_batch(replay.sample(32, rng), rng, bounds=bounds, correction_samples=4, device="cpu") for _ in range(31)
+    ]
+    hyper_parameters = td3_flags(args, args.man_gamma) | {"adj_weight": args.adj_weight, "adj_threshold": 1.1}
+
+    def call(function, state, i):
+        return function(state, batches[i], bounds=torch.as_tensor(bounds), **hyper_parameters)
+
+    optimizers = lambda state: [state.manager.critic_optimizer, state.manager.actor_optimizer]  # noqa: E731
+    check_fast_update(hrac, hrac.manager_update, trained, call, optimizers)
 
 
 def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():

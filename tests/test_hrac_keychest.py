@@ -15,6 +15,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_hrac_keychest as kc
+from tests.conftest import check_fast_update
 
 # HRAC's Key-Chest layout as its authors' code draws it: 13 rows x 17 columns, `w` wall, K key at (row 6, col 1), B chest
 # at (2, 1), S the nominal start (11, 7); 128 free cells. The state is (row, col, has_key); the high level's goal space is
@@ -265,11 +266,20 @@ def test_adjacency_accuracy_of_a_perfect_and_a_useless_embedding():
 
 
 def test_segment_returns_stop_at_segment_ends():
-    rewards = np.array([0, 0, 1, 0, 1, 1, 0, 1], dtype=float)
-    returns = kc.segment_returns(rewards, gamma=0.5, k=3)
+    rewards = torch.tensor([0, 0, 1, 0, 1, 1, 0, 1], dtype=torch.float32)
+    returns = kc.segment_returns(rewards, kc.segment_discounts(0.5, 3))
     expected = [0.25, 0.5, 1.0, 0.5 + 0.25, 1 + 0.5, 1.0, 0.5, 1.0]  # segments [0..2], [3..5], [6..7]
-    np.testing.assert_allclose(returns, expected)
-    np.testing.assert_allclose(kc.segment_returns(np.ones(4), 0.9, k=10), [1 + 0.9 + 0.81 + 0.729, 1 + 0.9 + 0.81, 1.9, 1])
+    assert returns.dtype == torch.float64
+    np.testing.assert_allclose(returns.numpy(), expected)
+    returns = kc.segment_returns(torch.ones(4), kc.segment_discounts(0.9, 10)).numpy()
+    np.testing.assert_allclose(returns, [1 + 0.9 + 0.81 + 0.729, 1 + 0.9 + 0.81, 1.9, 1])
+
+
+def test_segment_discounts_are_numpys_powers():
+    """The discounts are numpy's float64 powers, bit for bit (what the returns were always computed with)."""
+    for gamma in (0.99, 0.9, 0.97):
+        expected = np.triu(gamma ** np.maximum(np.arange(10)[None, :] - np.arange(10)[:, None], 0))
+        assert np.array_equal(kc.segment_discounts(gamma, 10).numpy(), expected)
 
 
 def test_goal_reached_is_a_box_of_half_width_threshold():
@@ -383,6 +393,7 @@ def test_manager_replay_is_a_ring():
     assert replay.size == 4 and replay.started()
     assert sorted(replay.rewards.tolist()) == [2.0, 3.0, 4.0, 5.0]  # 0 and 1 were overwritten
     states, goals, rewards, next_states, terminals = replay.sample(4, torch.device("cpu"))
+    assert all(column.dtype == torch.float32 for column in (states, goals, rewards, next_states, terminals))
     assert torch.equal(next_states[:, 2], rewards) and not terminals.any()
     assert sorted(rewards.tolist()) == [2.0, 3.0, 4.0, 5.0]  # without replacement
     assert torch.equal(states[:, 0], rewards) and torch.equal(goals[:, 1], rewards)
@@ -450,7 +461,7 @@ def test_controller_update_trains_the_low_level_and_under_dgrl_the_autoencoder(g
     autoencoder = None if agent.goal_ae is None else (parameters(agent.goal_ae), agent.goal_ae.vq.codebook.clone())
     figures = kc.controller_update(
         agent, states, goals, torch.zeros(12, dtype=torch.long), next_states,
-        k=5, gamma=0.9, entropy_coef=0.01, reward_scale=1.0, goal_threshold=0.5,
+        discounts=kc.segment_discounts(0.9, 5), entropy_coef=0.01, reward_scale=1.0, goal_threshold=0.5,
     )  # fmt: skip
     assert not torch.equal(parameters(agent.controller), controller)
     if groups:  # the autoencoder's step, and the EMA update of its codebook
@@ -460,6 +471,97 @@ def test_controller_update_trains_the_low_level_and_under_dgrl_the_autoencoder(g
     else:  # HRAC's reward: every step reaches the raw subgoal, so every 5-step segment counts as reached
         assert figures["charts/intrinsic_reward"] == 1.0 and figures["charts/subgoal_reach_rate"] == 1.0
         assert not any(key.startswith("vq/") for key in figures)
+    assert all(isinstance(value, torch.Tensor) and not value.requires_grad for value in figures.values())
+
+
+def test_manager_update_with_a_tensor_policy_term_equals_the_bool_one():
+    """policy_term as a 0-d tensor (--fast cudagraphs: one graph for both) gives what the bool gives, bit for bit."""
+    import copy
+
+    agent = agent_from(kc.Args(groups=0, **SMALL))
+    replay = kc.ManagerReplay(64, np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    replay.add(rng.random((64, 3)) * 10, rng.random((64, 2)) * 10, rng.random(64), rng.random((64, 3)) * 10, np.zeros(64))
+    batches = [replay.sample(32, torch.device("cpu")) for _ in range(6)]
+    with_bools, with_tensors = agent, copy.deepcopy(agent)
+    for i, batch in enumerate(batches):
+        flags = {"gamma": 0.99, "tau": 0.5, "adj_weight": 20.0, "threshold": 1.1}
+        expected = kc.manager_update(with_bools, batch, **flags, policy_term=i % 2 == 0)
+        got = kc.manager_update(with_tensors, batch, **flags, policy_term=torch.tensor(float(i % 2 == 0)))
+        assert all(torch.equal(got[key], expected[key]) for key in expected)
+    for name in ("actor", "critic", "actor_target", "critic_target"):
+        assert torch.equal(parameters(getattr(with_tensors, name)), parameters(getattr(with_bools, name))), name
+
+
+# --- the --fast path: each update one graph, equal to eager, free of host syncs ---------------------------------------
+
+
+def trained_agent(groups: int) -> kc.Agent:
+    """A tiny agent (hidden 16-32) whose adjacency network is not the initial one; under DGRL dead-code restarts on."""
+    torch.manual_seed(0)
+    agent = agent_from(kc.Args(groups=groups, n_embed=8, **SMALL))
+    for parameter in agent.adjacency.parameters():
+        parameter.add_(0.3 * torch.randn_like(parameter))
+    if groups:
+        agent.goal_ae.vq.dead_code_steps = 3
+    return agent
+
+
+def episode(rng: np.random.Generator, length: int) -> tuple[torch.Tensor, ...]:
+    """(states, raw subgoals, actions, next states) of a random walk-like episode, some steps ending on the subgoal."""
+    states = torch.as_tensor(np.c_[rng.integers(1, 12, (length, 2)), rng.integers(0, 2, length)], dtype=torch.float32)
+    goals = states[:, :2] + torch.as_tensor(rng.integers(-1, 2, (length, 2)), dtype=torch.float32)
+    next_states = torch.where(torch.as_tensor(rng.random((length, 1)) < 0.3), torch.cat([goals, states[:, 2:]], 1), states)
+    return states, goals, torch.as_tensor(rng.integers(4, size=length)), next_states
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_fast_controller_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: controller_update traced whole (under DGRL the codebook's EMA with dead-code restarts and the
+    autoencoder's Adam step, then the A2C step), over episodes of different lengths (a dynamic length), equal to eager."""
+    agent = trained_agent(groups)
+    rng = np.random.default_rng(0)
+    episodes = [episode(rng, int(length)) for length in rng.integers(20, 60, 30)]
+    discounts = kc.segment_discounts(0.9, 5)
+
+    def call(function, state, i):
+        flags = {"entropy_coef": 0.01, "reward_scale": 1.0, "goal_threshold": 0.5}
+        return function(state, *episodes[i], discounts=discounts, **flags)
+
+    optimizers = lambda state: [state.controller_optimizer] + ([state.ae_optimizer] if groups else [])  # noqa: E731
+    check_fast_update(kc, kc.controller_update, agent, call, optimizers)
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_fast_manager_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: manager_update traced whole (critic, actor with the adjacency term and, every other update, the
+    critic term as a tensor switch, Polyak targets), equal to eager. The goal autoencoder takes no part in it."""
+    agent = trained_agent(groups)
+    replay = kc.ManagerReplay(256, np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    replay.add(rng.random((256, 3)) * 10, rng.random((256, 2)) * 10, rng.random(256), rng.random((256, 3)) * 10,
+               rng.random(256) < 0.1)  # fmt: skip
+    batches = [replay.sample(32, torch.device("cpu")) for _ in range(31)]
+    switches = (torch.tensor(0.0), torch.tensor(1.0))
+
+    def call(function, state, i):
+        flags = {"gamma": 0.99, "tau": 0.01, "adj_weight": 20.0, "threshold": 1.1}
+        return function(state, batches[i], **flags, policy_term=switches[i % 2 == 0])
+
+    optimizers = lambda state: [state.critic_optimizer, state.actor_optimizer]  # noqa: E731
+    check_fast_update(kc, kc.manager_update, agent, call, optimizers)
+
+
+def test_fast_goal_autoencoder_update_is_one_graph_equal_to_eager_and_free_of_host_syncs():
+    """--fast compile: the autoencoder's pre-training update (codebook EMA with dead-code restarts, Adam step)."""
+    agent = trained_agent(4)
+    torch.manual_seed(1)
+    batches = [kc.uniform_subgoals(32, torch.device("cpu")) for _ in range(31)]
+
+    def call(function, state, i):
+        return function(state, batches[i])
+
+    check_fast_update(kc, kc.goal_autoencoder_update, agent, call, lambda state: [state.ae_optimizer])
 
 
 # --- smoke runs, checkpoints, Ctrl-C ----------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_mnist as mnist
+from tests.conftest import check_fast_update
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -153,17 +154,33 @@ def test_train_step_minimises_the_per_image_squared_error_plus_the_vq_loss():
         decoded = autoencoder.decode(autoencoder.vq.codebook[nearest].view(8, 30))
         expected_reconstruction = (decoded - images).pow(2).sum() / 8
     weight, codebook = autoencoder.encoder[1].weight.clone(), autoencoder.vq.codebook.clone()
-    reconstruction, vq_loss, codes = mnist.train_step(model, images)
-    torch.testing.assert_close(reconstruction, expected_reconstruction)
-    torch.testing.assert_close(vq_loss, expected_vq)
-    assert codes.flatten().tolist() == nearest.tolist()
+    metrics = mnist.train_step(model, images)
+    torch.testing.assert_close(metrics["reconstruction"], expected_reconstruction)
+    torch.testing.assert_close(metrics["vq_loss"], expected_vq)
+    assert metrics["codes"].flatten().tolist() == nearest.tolist()
+    assert metrics["active_codes"] == len(set(nearest.tolist()))
+    torch.testing.assert_close(metrics["perplexity"], mnist.perplexity(metrics["codes"], 16))
     assert not torch.equal(autoencoder.encoder[1].weight, weight)  # Adam stepped
     assert not torch.equal(autoencoder.vq.codebook, codebook)  # and the codebook moved by its EMA
 
     baseline = mnist.make_model(30, 64, 0, 16, 0.25, 0.99, 0, 1e-3, CPU)
     assert baseline.autoencoder.vq is None
-    reconstruction, vq_loss, codes = mnist.train_step(baseline, images)
-    assert vq_loss.item() == 0 and codes is None and reconstruction.item() > 0
+    metrics = mnist.train_step(baseline, images)
+    assert metrics["vq_loss"].item() == 0 and "codes" not in metrics and metrics["reconstruction"].item() > 0
+
+
+@pytest.mark.parametrize("groups", [0, 2])
+def test_fast_train_step_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
+    """--fast compile: train_step traced whole (encoder, the codebook EMA with dead-code restarts, decoder, Adam, the
+    codes' statistics) and equal to eager."""
+    model = mnist.make_model(30, 32, groups, 16, 0.25, 0.99, 3 if groups else 0, 1e-3, CPU)
+    generator = torch.Generator().manual_seed(0)
+    batches = [torch.rand(32, 3, 28, 28, generator=generator) for _ in range(31)]
+
+    def call(function, state, i):
+        return function(state, batches[i])
+
+    check_fast_update(mnist, mnist.train_step, model, call, lambda state: [state.optimizer])
 
 
 def test_the_referees_stop_before_their_next_step_once_a_signal_came():

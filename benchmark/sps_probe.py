@@ -50,6 +50,7 @@ def probe(command: list[str], seconds: float, skip: float) -> str:
         timer.cancel()
     elapsed = time.time() - start
     name = " ".join(os.path.basename(part) if part.endswith(".py") else part for part in command[1:])
+    name = " ".join(name.split())[:200]  # one line
     steady = [(at, step) for at, step in lines if at >= skip]
     if len(steady) >= 2 and steady[-1][1] > steady[0][1]:
         (t0, s0), (t1, s1) = steady[0], steady[-1]

@@ -1,0 +1,123 @@
+"""Color-MNIST across seeds: how often the two factors separate shape from colour, and what the separating seeds share.
+
+    python benchmark/launch.py --preset mnist --seeds 1 2 3 4 5 6 7 8 9 10 --name mnist-10seeds   # 20 runs, ~25 min
+    python benchmark/mnist_seeds.py sweeps/mnist-10seeds
+
+Reads every run folder of the sweep (TensorBoard scalars) and prints, per run: the swap test's better assignment (the
+fraction of factor-swapped decodings whose digit comes from one image and colour from the other; chance about 0.0125),
+the referees' digit and colour accuracy on each factor-only reconstruction, the test reconstruction error, and for DGRL
+the codebook's usage in the last logged tenth of training (perplexity and active codes of the 256, mean over the
+batches logged there) and the final reconstruction and commitment losses. Then, per mode, the distribution of the
+better swap rate (mean, std, median, range, how many seeds exceed 0.25 = 20x chance), a one-sided exact permutation
+test of DGRL's better swap rate against the baseline's (the share of the label permutations whose mean difference is at
+least the observed one), and among DGRL's seeds the Spearman correlation of the better swap rate with each usage figure.
+With --markdown OUT the per-run table and the summary are also written to OUT.
+"""
+
+import argparse
+import itertools
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from plot import load_runs, run_folders  # benchmark/plot.py
+
+SWAPS = ("factor/swap/shape1_colour2", "factor/swap/colour1_shape2")
+FACTORS = [f"factor/factor{i}/{what}_acc" for i in (1, 2) for what in ("digit", "colour")]
+USAGE = ("vq/perplexity", "vq/active_codes", "losses/reconstruction", "vq/commit_loss")
+TAGS = [*SWAPS, *FACTORS, "factor/test/reconstruction_mse", *USAGE]
+
+
+def late_mean(curve: tuple[np.ndarray, np.ndarray]) -> float:
+    """The mean of a curve over its last tenth of steps."""
+    steps, values = curve
+    return float(values[steps >= steps.min() + 0.9 * (steps.max() - steps.min())].mean())
+
+
+def ranks(values: np.ndarray) -> np.ndarray:
+    order = values.argsort(kind="stable")
+    ranked = np.empty(len(values))
+    ranked[order] = np.arange(len(values))
+    for value in np.unique(values):  # ties share their mean rank
+        ranked[values == value] = ranked[values == value].mean()
+    return ranked
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.corrcoef(ranks(a), ranks(b))[0, 1])
+
+
+def permutation_p(treated: np.ndarray, control: np.ndarray) -> float:
+    """One-sided exact p-value of mean(treated) - mean(control) over every split of the pooled values."""
+    pooled, n = np.concatenate((treated, control)), len(treated)
+    observed = treated.mean() - control.mean()
+    total, extreme = 0, 0
+    for chosen in itertools.combinations(range(len(pooled)), n):
+        mask = np.zeros(len(pooled), bool)
+        mask[list(chosen)] = True
+        total += 1
+        extreme += pooled[mask].mean() - pooled[~mask].mean() >= observed - 1e-12
+    return extreme / total
+
+
+def main(sweep: Path, markdown: Path | None) -> None:
+    settings: dict[str, list[tuple[int, dict]]] = {}
+    for run in run_folders(sweep):  # run names: ColorMNIST__G{g}__{exp_name}__{seed}__{time}
+        for setting, seeds in load_runs([run], r"ColorMNIST__G\d+", TAGS).items():
+            settings.setdefault(setting, []).extend((int(run.name.split("__")[-2]), curves) for curves in seeds)
+    lines = [
+        "| run | better swap | f1 digit | f1 colour | f2 digit | f2 colour | test MSE | perplexity (last 10%) | "
+        "active codes | reconstruction loss | commit loss |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    better: dict[str, list[float]] = {}
+    usage: dict[str, list[list[float]]] = {}
+    for setting, seeds in sorted(settings.items()):
+        for seed, curves in sorted(seeds, key=lambda pair: pair[0]):
+            if not all(tag in curves for tag in SWAPS):  # still running: the factor tests come at the end
+                continue
+            swap = max(float(curves[tag][1][-1]) for tag in SWAPS)
+            better.setdefault(setting, []).append(swap)
+            factors = [f"{float(curves[tag][1][-1]):.2f}" for tag in FACTORS]
+            late = [late_mean(curves[tag]) if tag in curves else float("nan") for tag in USAGE]
+            usage.setdefault(setting, []).append(late)
+            mse = float(curves["factor/test/reconstruction_mse"][1][-1])
+            figures = " | ".join(f"{value:.3g}" for value in late)
+            lines.append(f"| {setting} seed {seed} | {swap:.3f} | {' | '.join(factors)} | {mse:.4f} | {figures} |")
+    lines += ["", "| mode | seeds | better swap: mean +- std | median | range | seeds > 0.25 |", "|---|---|---|---|---|---|"]
+    for setting, values in sorted(better.items()):
+        v = np.array(values)
+        lines.append(
+            f"| {setting} | {len(v)} | {v.mean():.3f} +- {v.std():.3f} | {np.median(v):.3f} | {v.min():.3f}-{v.max():.3f} | "
+            f"{int((v > 0.25).sum())} |"
+        )
+    names = sorted(better)
+    baseline = next((name for name in names if re.search(r"__G0(__|$)", name)), None)
+    for name in names:
+        if name == baseline or baseline is None:
+            continue
+        p = permutation_p(np.array(better[name]), np.array(better[baseline]))
+        lines.append(f"\n{name} vs {baseline}: one-sided exact permutation p = {p:.4f} (better swap rate, mean difference)")
+        table = np.array(usage[name])
+        swaps = np.array(better[name])
+        correlations = ", ".join(
+            f"{tag} {spearman(swaps, table[:, column]):+.2f}"
+            for column, tag in enumerate(USAGE)
+            if np.isfinite(table[:, column]).all()
+        )
+        lines.append(f"{name}: Spearman correlation of the better swap rate with {correlations}")
+    text = "\n".join(lines)
+    print(text)
+    if markdown is not None:
+        markdown.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sweep", type=Path, help="a sweep folder of benchmark/launch.py (or any folder of run folders)")
+    parser.add_argument("--markdown", type=Path, help="also write the tables to this file")
+    options = parser.parse_args()
+    main(options.sweep, options.markdown)

@@ -15,7 +15,6 @@ With --markdown OUT the per-run table and the summary are also written to OUT.
 """
 
 import argparse
-import itertools
 import re
 import sys
 from pathlib import Path
@@ -24,43 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from plot import load_runs, run_folders  # benchmark/plot.py
+from seed_stats import late_mean, permutation_p, spearman  # benchmark/seed_stats.py
 
 SWAPS = ("factor/swap/shape1_colour2", "factor/swap/colour1_shape2")
 FACTORS = [f"factor/factor{i}/{what}_acc" for i in (1, 2) for what in ("digit", "colour")]
 USAGE = ("vq/perplexity", "vq/active_codes", "losses/reconstruction", "vq/commit_loss")
 TAGS = [*SWAPS, *FACTORS, "factor/test/reconstruction_mse", *USAGE]
-
-
-def late_mean(curve: tuple[np.ndarray, np.ndarray]) -> float:
-    """The mean of a curve over its last tenth of steps."""
-    steps, values = curve
-    return float(values[steps >= steps.min() + 0.9 * (steps.max() - steps.min())].mean())
-
-
-def ranks(values: np.ndarray) -> np.ndarray:
-    order = values.argsort(kind="stable")
-    ranked = np.empty(len(values))
-    ranked[order] = np.arange(len(values))
-    for value in np.unique(values):  # ties share their mean rank
-        ranked[values == value] = ranked[values == value].mean()
-    return ranked
-
-
-def spearman(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.corrcoef(ranks(a), ranks(b))[0, 1])
-
-
-def permutation_p(treated: np.ndarray, control: np.ndarray) -> float:
-    """One-sided exact p-value of mean(treated) - mean(control) over every split of the pooled values."""
-    pooled, n = np.concatenate((treated, control)), len(treated)
-    observed = treated.mean() - control.mean()
-    total, extreme = 0, 0
-    for chosen in itertools.combinations(range(len(pooled)), n):
-        mask = np.zeros(len(pooled), bool)
-        mask[list(chosen)] = True
-        total += 1
-        extreme += pooled[mask].mean() - pooled[~mask].mean() >= observed - 1e-12
-    return extreme / total
 
 
 def main(sweep: Path, markdown: Path | None) -> None:

@@ -1,47 +1,91 @@
-"""The statistics of benchmark/mnist_seeds.py and benchmark/goal_dqn_seeds.py against values worked out by hand."""
+"""benchmark/seed_stats.py: the statistics against values worked out by hand, and a sweep compared per seed."""
 
+import subprocess
 import sys
 from math import comb
 from pathlib import Path
 
 import numpy as np
 import pytest
+from torch.utils.tensorboard import SummaryWriter
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark"))
 
-import goal_dqn_seeds
-import mnist_seeds
+import seed_stats
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_permutation_p_of_fully_separated_groups_is_one_split_in_all():
     treated, control = np.array([3.0, 4.0, 5.0]), np.array([0.0, 1.0, 2.0])
-    assert mnist_seeds.permutation_p(treated, control) == pytest.approx(1 / comb(6, 3))
-    assert goal_dqn_seeds.permutation_p(treated, control, higher_is_better=True) == pytest.approx(1 / 20)
+    assert seed_stats.permutation_p(treated, control) == pytest.approx(1 / comb(6, 3))
+    assert seed_stats.permutation_p(treated, control, higher_is_better=True) == pytest.approx(1 / 20)
     # lower is better: the same data is the least favourable split of all
-    assert goal_dqn_seeds.permutation_p(treated, control, higher_is_better=False) == pytest.approx(1.0)
-    assert goal_dqn_seeds.permutation_p(control, treated, higher_is_better=False) == pytest.approx(1 / 20)
+    assert seed_stats.permutation_p(treated, control, higher_is_better=False) == pytest.approx(1.0)
+    assert seed_stats.permutation_p(control, treated, higher_is_better=False) == pytest.approx(1 / 20)
 
 
 def test_permutation_p_counts_ties_as_extreme():
     same = np.array([1.0, 1.0])
-    assert mnist_seeds.permutation_p(same, same) == 1.0  # every split gives the observed difference, 0
+    assert seed_stats.permutation_p(same, same) == 1.0  # every split gives the observed difference, 0
 
 
 def test_spearman_uses_ranks_with_shared_ranks_for_ties():
     a = np.array([1.0, 2.0, 3.0, 4.0])
-    assert mnist_seeds.spearman(a, a**3) == pytest.approx(1.0)  # monotone, not linear
-    assert mnist_seeds.spearman(a, -a) == pytest.approx(-1.0)
-    np.testing.assert_allclose(mnist_seeds.ranks(np.array([5.0, 1.0, 5.0, 2.0])), [2.5, 0.0, 2.5, 1.0])
+    assert seed_stats.spearman(a, a**3) == pytest.approx(1.0)  # monotone, not linear
+    assert seed_stats.spearman(a, -a) == pytest.approx(-1.0)
+    np.testing.assert_allclose(seed_stats.ranks(np.array([5.0, 1.0, 5.0, 2.0])), [2.5, 0.0, 2.5, 1.0])
 
 
 def test_bootstrap_interval_brackets_the_difference_and_is_a_point_for_constant_groups():
     rng = np.random.default_rng(0)
-    assert goal_dqn_seeds.bootstrap_interval(np.full(5, 2.0), np.full(5, 0.5), rng) == (1.5, 1.5)
-    low, high = goal_dqn_seeds.bootstrap_interval(np.array([1.0, 2, 3, 4, 5]), np.array([0.0, 1, 2, 3, 4]), rng)
+    assert seed_stats.bootstrap_interval(np.full(5, 2.0), np.full(5, 0.5), rng) == (1.5, 1.5)
+    low, high = seed_stats.bootstrap_interval(np.array([1.0, 2, 3, 4, 5]), np.array([0.0, 1, 2, 3, 4]), rng)
     assert low < 1.0 < high and high - low < 4.0
 
 
 def test_late_mean_averages_the_last_tenth_of_steps():
     steps = np.arange(0, 101, dtype=float)
     values = np.where(steps >= 90, 7.0, 0.0)
-    assert mnist_seeds.late_mean((steps, values)) == 7.0
+    assert seed_stats.late_mean((steps, values)) == 7.0
+
+
+def test_summaries_and_first_reach_of_a_curve():
+    curve = (np.array([10.0, 20.0, 30.0, 40.0]), np.array([0.0, 6.0, 2.0, 4.0]))
+    assert seed_stats.summarise(curve, "final") == 4.0
+    assert seed_stats.summarise(curve, "mean") == 3.0
+    assert seed_stats.summarise(curve, "late") == 4.0  # steps >= 37: the last one only
+    assert seed_stats.first_reach(curve, 5.0) == (20.0, True)
+    assert seed_stats.first_reach(curve, 7.0) == (40.0, False)  # never: censored at the last step
+    assert seed_stats.lower_is_better("eval/novel_total_steps") and seed_stats.lower_is_better("eval/subgoal_distance")
+    assert not seed_stats.lower_is_better("eval/return") and not seed_stats.lower_is_better("eval/train_success_rate")
+
+
+def write_run(runs_dir: Path, name: str, values: list[float]) -> None:
+    writer = SummaryWriter(str(runs_dir / name))
+    for step, value in enumerate(values, start=1):
+        writer.add_scalar("eval/return", value, step * 1000)
+    writer.close()
+
+
+def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
+    for seed in (1, 2, 3):
+        write_run(tmp_path, f"KeyChest__G0__study__{seed}__1", [0.0, 1.0, 2.0, 2.0])
+        write_run(tmp_path, f"KeyChest__G16__study__{seed}__1", [0.0, 5.0, 6.0, 6.0 - seed])
+        write_run(tmp_path, f"Other__G0__study__{seed}__1", [9.0, 9.0, 9.0, 9.0])  # another comparison
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
+         "--summaries", "final", "--reach", "eval/return=5", "--markdown", str(tmp_path / "out.md")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "out.md").read_text()
+    keychest, other = text.split("\n\n" + tmp_path.name + ": ")
+    assert "G0 3 seeds, G16 3 seeds (KeyChest__study)" in keychest and "G0 3 seeds (Other__study)" in other
+    assert "| 0 | 2, 2, 2 | 2 +- 0 | |" in keychest
+    # G16 ends on 5, 4, 3: 2 above the baseline, every split as favourable is the observed one: p = 1 / C(6, 3)
+    assert f"| 16 | 5, 4, 3 | 4 +- 0.82 | +2 [+1, +3] | {1 / comb(6, 3):.3f} |" in keychest
+    # first evaluation with a return of 5: G16 at step 2000, the baseline never (censored at its last step, 4000)
+    assert "| 0 | >4e+03, >4e+03, >4e+03 | 4e+03 +- 0 | |" in keychest
+    assert f"| 16 | 2e+03, 2e+03, 2e+03 | 2e+03 +- 0 | -2e+03 [-2e+03, -2e+03] | {1 / comb(6, 3):.3f} |" in keychest
+    assert "vs G0" in other and "| 0 | 9, 9, 9 | 9 +- 0 | |" in other and "| 16 |" not in other

@@ -1,0 +1,163 @@
+"""Per seed, each DGRL setting of a sweep against its baseline (G = 0), with a significance statement for each figure.
+
+    python benchmark/launch.py --script dgrl_goal_dqn.py --env-ids SpiralWorld --groups 0 8 16 --seeds 1 2 3 4 5 \\
+        --name gdqn-spiral16 -- --n-train-goals 16
+    python benchmark/seed_stats.py sweeps/gdqn-spiral16 --tags eval/novel_success_rate eval/novel_total_steps
+    python benchmark/seed_stats.py sweeps/keychest --tags eval/return --summaries late mean --reach eval/return=5
+
+Reads every run folder of the sweep (TensorBoard scalars; run names `{env}__...__G{g}__{exp_name}__{seed}__{time}`).
+Runs whose names agree once `G{g}` is taken out form one comparison (e.g. one env and number of goals); within it, for
+each tag and summary, it prints per G every seed's value, their mean +- std (population std, over seeds) and, for each
+G > 0 against G = 0: the difference of the means, a 95% bootstrap interval of it (10,000 resamples of the seeds within
+each group, generator seeded with 0) and a one-sided exact permutation p-value in DGRL's favour (the share of all
+splits of the pooled seeds whose difference is at least as favourable as the observed one; ties count as extreme).
+"Favour" is lower for tags about steps, distances and losses, higher for every other tag.
+
+The summaries of a curve: `final` (its last value), `mean` (over all its evaluations, which rewards learning early),
+`late` (the mean over its last tenth of steps: a steadier "final" for noisy evaluations). `--reach TAG=X` adds the
+first step at which TAG reached X or more (lower is better); a seed that never reached it counts as its last logged
+step and is marked with `>`, so the test treats it as if it had reached X at the end, which favours neither side more
+than the censoring itself. With --markdown OUT the tables are also written to OUT.
+"""
+
+import argparse
+import itertools
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from plot import load_runs, run_folders  # benchmark/plot.py
+
+SUMMARIES = ("final", "mean", "late")
+SUMMARY_NAMES = {"final": "final", "mean": "mean over evaluations", "late": "mean over the last tenth of steps"}
+
+
+def late_mean(curve: tuple[np.ndarray, np.ndarray]) -> float:
+    """The mean of a curve over its last tenth of steps."""
+    steps, values = curve
+    return float(values[steps >= steps.min() + 0.9 * (steps.max() - steps.min())].mean())
+
+
+def summarise(curve: tuple[np.ndarray, np.ndarray], summary: str) -> float:
+    if summary == "final":
+        return float(curve[1][-1])
+    if summary == "mean":
+        return float(curve[1].mean())
+    return late_mean(curve)
+
+
+def first_reach(curve: tuple[np.ndarray, np.ndarray], threshold: float) -> tuple[float, bool]:
+    """(the first step whose value is >= threshold, True), or (the last step, False) when no value reaches it."""
+    steps, values = curve
+    reached = np.flatnonzero(values >= threshold)
+    return (float(steps[reached[0]]), True) if len(reached) else (float(steps[-1]), False)
+
+
+def lower_is_better(tag: str) -> bool:
+    return re.search(r"steps|distance|loss|mse", tag) is not None
+
+
+def ranks(values: np.ndarray) -> np.ndarray:
+    order = values.argsort(kind="stable")
+    ranked = np.empty(len(values))
+    ranked[order] = np.arange(len(values))
+    for value in np.unique(values):  # ties share their mean rank
+        ranked[values == value] = ranked[values == value].mean()
+    return ranked
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.corrcoef(ranks(a), ranks(b))[0, 1])
+
+
+def permutation_p(treated: np.ndarray, control: np.ndarray, higher_is_better: bool = True) -> float:
+    """One-sided exact p-value: the share of the splits of the pooled values whose difference of means is at least as
+    favourable to `treated` as the observed one."""
+    sign = 1.0 if higher_is_better else -1.0
+    pooled, n = np.concatenate((treated, control)), len(treated)
+    observed = sign * (treated.mean() - control.mean())
+    differences = []
+    for chosen in itertools.combinations(range(len(pooled)), n):
+        mask = np.zeros(len(pooled), bool)
+        mask[list(chosen)] = True
+        differences.append(sign * (pooled[mask].mean() - pooled[~mask].mean()))
+    return float(np.mean(np.array(differences) >= observed - 1e-12))
+
+
+def bootstrap_interval(treated: np.ndarray, control: np.ndarray, rng: np.random.Generator) -> tuple[float, float]:
+    """95% percentile interval of mean(treated) - mean(control), resampling the seeds of each group."""
+    draws = rng.choice(treated, (10_000, len(treated))).mean(1) - rng.choice(control, (10_000, len(control))).mean(1)
+    return float(np.percentile(draws, 2.5)), float(np.percentile(draws, 97.5))
+
+
+def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bool, rng: np.random.Generator) -> list[str]:
+    lines = ["| G | per seed | mean +- std | vs G0: difference [95% bootstrap] | one-sided p |", "|---|---|---|---|---|"]
+    for group, v in values.items():
+        seeds = ", ".join(f"{mark}{x:.3g}" for mark, x in zip(marks[group], v, strict=True))
+        row = f"| {group} | {seeds} | {v.mean():.3g} +- {v.std():.2g} |"
+        if group == 0 or 0 not in values:
+            lines.append(row + " | |")
+            continue
+        low, high = bootstrap_interval(v, values[0], rng)
+        p = permutation_p(v, values[0], higher)
+        lines.append(row + f" {v.mean() - values[0].mean():+.3g} [{low:+.3g}, {high:+.3g}] | {p:.3f} |")
+    return lines
+
+
+def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], markdown: Path | None) -> None:
+    thresholds = [(item.split("=")[0], float(item.split("=")[1])) for item in reach]
+    wanted = sorted(set(tags) | {tag for tag, _ in thresholds})
+    comparisons: dict[str, dict[int, dict[int, dict]]] = {}
+    for run in run_folders(sweep):
+        match = re.search(r"__G(\d+)__", run.name)
+        if match is None:
+            continue
+        context = re.sub(r"__G\d+__", "__", "__".join(run.name.split("__")[:-2]) + "__").strip("_")
+        seed = int(run.name.split("__")[-2])
+        for seeds in load_runs([run], "", wanted).values():
+            comparisons.setdefault(context, {}).setdefault(int(match.group(1)), {})[seed] = seeds[0]
+    rng = np.random.default_rng(0)
+    lines: list[str] = []
+    for context, per_group in sorted(comparisons.items()):
+        header = f"{sweep.name}: {', '.join(f'G{g} {len(s)} seeds' for g, s in sorted(per_group.items()))}"
+        lines += ([""] if lines else []) + [header if len(comparisons) == 1 else f"{header} ({context})"]
+        for tag in tags:
+            higher = not lower_is_better(tag)
+            for summary in summaries:
+                values = {
+                    group: np.array([summarise(c[tag], summary) for _, c in sorted(seeds.items()) if tag in c])
+                    for group, seeds in sorted(per_group.items())
+                }
+                marks = {group: [""] * len(v) for group, v in values.items()}
+                lines += ["", f"{tag}, {SUMMARY_NAMES[summary]} ({'higher' if higher else 'lower'} is better)", ""]
+                lines += table(values, marks, higher, rng)
+        for tag, threshold in thresholds:
+            reached = {
+                group: [first_reach(c[tag], threshold) for _, c in sorted(seeds.items()) if tag in c]
+                for group, seeds in sorted(per_group.items())
+            }
+            values = {group: np.array([step for step, _ in pairs]) for group, pairs in reached.items()}
+            marks = {group: ["" if hit else ">" for _, hit in pairs] for group, pairs in reached.items()}
+            lines += ["", f"first step with {tag} >= {threshold:g} (lower is better; > never reached)", ""]
+            lines += table(values, marks, False, rng)
+    text = "\n".join(lines)
+    print(text)
+    if markdown is not None:
+        markdown.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sweep", type=Path, help="a sweep folder of benchmark/launch.py (or any folder of run folders)")
+    parser.add_argument("--tags", nargs="+", default=["eval/novel_success_rate", "eval/novel_total_steps"])
+    parser.add_argument("--summaries", nargs="+", choices=SUMMARIES, default=["final", "mean"])
+    parser.add_argument("--reach", nargs="*", default=[], metavar="TAG=X", help="first step at which TAG >= X")
+    parser.add_argument("--markdown", type=Path, help="also write the tables to this file")
+    options = parser.parse_args()
+    bad = [item for item in options.reach if not re.fullmatch(r"[^=]+=[-+0-9.eE]+", item)]
+    if bad:
+        parser.error(f"--reach takes TAG=NUMBER, got {' '.join(bad)}")
+    main(options.sweep, options.tags, options.summaries, options.reach, options.markdown)

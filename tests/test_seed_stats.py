@@ -89,3 +89,13 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     assert "| 0 | >4e+03, >4e+03, >4e+03 | 4e+03 +- 0 | |" in keychest
     assert f"| 16 | 2e+03, 2e+03, 2e+03 | 2e+03 +- 0 | -2e+03 [-2e+03, -2e+03] | {1 / comb(6, 3):.3f} |" in keychest
     assert "vs G0" in other and "| 0 | 9, 9, 9 | 9 +- 0 | |" in other and "| 16 |" not in other
+
+
+def test_ledger_stats_windows_and_its_transcribed_tables():
+    import ledger_stats
+
+    assert ledger_stats.first_window_at([[0.1, 0.95, 0.2], [0.0, 0.5, 0.9]], 0.9, 0.2) == [0.2, 0.4]
+    # the published tables: 15 windows of 200k frames (3M), 15 evaluations every 2k steps (30k), 3 or 2 seeds
+    assert all(len(row) == 15 for rows in ledger_stats.S3R1_3M.values() for row in rows)
+    assert all(len(row) == 15 for rows in ledger_stats.SAWYER.values() for row in rows)
+    assert ledger_stats.compare("x", [3.0, 4.0, 5.0], [0.0, 1.0, 2.0]).endswith(f"p = {1 / comb(6, 3):.3f}")

@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from plot import load_runs, run_folders  # benchmark/plot.py
-from seed_stats import late_mean, permutation_p, spearman  # benchmark/seed_stats.py
+from seed_stats import emit, late_mean, permutation_p, spearman  # benchmark/seed_stats.py
 
 SWAPS = ("factor/swap/shape1_colour2", "factor/swap/colour1_shape2")
 FACTORS = [f"factor/factor{i}/{what}_acc" for i in (1, 2) for what in ("digit", "colour")]
@@ -77,10 +77,7 @@ def main(sweep: Path, markdown: Path | None) -> None:
             if np.isfinite(table[:, column]).all()
         )
         lines.append(f"{name}: Spearman correlation of the better swap rate with {correlations}")
-    text = "\n".join(lines)
-    print(text)
-    if markdown is not None:
-        markdown.write_text(text + "\n")
+    emit(lines, markdown)
 
 
 if __name__ == "__main__":

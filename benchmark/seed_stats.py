@@ -107,6 +107,14 @@ def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bo
     return lines
 
 
+def emit(lines: list[str], markdown: Path | None) -> None:
+    """Print the lines, and write them to `markdown` when given."""
+    text = "\n".join(lines)
+    print(text)
+    if markdown is not None:
+        markdown.write_text(text + "\n")
+
+
 def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], markdown: Path | None) -> None:
     thresholds = [(item.split("=")[0], float(item.split("=")[1])) for item in reach]
     wanted = sorted(set(tags) | {tag for tag, _ in thresholds})
@@ -143,10 +151,7 @@ def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], m
             marks = {group: ["" if hit else ">" for _, hit in pairs] for group, pairs in reached.items()}
             lines += ["", f"first step with {tag} >= {threshold:g} (lower is better; > never reached)", ""]
             lines += table(values, marks, False, rng)
-    text = "\n".join(lines)
-    print(text)
-    if markdown is not None:
-        markdown.write_text(text + "\n")
+    emit(lines, markdown)
 
 
 if __name__ == "__main__":

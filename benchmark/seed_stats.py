@@ -17,7 +17,8 @@ The summaries of a curve: `final` (its last value), `mean` (over all its evaluat
 `late` (the mean over its last tenth of steps: a steadier "final" for noisy evaluations). `--reach TAG=X` adds the
 first step at which TAG reached X or more (lower is better); a seed that never reached it counts as its last logged
 step and is marked with `>`, so the test treats it as if it had reached X at the end, which favours neither side more
-than the censoring itself. With --markdown OUT the tables are also written to OUT.
+than the censoring itself. Runs whose curves end before the comparison's longest (still running, or stopped early) are
+left out, and named. With --markdown OUT the tables are also written to OUT.
 """
 
 import argparse
@@ -107,6 +108,21 @@ def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bo
     return lines
 
 
+def drop_short_runs(per_group: dict[int, dict[int, dict]], tags: list[str]) -> list[str]:
+    """Remove (in place) the runs whose curves end before the longest of the comparison (runs still going, or
+    stopped early), whose final and late values and first steps would not be comparable; returns their names."""
+    end = max(curve[0][-1] for seeds in per_group.values() for curves in seeds.values() for curve in curves.values())
+    short = []
+    for group, seeds in sorted(per_group.items()):
+        for seed, curves in sorted(seeds.items()):
+            if max(curve[0][-1] for curve in curves.values()) < end:
+                short.append(f"G{group} seed {seed}")
+                del seeds[seed]
+        if not seeds:
+            del per_group[group]
+    return short
+
+
 def emit(lines: list[str], markdown: Path | None) -> None:
     """Print the lines, and write them to `markdown` when given."""
     text = "\n".join(lines)
@@ -130,8 +146,11 @@ def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], m
     rng = np.random.default_rng(0)
     lines: list[str] = []
     for context, per_group in sorted(comparisons.items()):
+        short = drop_short_runs(per_group, wanted)
         header = f"{sweep.name}: {', '.join(f'G{g} {len(s)} seeds' for g, s in sorted(per_group.items()))}"
         lines += ([""] if lines else []) + [header if len(comparisons) == 1 else f"{header} ({context})"]
+        if short:
+            lines.append(f"left out, their curves end before the others' (running or stopped): {', '.join(short)}")
         for tag in tags:
             higher = not lower_is_better(tag)
             for summary in summaries:

@@ -9,8 +9,9 @@ Reads every run folder of the sweep (TensorBoard scalars; run names `{env}__..._
 Runs whose names agree once `G{g}` is taken out form one comparison (e.g. one env and number of goals); within it, for
 each tag and summary, it prints per G every seed's value, their mean +- std (population std, over seeds) and, for each
 G > 0 against G = 0: the difference of the means, a 95% bootstrap interval of it (10,000 resamples of the seeds within
-each group, generator seeded with 0) and a one-sided exact permutation p-value in DGRL's favour (the share of all
-splits of the pooled seeds whose difference is at least as favourable as the observed one; ties count as extreme).
+each group, generator seeded with 0) and one-sided exact permutation p-values, in DGRL's favour (the share of all
+splits of the pooled seeds whose difference is at least as favourable as the observed one; ties count as extreme) and
+in the baseline's (the same test the other way round: small when DGRL is worse).
 "Favour" is lower for tags about steps, distances and losses, higher for every other tag.
 
 The summaries of a curve: `final` (its last value), `mean` (over all its evaluations, which rewards learning early),
@@ -95,16 +96,19 @@ def bootstrap_interval(treated: np.ndarray, control: np.ndarray, rng: np.random.
 
 
 def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bool, rng: np.random.Generator) -> list[str]:
-    lines = ["| G | per seed | mean +- std | vs G0: difference [95% bootstrap] | one-sided p |", "|---|---|---|---|---|"]
+    lines = [
+        "| G | per seed | mean +- std | vs G0: difference [95% bootstrap] | one-sided p, DGRL better | p, G0 better |",
+        "|---|---|---|---|---|---|",
+    ]
     for group, v in values.items():
         seeds = ", ".join(f"{mark}{x:.3g}" for mark, x in zip(marks[group], v, strict=True))
         row = f"| {group} | {seeds} | {v.mean():.3g} +- {v.std():.2g} |"
         if group == 0 or 0 not in values:
-            lines.append(row + " | |")
+            lines.append(row + " | | |")
             continue
         low, high = bootstrap_interval(v, values[0], rng)
-        p = permutation_p(v, values[0], higher)
-        lines.append(row + f" {v.mean() - values[0].mean():+.3g} [{low:+.3g}, {high:+.3g}] | {p:.3f} |")
+        p, p_worse = permutation_p(v, values[0], higher), permutation_p(v, values[0], not higher)
+        lines.append(row + f" {v.mean() - values[0].mean():+.3g} [{low:+.3g}, {high:+.3g}] | {p:.3f} | {p_worse:.3f} |")
     return lines
 
 

@@ -72,6 +72,7 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     for seed in (1, 2, 3):
         write_run(tmp_path, f"KeyChest__G0__study__{seed}__1", [0.0, 1.0, 2.0, 2.0])
         write_run(tmp_path, f"KeyChest__G16__study__{seed}__1", [0.0, 5.0, 6.0, 6.0 - seed])
+        write_run(tmp_path, f"KeyChest__G4__study__{seed}__1", [0.0, 0.0, 1.0, 1.0])
         write_run(tmp_path, f"Other__G0__study__{seed}__1", [9.0, 9.0, 9.0, 9.0])  # another comparison
     write_run(tmp_path, "KeyChest__G16__study__4__1", [0.0, 6.0])  # still running: left out
     write_run(tmp_path, "Other__G16__study__1__1", [0.0])  # its group's only run, still running
@@ -83,14 +84,16 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "out.md").read_text()
     keychest, other = text.split("\n\n" + tmp_path.name + ": ")
-    assert "G0 3 seeds, G16 3 seeds (KeyChest__study)" in keychest and "G0 3 seeds (Other__study)" in other
+    assert "G0 3 seeds, G4 3 seeds, G16 3 seeds (KeyChest__study)" in keychest and "G0 3 seeds (Other__study)" in other
     assert "(running or stopped): G16 seed 4" in keychest and "(running or stopped): G16 seed 1" in other
     assert "| 0 | 2, 2, 2 | 2 +- 0 | |" in keychest
     # G16 ends on 5, 4, 3: 2 above the baseline, every split as favourable is the observed one: p = 1 / C(6, 3)
-    assert f"| 16 | 5, 4, 3 | 4 +- 0.82 | +2 [+1, +3] | {1 / comb(6, 3):.3f} |" in keychest
+    assert f"| 16 | 5, 4, 3 | 4 +- 0.82 | +2 [+1, +3] | {1 / comb(6, 3):.3f} | 1.000 |" in keychest
     # first evaluation with a return of 5: G16 at step 2000, the baseline never (censored at its last step, 4000)
     assert "| 0 | >4e+03, >4e+03, >4e+03 | 4e+03 +- 0 | |" in keychest
-    assert f"| 16 | 2e+03, 2e+03, 2e+03 | 2e+03 +- 0 | -2e+03 [-2e+03, -2e+03] | {1 / comb(6, 3):.3f} |" in keychest
+    assert f"| 16 | 2e+03, 2e+03, 2e+03 | 2e+03 +- 0 | -2e+03 [-2e+03, -2e+03] | {1 / comb(6, 3):.3f} | 1.000 |" in keychest
+    # G4 ends on 1, 1, 1, below every baseline seed: p = 1 in its favour, 1 / C(6, 3) in the baseline's
+    assert f"| 4 | 1, 1, 1 | 1 +- 0 | -1 [-1, -1] | 1.000 | {1 / comb(6, 3):.3f} |" in keychest
     assert "vs G0" in other and "| 0 | 9, 9, 9 | 9 +- 0 | |" in other and "| 16 |" not in other
 
 

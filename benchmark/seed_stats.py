@@ -112,7 +112,7 @@ def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bo
     return lines
 
 
-def drop_short_runs(per_group: dict[int, dict[int, dict]], tags: list[str]) -> list[str]:
+def drop_short_runs(per_group: dict[int, dict[int, dict]]) -> list[str]:
     """Remove (in place) the runs whose curves end before the longest of the comparison (runs still going, or
     stopped early), whose final and late values and first steps would not be comparable; returns their names."""
     end = max(curve[0][-1] for seeds in per_group.values() for curves in seeds.values() for curve in curves.values())
@@ -150,7 +150,7 @@ def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], m
     rng = np.random.default_rng(0)
     lines: list[str] = []
     for context, per_group in sorted(comparisons.items()):
-        short = drop_short_runs(per_group, wanted)
+        short = drop_short_runs(per_group)
         header = f"{sweep.name}: {', '.join(f'G{g} {len(s)} seeds' for g, s in sorted(per_group.items()))}"
         lines += ([""] if lines else []) + [header if len(comparisons) == 1 else f"{header} ({context})"]
         if short:

@@ -2,6 +2,7 @@
 
     python benchmark/launch.py --preset mnist --seeds 1 2 3 4 5 6 7 8 9 10 --name mnist-10seeds   # 20 runs, ~25 min
     python benchmark/mnist_seeds.py sweeps/mnist-10seeds
+    python benchmark/mnist_seeds.py sweeps/mnist-10seeds sweeps/mnist-restart50 --against ColorMNIST__G2__mnist-10seeds
 
 Reads every run folder of the sweep (TensorBoard scalars) and prints, per run: the swap test's better assignment (the
 fraction of factor-swapped decodings whose digit comes from one image and colour from the other; chance about 0.0125),
@@ -11,7 +12,9 @@ batches logged there) and the final reconstruction and commitment losses. Then, 
 better swap rate (mean, std, median, range, how many seeds exceed 0.25 = 20x chance), a one-sided exact permutation
 test of DGRL's better swap rate against the baseline's (the share of the label permutations whose mean difference is at
 least the observed one), and among DGRL's seeds the Spearman correlation of the better swap rate with each usage figure.
-With --markdown OUT the per-run table and the summary are also written to OUT.
+Several sweeps can be read together (each mode is named by its sweep's exp name); with --against MODE, every other
+DGRL mode is also compared with that one (a variant against the default), with the exact permutation p in both
+directions. With --markdown OUT the per-run table and the summary are also written to OUT.
 """
 
 import argparse
@@ -31,9 +34,10 @@ USAGE = ("vq/perplexity", "vq/active_codes", "losses/reconstruction", "vq/commit
 TAGS = [*SWAPS, *FACTORS, "factor/test/reconstruction_mse", *USAGE]
 
 
-def main(sweep: Path, markdown: Path | None) -> None:
+def main(sweeps: list[Path], markdown: Path | None, against: str | None = None) -> None:
     settings: dict[str, list[tuple[int, dict]]] = {}
-    for run in run_folders(sweep):  # run names: ColorMNIST__G{g}__{exp_name}__{seed}__{time}
+    runs = [run for sweep in sweeps for run in run_folders(sweep)]
+    for run in runs:  # run names: ColorMNIST__G{g}__{exp_name}__{seed}__{time}
         for setting, seeds in load_runs([run], r"ColorMNIST__G\d+", TAGS).items():
             settings.setdefault(setting, []).extend((int(run.name.split("__")[-2]), curves) for curves in seeds)
     lines = [
@@ -77,12 +81,28 @@ def main(sweep: Path, markdown: Path | None) -> None:
             if np.isfinite(table[:, column]).all()
         )
         lines.append(f"{name}: Spearman correlation of the better swap rate with {correlations}")
+    if against is not None:
+        if against not in better:
+            raise SystemExit(f"--against {against}: no such mode; the modes read: {', '.join(names)}")
+        reference = np.array(better[against])
+        for name in names:
+            if name in (against, baseline):
+                continue
+            variant = np.array(better[name])
+            higher, lower = permutation_p(variant, reference), permutation_p(variant, reference, higher_is_better=False)
+            lines.append(
+                f"\n{name} vs {against}: better swap rate {variant.mean() - reference.mean():+.3f}; one-sided exact "
+                f"permutation p = {higher:.4f} (higher), {lower:.4f} (lower)"
+            )
     emit(lines, markdown)
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sweep", type=Path, help="a sweep folder of benchmark/launch.py (or any folder of run folders)")
+    parser.add_argument(
+        "sweeps", type=Path, nargs="+", help="sweep folders of benchmark/launch.py (or any folders of run folders)"
+    )
     parser.add_argument("--markdown", type=Path, help="also write the tables to this file")
+    parser.add_argument("--against", help="also compare every other DGRL mode with this mode (e.g. a variant's default)")
     options = parser.parse_args()
-    main(options.sweep, options.markdown)
+    main(options.sweeps, options.markdown, options.against)

@@ -105,3 +105,42 @@ def test_ledger_stats_windows_and_its_transcribed_tables():
     assert all(len(row) == 15 for rows in ledger_stats.S3R1_3M.values() for row in rows)
     assert all(len(row) == 15 for rows in ledger_stats.SAWYER.values() for row in rows)
     assert ledger_stats.compare("x", [3.0, 4.0, 5.0], [0.0, 1.0, 2.0]).endswith(f"p = {1 / comb(6, 3):.3f}")
+
+
+def write_mnist_run(runs_dir: Path, name: str, swaps: tuple[float, float]) -> None:
+    writer = SummaryWriter(str(runs_dir / name))
+    for tag in ("vq/perplexity", "vq/active_codes", "losses/reconstruction", "vq/commit_loss"):
+        writer.add_scalar(tag, 10.0 + swaps[0], 1)
+    for tag in ("factor/factor1/digit_acc", "factor/factor1/colour_acc", "factor/factor2/digit_acc"):
+        writer.add_scalar(tag, 0.5, 1)
+    writer.add_scalar("factor/factor2/colour_acc", 0.5, 1)
+    writer.add_scalar("factor/test/reconstruction_mse", 0.02, 1)
+    writer.add_scalar("factor/swap/shape1_colour2", swaps[0], 1)
+    writer.add_scalar("factor/swap/colour1_shape2", swaps[1], 1)
+    writer.close()
+
+
+def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_default(tmp_path):
+    default, variant = tmp_path / "default", tmp_path / "variant"
+    for seed in (1, 2, 3):
+        write_mnist_run(default, f"ColorMNIST__G0__ten__{seed}__1", (0.05, 0.06))
+        write_mnist_run(default, f"ColorMNIST__G2__ten__{seed}__1", (0.1 * seed, 0.6))  # the better swap: 0.6 each
+        write_mnist_run(variant, f"ColorMNIST__G2__restart__{seed}__1", (0.1 * seed, 0.0))  # 0.1, 0.2, 0.3
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), str(variant),
+         "--against", "ColorMNIST__G2__ten", "--markdown", str(tmp_path / "out.md")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "out.md").read_text()
+    assert "| ColorMNIST__G2__ten | 3 | 0.600 +- 0.000 | 0.600 | 0.600-0.600 | 3 |" in text
+    assert "| ColorMNIST__G2__restart | 3 | 0.200 +- 0.082 | 0.200 | 0.100-0.300 | 1 |" in text
+    # every restart seed below every default seed: p = 1 / C(6, 3) for "lower", 1 for "higher"
+    expected = f"-0.400; one-sided exact permutation p = 1.0000 (higher), {1 / comb(6, 3):.4f} (lower)"
+    assert f"ColorMNIST__G2__restart vs ColorMNIST__G2__ten: better swap rate {expected}" in text
+    assert "ColorMNIST__G2__restart vs ColorMNIST__G0__ten: one-sided exact permutation p = 0.0500" in text
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), "--against", "ColorMNIST__G2__nope"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert bad.returncode != 0 and "--against ColorMNIST__G2__nope: no such mode" in bad.stderr

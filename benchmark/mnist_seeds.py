@@ -14,7 +14,8 @@ test of DGRL's better swap rate against the baseline's (the share of the label p
 least the observed one), and among DGRL's seeds the Spearman correlation of the better swap rate with each usage figure.
 Several sweeps can be read together (each mode is named by its sweep's exp name); with --against MODE, every other
 DGRL mode is also compared with that one (a variant against the default), with the exact permutation p in both
-directions. With --markdown OUT the per-run table and the summary are also written to OUT.
+directions. With --markdown OUT the per-run table and the summary are also written to OUT; with --plot OUT.png, the
+better swap rate of every seed per mode, the same seed joined across modes.
 """
 
 import argparse
@@ -34,7 +35,31 @@ USAGE = ("vq/perplexity", "vq/active_codes", "losses/reconstruction", "vq/commit
 TAGS = [*SWAPS, *FACTORS, "factor/test/reconstruction_mse", *USAGE]
 
 
-def main(sweeps: list[Path], markdown: Path | None, against: str | None = None) -> None:
+def plot_seeds(swaps: dict[str, dict[int, float]], out: Path) -> None:
+    """One column per mode, one dot per seed, each seed's dots joined: a paired view of the modes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = sorted(swaps)
+    figure, axis = plt.subplots(figsize=(2.2 * len(names) + 2, 4.5))
+    for seed in sorted({seed for values in swaps.values() for seed in values}):
+        xs = [i for i, name in enumerate(names) if seed in swaps[name]]
+        ys = [swaps[names[i]][seed] for i in xs]
+        axis.plot(xs, ys, "-o", color="0.6", markersize=4, linewidth=0.8)
+        axis.annotate(str(seed), (xs[-1], ys[-1]), xytext=(5, 0), textcoords="offset points", fontsize=7, va="center")
+    axis.axhline(0.0125, color="tab:red", linestyle="--", linewidth=0.8, label="chance (about 0.0125)")
+    axis.set_xticks(range(len(names)), [name.replace("ColorMNIST__", "").replace("__", "\n") for name in names])
+    axis.set_ylabel("better swap rate (one image's digit, the other's colour)")
+    axis.set_title("Color-MNIST: factor swap per seed")
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(out, dpi=110)
+    print(f"wrote {out}")
+
+
+def main(sweeps: list[Path], markdown: Path | None, against: str | None = None, plot: Path | None = None) -> None:
     settings: dict[str, list[tuple[int, dict]]] = {}
     runs = [run for sweep in sweeps for run in run_folders(sweep)]
     for run in runs:  # run names: ColorMNIST__G{g}__{exp_name}__{seed}__{time}
@@ -46,6 +71,7 @@ def main(sweeps: list[Path], markdown: Path | None, against: str | None = None) 
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     better: dict[str, list[float]] = {}
+    by_seed: dict[str, dict[int, float]] = {}
     usage: dict[str, list[list[float]]] = {}
     for setting, seeds in sorted(settings.items()):
         for seed, curves in sorted(seeds, key=lambda pair: pair[0]):
@@ -53,6 +79,7 @@ def main(sweeps: list[Path], markdown: Path | None, against: str | None = None) 
                 continue
             swap = max(float(curves[tag][1][-1]) for tag in SWAPS)
             better.setdefault(setting, []).append(swap)
+            by_seed.setdefault(setting, {})[seed] = swap
             factors = [f"{float(curves[tag][1][-1]):.2f}" for tag in FACTORS]
             late = [late_mean(curves[tag]) if tag in curves else float("nan") for tag in USAGE]
             usage.setdefault(setting, []).append(late)
@@ -95,6 +122,8 @@ def main(sweeps: list[Path], markdown: Path | None, against: str | None = None) 
                 f"permutation p = {higher:.4f} (higher), {lower:.4f} (lower)"
             )
     emit(lines, markdown)
+    if plot is not None:
+        plot_seeds(by_seed, plot)
 
 
 if __name__ == "__main__":
@@ -104,5 +133,6 @@ if __name__ == "__main__":
     )
     parser.add_argument("--markdown", type=Path, help="also write the tables to this file")
     parser.add_argument("--against", help="also compare every other DGRL mode with this mode (e.g. a variant's default)")
+    parser.add_argument("--plot", type=Path, help="also draw every seed's better swap rate per mode to this .png")
     options = parser.parse_args()
-    main(options.sweeps, options.markdown, options.against)
+    main(options.sweeps, options.markdown, options.against, options.plot)

@@ -128,7 +128,7 @@ def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_defaul
         write_mnist_run(variant, f"ColorMNIST__G2__restart__{seed}__1", (0.1 * seed, 0.0))  # 0.1, 0.2, 0.3
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), str(variant),
-         "--against", "ColorMNIST__G2__ten", "--markdown", str(tmp_path / "out.md")],
+         "--against", "ColorMNIST__G2__ten", "--markdown", str(tmp_path / "out.md"), "--plot", str(tmp_path / "seeds.png")],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
@@ -139,6 +139,7 @@ def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_defaul
     expected = f"-0.400; one-sided exact permutation p = 1.0000 (higher), {1 / comb(6, 3):.4f} (lower)"
     assert f"ColorMNIST__G2__restart vs ColorMNIST__G2__ten: better swap rate {expected}" in text
     assert "ColorMNIST__G2__restart vs ColorMNIST__G0__ten: one-sided exact permutation p = 0.0500" in text
+    assert (tmp_path / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     bad = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), "--against", "ColorMNIST__G2__nope"],
         capture_output=True, text=True, timeout=120,

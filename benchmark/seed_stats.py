@@ -19,7 +19,10 @@ The summaries of a curve: `final` (its last value), `mean` (over all its evaluat
 first step at which TAG reached X or more (lower is better); a seed that never reached it counts as its last logged
 step and is marked with `>`, so the test treats it as if it had reached X at the end, which favours neither side more
 than the censoring itself. Runs whose curves end before the comparison's longest (still running, or stopped early) are
-left out, and named. With --markdown OUT the tables are also written to OUT.
+left out, and named. `--gain-between A B` compares the gain of each G over G = 0 between two comparisons of the sweep
+(named as the headers name them, e.g. SpiralWorld__K8__goal-dqn-5seeds and SpiralWorld__K16__goal-dqn-5seeds): the
+difference of the two gains with a 95% bootstrap interval (the seeds of all four groups resampled), the test of
+whether a gain depends on the setting. With --markdown OUT the tables are also written to OUT.
 """
 
 import argparse
@@ -112,6 +115,43 @@ def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bo
     return lines
 
 
+def gain_difference_interval(
+    treated_a: np.ndarray, control_a: np.ndarray, treated_b: np.ndarray, control_b: np.ndarray, rng: np.random.Generator
+) -> tuple[float, float]:
+    """95% percentile interval of (mean(treated_a) - mean(control_a)) - (mean(treated_b) - mean(control_b)),
+    resampling the seeds of each of the four groups."""
+    draws = sum(
+        sign * rng.choice(group, (10_000, len(group))).mean(1)
+        for sign, group in ((1, treated_a), (-1, control_a), (-1, treated_b), (1, control_b))
+    )
+    return float(np.percentile(draws, 2.5)), float(np.percentile(draws, 97.5))
+
+
+def gain_lines(
+    results: dict[tuple[str, str, str], dict[int, np.ndarray]], contexts: list[str], a: str, b: str, rng
+) -> list[str]:
+    """Per tag, summary and G > 0 present in both comparisons a and b: each gain over G = 0 and their difference."""
+    missing = [name for name in (a, b) if name not in contexts]
+    if missing:
+        named = ", ".join(contexts) or "none (no run logs the tags)"
+        raise SystemExit(f"--gain-between: no comparison named {', '.join(missing)}; the sweep's: {named}")
+    lines = ["", f"gain over G0 in {a} minus gain over G0 in {b}", ""]
+    lines += ["| figure | G | gain in A | gain in B | A - B [95% bootstrap] |", "|---|---|---|---|---|"]
+    for (context, tag, summary), values in results.items():
+        other = results.get((b, tag, summary))
+        if context != a or other is None or 0 not in values or 0 not in other:
+            continue
+        for group in sorted(set(values) & set(other) - {0}):
+            gain_a, gain_b = values[group].mean() - values[0].mean(), other[group].mean() - other[0].mean()
+            low, high = gain_difference_interval(values[group], values[0], other[group], other[0], rng)
+            difference = gain_a - gain_b if abs(gain_a - gain_b) > 1e-12 else 0.0  # no -1e-16 from rounding
+            lines.append(
+                f"| {tag}, {SUMMARY_NAMES[summary]} | {group} | {gain_a:+.3g} | {gain_b:+.3g} | "
+                f"{difference:+.3g} [{low:+.3g}, {high:+.3g}] |"
+            )
+    return lines
+
+
 def drop_short_runs(per_group: dict[int, dict[int, dict]]) -> list[str]:
     """Remove (in place) the runs whose curves end before the longest of the comparison (runs still going, or
     stopped early), whose final and late values and first steps would not be comparable; returns their names."""
@@ -135,7 +175,14 @@ def emit(lines: list[str], markdown: Path | None) -> None:
         markdown.write_text(text + "\n")
 
 
-def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], markdown: Path | None) -> None:
+def main(
+    sweep: Path,
+    tags: list[str],
+    summaries: list[str],
+    reach: list[str],
+    markdown: Path | None,
+    gain_between: list[str] | None = None,
+) -> None:
     thresholds = [(item.split("=")[0], float(item.split("=")[1])) for item in reach]
     wanted = sorted(set(tags) | {tag for tag, _ in thresholds})
     comparisons: dict[str, dict[int, dict[int, dict]]] = {}
@@ -149,6 +196,7 @@ def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], m
             comparisons.setdefault(context, {}).setdefault(int(match.group(1)), {})[seed] = seeds[0]
     rng = np.random.default_rng(0)
     lines: list[str] = []
+    results: dict[tuple[str, str, str], dict[int, np.ndarray]] = {}
     for context, per_group in sorted(comparisons.items()):
         short = drop_short_runs(per_group)
         header = f"{sweep.name}: {', '.join(f'G{g} {len(s)} seeds' for g, s in sorted(per_group.items()))}"
@@ -162,6 +210,7 @@ def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], m
                     group: np.array([summarise(c[tag], summary) for _, c in sorted(seeds.items()) if tag in c])
                     for group, seeds in sorted(per_group.items())
                 }
+                results[(context, tag, summary)] = values
                 marks = {group: [""] * len(v) for group, v in values.items()}
                 lines += ["", f"{tag}, {SUMMARY_NAMES[summary]} ({'higher' if higher else 'lower'} is better)", ""]
                 lines += table(values, marks, higher, rng)
@@ -174,6 +223,8 @@ def main(sweep: Path, tags: list[str], summaries: list[str], reach: list[str], m
             marks = {group: ["" if hit else ">" for _, hit in pairs] for group, pairs in reached.items()}
             lines += ["", f"first step with {tag} >= {threshold:g} (lower is better; > never reached)", ""]
             lines += table(values, marks, False, rng)
+    if gain_between:
+        lines += gain_lines(results, sorted(comparisons), *gain_between, rng)
     emit(lines, markdown)
 
 
@@ -184,8 +235,11 @@ if __name__ == "__main__":
     parser.add_argument("--summaries", nargs="+", choices=SUMMARIES, default=["final", "mean"])
     parser.add_argument("--reach", nargs="*", default=[], metavar="TAG=X", help="first step at which TAG >= X")
     parser.add_argument("--markdown", type=Path, help="also write the tables to this file")
+    parser.add_argument(
+        "--gain-between", nargs=2, metavar=("A", "B"), help="compare each G's gain over G0 between comparisons A and B"
+    )
     options = parser.parse_args()
     bad = [item for item in options.reach if not re.fullmatch(r"[^=]+=[-+0-9.eE]+", item)]
     if bad:
         parser.error(f"--reach takes TAG=NUMBER, got {' '.join(bad)}")
-    main(options.sweep, options.tags, options.summaries, options.reach, options.markdown)
+    main(options.sweep, options.tags, options.summaries, options.reach, options.markdown, options.gain_between)

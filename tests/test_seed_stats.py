@@ -44,6 +44,14 @@ def test_bootstrap_interval_brackets_the_difference_and_is_a_point_for_constant_
     assert low < 1.0 < high and high - low < 4.0
 
 
+def test_gain_difference_interval_of_constant_groups_is_the_difference_of_the_gains():
+    rng = np.random.default_rng(0)
+    ones = np.ones(3)
+    assert seed_stats.gain_difference_interval(3 * ones, ones, 1.5 * ones, ones, rng) == pytest.approx((1.5, 1.5))
+    low, high = seed_stats.gain_difference_interval(np.array([2.0, 4.0]), ones, 1.5 * ones, ones, rng)
+    assert low == pytest.approx(0.5) and high == pytest.approx(2.5)  # treated_a resampled: means 2, 3 or 4
+
+
 def test_late_mean_averages_the_last_tenth_of_steps():
     steps = np.arange(0, 101, dtype=float)
     values = np.where(steps >= 90, 7.0, 0.0)
@@ -95,6 +103,19 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     # G4 ends on 1, 1, 1, below every baseline seed: p = 1 in its favour, 1 / C(6, 3) in the baseline's
     assert f"| 4 | 1, 1, 1 | 1 +- 0 | -1 [-1, -1] | 1.000 | {1 / comb(6, 3):.3f} |" in keychest
     assert "vs G0" in other and "| 0 | 9, 9, 9 | 9 +- 0 | |" in other and "| 16 |" not in other
+    gains = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
+         "--summaries", "final", "--gain-between", "KeyChest__study", "Other__study"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert gains.returncode == 0 and "gain over G0 in KeyChest__study minus gain over G0 in Other__study" in gains.stdout
+    assert "| eval/return, final | 4 |" not in gains.stdout  # Other has no G4 (and its G16 run was left out)
+    missing = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
+         "--gain-between", "KeyChest__study", "Nope"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert missing.returncode != 0 and "named Nope; the sweep's: KeyChest__study, Other__study" in missing.stderr
 
 
 def test_ledger_stats_windows_and_its_transcribed_tables():

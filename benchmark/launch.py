@@ -207,8 +207,8 @@ PRESETS: dict[str, Preset] = {
         (Plot("mnist_factors", MNIST_TAGS, "Color-MNIST: decoding and swapping the factors"),),
     ),
     "keychest": Preset(
-        "docs/dgrl_hrac_keychest.md: Key-Chest, HRAC (G0) and DGRL G = 4, 8, 16, 3 seeds at the paper's 2M frames",
-        (Arm("dgrl_hrac_keychest.py", (), (0, 4, 8, 16), (1, 2, 3), "--total-timesteps 2000000 --save-model"),),
+        "docs/dgrl_hrac_keychest.md: Key-Chest, HRAC (G0) and DGRL G = 4, 8, 16, 5 seeds at the paper's 2M frames",
+        (Arm("dgrl_hrac_keychest.py", (), (0, 4, 8, 16), (1, 2, 3, 4, 5), "--total-timesteps 2000000 --save-model"),),
         (
             Plot(
                 "hrac_keychest",

@@ -61,8 +61,9 @@ def plot_seeds(swaps: dict[str, dict[int, float]], out: Path) -> None:
 
 def main(sweeps: list[Path], markdown: Path | None, against: str | None = None, plot: Path | None = None) -> None:
     settings: dict[str, list[tuple[int, dict]]] = {}
-    runs = [run for sweep in sweeps for run in run_folders(sweep)]
-    for run in runs:  # run names: ColorMNIST__G{g}__{exp_name}__{seed}__{time}
+    for run in (
+        run for sweep in sweeps for run in run_folders(sweep)
+    ):  # run names: ColorMNIST__G{g}__{exp_name}__{seed}__{time}
         for setting, seeds in load_runs([run], r"ColorMNIST__G\d+", TAGS).items():
             settings.setdefault(setting, []).extend((int(run.name.split("__")[-2]), curves) for curves in seeds)
     lines = [

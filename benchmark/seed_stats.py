@@ -92,10 +92,17 @@ def permutation_p(treated: np.ndarray, control: np.ndarray, higher_is_better: bo
     return float(np.mean(np.array(differences) >= observed - 1e-12))
 
 
+def signed_bootstrap_interval(
+    signed_groups: tuple[tuple[int, np.ndarray], ...], rng: np.random.Generator
+) -> tuple[float, float]:
+    """95% percentile interval of sum(sign * mean(group)), resampling the seeds of each group (10,000 draws)."""
+    draws = sum(sign * rng.choice(group, (10_000, len(group))).mean(1) for sign, group in signed_groups)
+    return float(np.percentile(draws, 2.5)), float(np.percentile(draws, 97.5))
+
+
 def bootstrap_interval(treated: np.ndarray, control: np.ndarray, rng: np.random.Generator) -> tuple[float, float]:
     """95% percentile interval of mean(treated) - mean(control), resampling the seeds of each group."""
-    draws = rng.choice(treated, (10_000, len(treated))).mean(1) - rng.choice(control, (10_000, len(control))).mean(1)
-    return float(np.percentile(draws, 2.5)), float(np.percentile(draws, 97.5))
+    return signed_bootstrap_interval(((1, treated), (-1, control)), rng)
 
 
 def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bool, rng: np.random.Generator) -> list[str]:
@@ -120,11 +127,7 @@ def gain_difference_interval(
 ) -> tuple[float, float]:
     """95% percentile interval of (mean(treated_a) - mean(control_a)) - (mean(treated_b) - mean(control_b)),
     resampling the seeds of each of the four groups."""
-    draws = sum(
-        sign * rng.choice(group, (10_000, len(group))).mean(1)
-        for sign, group in ((1, treated_a), (-1, control_a), (-1, treated_b), (1, control_b))
-    )
-    return float(np.percentile(draws, 2.5)), float(np.percentile(draws, 97.5))
+    return signed_bootstrap_interval(((1, treated_a), (-1, control_a), (-1, treated_b), (1, control_b)), rng)
 
 
 def gain_lines(

@@ -83,6 +83,8 @@ class Args:
     """the update's speed path: eager (plain PyTorch), compile (torch.compile, one graph), cudagraphs (compiled, CUDA graph)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
+    checkpoint_every_steps: int = 0
+    """also write runs/{run_name}/resume.pt each time the progress count (steps, frames, images) passes a multiple of this"""
     checkpoint_every: int = 1800
     """wall-clock seconds between writes of runs/{run_name}/resume.pt (0: only on a stop signal and at the end)"""
 
@@ -1003,8 +1005,8 @@ DGRL_MUST_MATCH = ("n_embed",)  # DGRL: the codebook's size, which matters only 
 
 CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
-FREE_FLAGS = ("resume", "checkpoint_every", "threads", "fast", "capture_video", "save_model", "track", "wandb_project_name",
-              "wandb_entity")  # fmt: skip
+FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
+              "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
 
 def flag_text(key: str, value) -> str:
@@ -1036,7 +1038,7 @@ def range_errors(
 
 def common_errors(args) -> list[str]:
     """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file."""
+    --checkpoint's file, --exp-name, --resume's folder and the folder a training run writes to."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
@@ -1051,7 +1053,10 @@ def common_errors(args) -> list[str]:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
-    errors += range_errors(args, "checkpoint_every", 0)
+    errors += range_errors(args, "checkpoint_every checkpoint_every_steps", 0)
+    if not args.exp_name or any(separator in args.exp_name for separator in {"/", os.sep, os.altsep or "/"}):
+        name = f"--exp-name {args.exp_name!r}"
+        errors.append(f"{name} must be a plain name, without '/': it becomes part of the run's folder and file names in runs/")
     if args.fast not in FAST_PATHS:
         errors.append(f"--fast {args.fast!r} is unknown: use one of {', '.join(FAST_PATHS)}")
     elif args.fast == "cudagraphs" and not (args.cuda and torch.cuda.is_available()):
@@ -1066,7 +1071,21 @@ def common_errors(args) -> list[str]:
             errors.append(f"--resume {args.resume}: run from the folder that holds it as runs/{name} (the run writes there)")
         if args.checkpoint is not None:
             errors.append("--resume continues a training run and --checkpoint only evaluates one: pass one of them")
+    if args.checkpoint is None:
+        errors += output_errors(args.resume or "runs")
     return errors
+
+
+def output_errors(folder: str) -> list[str]:
+    """Why a training run cannot write its logs and files under `folder` (runs/, or the resumed run's folder), if it
+    cannot: found before any work, instead of a PermissionError once the run starts."""
+    existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
+    if not os.path.isdir(existing):
+        return [f"{folder} is in the way: the run writes its logs in a folder of that name; move it, or run elsewhere"]
+    if not os.access(existing, os.W_OK | os.X_OK):
+        wanted = f"create {folder}/ in" if existing != folder else "write to"
+        return [f"cannot {wanted} {os.path.abspath(existing)} (permission denied): run from a folder you can write to"]
+    return []
 
 
 def exit_on_errors(errors: list[str]) -> None:
@@ -1123,39 +1142,42 @@ def stop_on_signals() -> list[int]:
 
 
 class Progress:
-    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start) and the
-    time left at the rate since the previous line (a whole-run mean would count a fast random phase); `heartbeat` prints
-    a short line when a minute passes in silence, so a slow run never looks hung; `finish` prints the end-of-run line;
-    `resume_due` says when to write the resume file. A resumed run passes the step it starts from."""
+    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start), the time
+    elapsed and the time left at the rate since the previous printed line (a whole-run mean would count a fast random
+    phase); `heartbeat` prints the same without figures when a minute passes in silence, so a slow run never looks hung
+    and its time left stays current; `finish` prints the end-of-run line; `resume_due` says when to write the resume
+    file. A resumed run passes the step it starts from."""
 
     def __init__(self, total: int, unit: str = "step", start_step: int = 0):
         self.total, self.unit, self.start_step = total, unit, start_step
-        self.start_time = self.line_time = self.print_time = self.save_time = time.time()
-        self.line_step = start_step
+        self.start_time = self.print_time = self.save_time = time.time()
+        self.print_step = self.save_step = start_step
 
     def sps(self, step: int) -> int:
         return int((step - self.start_step) / max(time.time() - self.start_time, 1e-6))
 
-    def resume_due(self, seconds: int) -> bool:
-        """True once every `seconds` of wall clock (never for 0)."""
-        if seconds and time.time() - self.save_time >= seconds:
-            self.save_time = time.time()
+    def resume_due(self, step: int, seconds: int, steps: int) -> bool:
+        """True once every `seconds` of wall clock, and whenever `step` passes a multiple of `steps` (0 turns either off)."""
+        now = time.time()
+        if (seconds and now - self.save_time >= seconds) or (steps and step // steps > self.save_step // steps):
+            self.save_time, self.save_step = now, step
             return True
         return False
 
-    def line(self, step: int, figures: str) -> None:
+    def print_line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.line_step) / max(now - self.line_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         elapsed = f"{now - self.start_time:.0f}s elapsed"
-        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}", flush=True)
-        self.line_time = self.print_time = now
-        self.line_step = step
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}{suffix}", flush=True)
+        self.print_time, self.print_step = now, step
+
+    def line(self, step: int, figures: str) -> None:
+        self.print_line(step, figures)
 
     def heartbeat(self, step: int, figures: str = "") -> None:
         if time.time() - self.print_time > 60:
-            print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  (running)", flush=True)
-            self.print_time = time.time()
+            self.print_line(step, figures, " (running)")
 
     def finish(self, stopped: bool, run_name: str, summary: str) -> None:
         outcome = "stopped" if stopped else "done"
@@ -1225,8 +1247,14 @@ def load_resume(args) -> dict:
     """The state in --resume's resume.pt (on the CPU), once it is known to be this script's, saved with the same flags
     but FREE_FLAGS (otherwise exit 2, naming the flags to pass). It is the run's own file and holds pickled objects (env
     and generator states), so it is loaded in full: resume only runs you trust."""
-    script = os.path.basename(__file__)
-    saved = torch.load(os.path.join(args.resume, RESUME_FILE), map_location="cpu", weights_only=False)
+    script, path = os.path.basename(__file__), os.path.join(args.resume, RESUME_FILE)
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        problem = f"--resume {args.resume}: {path} cannot be read ({type(error).__name__}: {str(error)[:120]})"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
+        print(f"{script}: {problem}; it is damaged or incomplete: {advice}", file=sys.stderr)
+        raise SystemExit(2) from None
     if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
         print(f"{script}: --resume {args.resume} holds another script's or format's state", file=sys.stderr)
         raise SystemExit(2)
@@ -1525,7 +1553,7 @@ if __name__ == "__main__":
         if step >= args.total_timesteps:
             finished = True
             break
-        if progress.resume_due(args.checkpoint_every):  # every figure of `step` is logged
+        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):  # every figure of `step` is logged
             loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
                         recent_success=recent_success, result=result, finished=finished, observations=observations,
                         episode=episode)  # fmt: skip

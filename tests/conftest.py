@@ -1,6 +1,4 @@
 import os
-import re
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +10,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 ROOT = Path(__file__).resolve().parents[1]
+HANG_TIMEOUT = 1800  # seconds: a guard against a run that hangs, far beyond any run's time on a slow, busy machine
 
 
 @pytest.fixture(autouse=True)
@@ -24,8 +23,8 @@ def _seed_everything():
 
 @pytest.fixture
 def run_script(tmp_path):
-    """Run a project script as a user would, in a fresh working directory, on one thread, with a 5-minute cap; `env`
-    adds environment variables (e.g. MUJOCO_GL)."""
+    """Run a project script as a user would, in a fresh working directory, on one thread, with HANG_TIMEOUT as a guard
+    against a hang; `env` adds environment variables (e.g. MUJOCO_GL)."""
 
     def run(script: str, *flags: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
         base = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
@@ -34,7 +33,7 @@ def run_script(tmp_path):
             cwd=tmp_path,
             capture_output=True,
             text=True,
-            timeout=300,
+            timeout=HANG_TIMEOUT,
             env=base | (env or {}),
         )
 
@@ -133,36 +132,41 @@ def assert_same_run(straight_dir: Path, resumed_dir: Path, ignore: tuple[str, ..
         assert torch.equal(got_tensors[key], tensor), key
 
 
+def signal_at_line(signal_name: str, pattern: str, script: str | Path, *flags: str) -> list[str]:
+    """The command that runs `script` with `flags` and sends its own process `signal_name` (SIGTERM, SIGKILL...) right
+    after it prints the first line matching the regex `pattern` (tests/signal_at_line.py): a stop or kill at an exact
+    point of the run, on any machine."""
+    return [sys.executable, str(ROOT / "tests" / "signal_at_line.py"), signal_name, pattern, str(ROOT / script), *flags]
+
+
 @pytest.fixture
 def resume_check(tmp_path):
-    """`check(script, flags, stop_after)`: run A straight through; run B, stopped by SIGTERM as soon as its output has a
-    line matching the regex `stop_after`, then continued with --resume to the same budget. Every TensorBoard scalar of B
-    (but WALL_CLOCK_TAGS and `ignore`) must equal A's, step for step, and so must every tensor of the final checkpoints
-    (pass --save-model in `flags`). Returns B's first output, so that a test can check where it stopped."""
+    """`check(script, flags, stop_after)`: run A straight through; run B, stopped by SIGTERM right after it prints a line
+    matching the regex `stop_after` (so at that line's step, however fast the machine), then continued with --resume to
+    the same budget. Every TensorBoard scalar of B (but WALL_CLOCK_TAGS and `ignore`) must equal A's, step for step, and
+    so must every tensor of the final checkpoints (pass --save-model in `flags`). Returns B's first output, so that a
+    test can check where it stopped."""
 
-    def check(script: str, flags: list[str], stop_after: str, ignore: tuple[str, ...] = (), timeout: int = 300) -> str:
+    def check(script: str, flags: list[str], stop_after: str, ignore: tuple[str, ...] = ()) -> str:
         env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
         command = [sys.executable, str(ROOT / script), *flags]
         straight, stopped = tmp_path / "straight", tmp_path / "stopped"
         straight.mkdir()
         stopped.mkdir()
-        result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=timeout)
+        result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
         assert result.returncode == 0, result.stderr[-3000:]
-        # stderr joins stdout: a pipe nobody reads while waiting for the stop line could fill up and block the run
-        process = subprocess.Popen(command, cwd=stopped, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        output = []
-        for line in process.stdout:
-            output.append(line)
-            if re.search(stop_after, line):
-                process.send_signal(signal.SIGTERM)
-                break
-        rest, _ = process.communicate(timeout=timeout)
-        output = "".join(output) + rest
-        assert process.returncode == 0, output[-3000:]
-        assert "stopped:" in output, f"the run ended before the signal arrived:\n{output[-2000:]}"
+        run = subprocess.run(
+            signal_at_line("SIGTERM", stop_after, script, *flags), cwd=stopped, env=env, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, text=True, timeout=HANG_TIMEOUT,
+        )  # fmt: skip
+        output = run.stdout
+        assert run.returncode == 0, output[-3000:]
+        assert "stopped:" in output, (
+            f"the run printed no line matching {stop_after!r}, or ended without stopping:\n{output[-2000:]}"
+        )
         (run_dir,) = (stopped / "runs").iterdir()
         resume_command = [*command, "--resume", f"runs/{run_dir.name}"]
-        resumed = subprocess.run(resume_command, cwd=stopped, env=env, capture_output=True, text=True, timeout=timeout)
+        resumed = subprocess.run(resume_command, cwd=stopped, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
         assert resumed.returncode == 0, resumed.stderr[-3000:]
         assert "stopped:" not in resumed.stdout
         (straight_dir,) = (straight / "runs").iterdir()

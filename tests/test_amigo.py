@@ -1118,39 +1118,39 @@ def test_resume_after_the_second_progress_line_equals_a_straight_run_and_its_vid
 
 
 def test_resume_after_a_kill_continues_from_the_last_periodic_save(tmp_path):
-    """SIGKILL (no grace) after resume.pt was written every second, usually mid-window: the resumed run purges what the
-    killed run logged after the save and ends like a straight run. KeyCorridorS3R1 with 27-step unrolls: episodes end by
-    truncation on a collection's last step (270 = 10 x 27) and a random student never solves it, so no episode ends on a
-    collection's first step, whose scalars would be logged at the saved frame and kept twice (see the docs)."""
-    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars
+    """SIGKILL (no grace) at the progress line of frame 3240, mid-window after the periodic save at frame 3024 (every 1000
+    frames: saves where a collection of 108 frames passes a multiple), with everything logged until the kill on disk: the
+    resumed run purges what the killed run logged after the save and ends like a straight run. KeyCorridorS3R1 with
+    27-step unrolls: episodes end by truncation on a collection's last step (270 = 10 x 27) and a random student never
+    solves it, so no episode ends on a collection's first step, whose scalars would be logged at the saved frame and kept
+    twice (see the docs)."""
+    from conftest import HANG_TIMEOUT, WALL_CLOCK_TAGS, checkpoint_tensors, signal_at_line, tensorboard_scalars
 
     flags = [
         "--env-id", CORRIDOR, "--num-envs", "4", "--batch-envs", "2", "--num-steps", "27", "--total-timesteps", "6480",
         "--progress-frequency", "1080", "--teacher-batch-size", "20", "--seed", "5", "--groups", "16", "--save-model",
+        "--checkpoint-every", "0", "--checkpoint-every-steps", "1000",
     ]  # fmt: skip
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     command = [sys.executable, str(ROOT / "dgrl_amigo.py"), *flags]
     straight, killed = tmp_path / "straight", tmp_path / "killed"
     straight.mkdir()
     killed.mkdir()
-    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
     assert result.returncode == 0, result.stderr
-    process = subprocess.Popen(
-        [*command, "--checkpoint-every", "1"],
-        cwd=killed,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
-    next(line for line in process.stdout if re.match(r"frame +3240/", line))
-    process.kill()
-    process.wait(timeout=60)
+    kill = signal_at_line("SIGKILL", r"^frame +3240/", "dgrl_amigo.py", *flags)
+    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
     (run_dir,) = (killed / "runs").iterdir()
     saved_step = torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["step"]
-    assert 0 < saved_step < 6480
+    assert saved_step == 3024
     resumed = subprocess.run(
-        [*command, "--resume", f"runs/{run_dir.name}"], cwd=killed, env=env, capture_output=True, text=True, timeout=300
+        [*command, "--resume", f"runs/{run_dir.name}"],
+        cwd=killed,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=HANG_TIMEOUT,
     )
     assert resumed.returncode == 0, resumed.stderr
     assert f"resumed from runs/{run_dir.name}/resume.pt at frame {saved_step}" in resumed.stdout

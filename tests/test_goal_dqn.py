@@ -7,7 +7,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -645,32 +644,32 @@ def test_resume_inside_a_dqn_episode_continues_exactly(resume_check):
 
 
 def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(tmp_path):
-    """A run killed with SIGKILL (no clean stop) goes on from its last periodic resume file (--checkpoint-every 1): the
-    points it logged after that file are purged and logged again, none twice, none missing."""
-    from conftest import assert_same_run
+    """A run killed with SIGKILL (no clean stop) at the progress line of DQN step 200 goes on from its last periodic resume
+    file (every 120 steps of each phase: pre-training step 120, DQN step 120), with everything it logged until the kill
+    on disk: the points it logged after that file are purged and logged again, none twice, none missing."""
+    from conftest import HANG_TIMEOUT, assert_same_run, signal_at_line
 
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    flags = [*RESUME, "--total-timesteps", "5000", "--checkpoint-every", "1"]  # a DQN phase of seconds: periodic writes
+    flags = [*RESUME, "--checkpoint-every", "0", "--checkpoint-every-steps", "120"]
     command = [sys.executable, str(ROOT / "dgrl_goal_dqn.py"), *flags]
     straight, killed = tmp_path / "straight", tmp_path / "killed"
     straight.mkdir()
     killed.mkdir()
-    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
     assert result.returncode == 0, result.stderr[-3000:]
-    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 300
-    while process.poll() is None and time.time() < deadline:  # kill once a periodic resume file of the DQN phase exists
-        resume_files = list((killed / "runs").glob("*/resume.pt"))
-        if resume_files and torch.load(resume_files[0], weights_only=False)["loop"]["global_step"] > 0:
-            process.kill()
-            break
-        time.sleep(0.05)
-    process.wait(timeout=300)
-    assert process.returncode == -signal.SIGKILL, "the run ended before a periodic resume file of the DQN phase"
+    kill = signal_at_line("SIGKILL", r"^step +200/300 ", "dgrl_goal_dqn.py", *flags)
+    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
     (run_dir,) = (killed / "runs").iterdir()
     saved_step = torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["global_step"]
+    assert saved_step == 120
     resumed = subprocess.run(
-        [*command, "--resume", f"runs/{run_dir.name}"], cwd=killed, env=env, capture_output=True, text=True
+        [*command, "--resume", f"runs/{run_dir.name}"],
+        cwd=killed,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=HANG_TIMEOUT,
     )
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert f"resumed at DQN step {saved_step}" in resumed.stdout

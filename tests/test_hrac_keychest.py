@@ -732,10 +732,11 @@ def test_resume_from_a_stop_inside_episodes_while_both_levels_train(resume_check
 
 
 def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_path):
-    """A run killed outright (SIGKILL: no clean stop) goes on from its last periodic resume file (--checkpoint-every 1,
-    written between two steps): TensorBoard drops what the killed run logged after it, and the resumed run's scalars and
-    final checkpoint equal a straight run's."""
-    from conftest import assert_same_run
+    """A run killed outright (SIGKILL: no clean stop) at the progress line of frame 2400 goes on from its last periodic
+    resume file (every 2000 frames, written between two steps: at frame 2000, with both levels training), everything
+    logged until the kill on disk: TensorBoard drops what the killed run logged after the file, and the resumed run's
+    scalars and final checkpoint equal a straight run's."""
+    from conftest import HANG_TIMEOUT, assert_same_run, signal_at_line
 
     env = {
         "PATH": "/usr/bin:/bin",
@@ -743,30 +744,29 @@ def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_pa
         "OMP_NUM_THREADS": "1",
         "PYTHONUNBUFFERED": "1",
     }
-    command = [sys.executable, kc.__file__, *tiny(max_episode_steps=85, adj_frequency=600), "--save-model"]
-    command += ["--checkpoint-every", "1"]
+    flags = [*tiny(max_episode_steps=85, adj_frequency=600), "--save-model"]
+    flags += ["--checkpoint-every", "0", "--checkpoint-every-steps", "2000"]
+    command = [sys.executable, kc.__file__, *flags]
     straight, killed = tmp_path / "straight", tmp_path / "killed"
     straight.mkdir()
     killed.mkdir()
-    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
     assert result.returncode == 0, result.stderr[-3000:]
-    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    saved_frames = 0
-    for line in process.stdout:  # kill at a progress line once a resume file of the training phase is there
-        resume_files = list((killed / "runs").glob("*/resume.pt"))
-        if line.startswith("frame") and resume_files:
-            saved_frames = torch.load(resume_files[0], weights_only=False)["variables"]["frames"]
-            if saved_frames >= 1820:  # both levels train
-                process.kill()
-                break
-    process.communicate(timeout=60)
-    assert process.returncode == -signal.SIGKILL, "the run ended before a resume file of the training phase was written"
+    kill = signal_at_line("SIGKILL", r"^frame +2400/3000", kc.__file__, *flags)
+    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
     (run_dir,) = (killed / "runs").iterdir()
+    assert torch.load(run_dir / "resume.pt", weights_only=False)["variables"]["frames"] == 2000
     resumed = subprocess.run(
-        [*command, "--resume", f"runs/{run_dir.name}"], cwd=killed, env=env, capture_output=True, text=True, timeout=300
+        [*command, "--resume", f"runs/{run_dir.name}"],
+        cwd=killed,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=HANG_TIMEOUT,
     )
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert f"resumed at frame {saved_frames}" in resumed.stdout
+    assert "resumed at frame 2000" in resumed.stdout
     (straight_dir,) = (straight / "runs").iterdir()
     assert_same_run(straight_dir, run_dir)
 

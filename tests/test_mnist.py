@@ -10,7 +10,6 @@ import signal
 import struct
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -344,8 +343,8 @@ def stopped_at(output: str) -> tuple[int, int]:
     return int(found[1]), int(found[2])
 
 
-# The signal comes as soon as the test reads the line; on a busy machine that can be before the run's next minibatch, so
-# a stop "in epoch E" may land on its first minibatch (then the resumed run draws the epoch's order itself).
+# The run signals itself as it prints the line (tests/signal_at_line.py), so it stops at the end of the minibatch in which
+# the line is printed, on any machine: the run's first line comes right before the first minibatch.
 
 
 def test_a_run_stopped_in_its_first_epoch_resumes_exactly(resume_check):
@@ -378,29 +377,29 @@ def test_a_run_stopped_while_training_its_referees_resumes_with_the_same_factor_
 
 
 def test_a_run_killed_resumes_from_its_last_resume_file_without_duplicated_or_missing_points(tmp_path):
-    """SIGKILL (no clean stop) a little after the first periodic resume file (one a second): the run continues from the
-    latest file, and TensorBoard drops what the killed run logged after it, so the curves equal a straight run's."""
-    from conftest import checkpoint_tensors, tensorboard_scalars
+    """SIGKILL (no clean stop) at the end of the first epoch (image 10000), after the periodic resume file of image 9008
+    (every 3000 images: written where a minibatch of 16 passes a multiple) and the loss point of image 9600, everything
+    logged on disk: the run continues from the file, and TensorBoard drops what the killed run logged after it, so the
+    curves equal a straight run's."""
+    from conftest import HANG_TIMEOUT, checkpoint_tensors, signal_at_line, tensorboard_scalars
 
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     flags = [*TINY[4:], "--epochs", "2", "--train-size", "10000", "--batch-size", "16", "--save-model"]  # 1,250 minibatches
-    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags, "--checkpoint-every", "1"]
+    flags += ["--checkpoint-every", "0", "--checkpoint-every-steps", "3000"]
+    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags]
     straight, killed = tmp_path / "straight", tmp_path / "killed"
     straight.mkdir()
     killed.mkdir()
-    assert subprocess.run(command, cwd=straight, env=env, capture_output=True, timeout=300).returncode == 0
-    process = subprocess.Popen(command, cwd=killed, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    while not list(killed.glob("runs/*/resume.pt")) and process.poll() is None:
-        time.sleep(0.01)
-    time.sleep(0.3)  # about 100 minibatches more: a loss point or two logged after the file
-    assert process.poll() is None, "the run ended before the kill"
-    process.kill()
-    process.wait(timeout=60)
+    assert subprocess.run(command, cwd=straight, env=env, capture_output=True, timeout=HANG_TIMEOUT).returncode == 0
+    kill = signal_at_line("SIGKILL", r"^image +10000/20000 ", "dgrl_mnist.py", *flags)
+    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
     (run,) = (killed / "runs").iterdir()
-    resumed = subprocess.run([*command, "--resume", f"runs/{run.name}"], cwd=killed, env=env, capture_output=True, text=True)
+    resumed = subprocess.run(
+        [*command, "--resume", f"runs/{run.name}"], cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT
+    )
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    resumed_at = int(re.search(r"resuming at image (\d+) of 20000", resumed.stdout)[1])
-    assert 0 < resumed_at < 20000, resumed.stdout  # a periodic file, not the one written at the end of training
+    assert "resuming at image 9008 of 20000" in resumed.stdout, resumed.stdout
     (straight_run,) = (straight / "runs").iterdir()
     expected, got = tensorboard_scalars(straight_run), tensorboard_scalars(run)
     for scalars in (expected, got):

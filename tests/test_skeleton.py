@@ -20,9 +20,9 @@ SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
 MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
 WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
-    "CHECKPOINT_FORMAT", "flag_text", "range_errors", "common_errors", "exit_on_errors", "seed_and_device", "make_writer",
-    "stop_on_signals", "Progress", "save_checkpoint", "load_checkpoint", "write_video", "RESUME_FILE", "FREE_FLAGS",
-    "rng_states", "set_rng_states", "save_resume", "load_resume", "FAST_PATHS", "learn", "init_optimizer_state",
+    "CHECKPOINT_FORMAT", "flag_text", "range_errors", "common_errors", "output_errors", "exit_on_errors", "seed_and_device",
+    "make_writer", "stop_on_signals", "Progress", "save_checkpoint", "load_checkpoint", "write_video", "RESUME_FILE",
+    "FREE_FLAGS", "rng_states", "set_rng_states", "save_resume", "load_resume", "FAST_PATHS", "learn", "init_optimizer_state",
     "functional_step", "fast_update", "CudaGraphUpdate",
 ]  # fmt: skip
 BLOCK_START = "# --- Run management: identical in every script (tests/test_skeleton.py) "

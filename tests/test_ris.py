@@ -809,9 +809,9 @@ def test_resume_from_the_random_warm_up_equals_a_straight_run(resume_check):
 def test_resume_mid_episode_after_updates_started_equals_a_straight_run(resume_check):
     """SIGTERM at step 650 (100-step episodes: halfway through one; 250 updates done), then --resume: every scalar,
     the losses logged at update 1000 included, and the final checkpoint (networks, codebook) equal a straight run's.
-    --checkpoint-every 1 also writes resume files during both runs: writing one changes nothing."""
+    --checkpoint-every-steps 200 also writes resume files during both runs: writing one changes nothing."""
     flags = [*SMALL_DGRL, "--total-timesteps", "1500", "--start-timesteps", "400", "--eval-frequency", "325"]
-    flags += ["--max-episode-steps", "100", "--checkpoint-every", "1", "--save-model"]
+    flags += ["--max-episode-steps", "100", "--checkpoint-every-steps", "200", "--save-model"]
     output = resume_check("dgrl_ris.py", flags, r"^step +650/1500 ")
     steps, updates = stopped_at(output)
     assert 650 <= steps < 1400 and updates > 0, output  # stopped before the loss log, which the resumed run writes

@@ -4,7 +4,9 @@ input the same way: a clean exit with status 2 and a message naming the flag, ne
 
 import ast
 import itertools
+import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -233,3 +235,119 @@ def test_a_kill_during_a_resume_write_leaves_the_previous_file_whole(tmp_path):
         saved = torch.load(tmp_path / "runs" / "killed" / "resume.pt", weights_only=False)
         assert saved["script"] == "dgrl_mnist.py" and saved["count"] >= 1
         assert torch.equal(saved["block"], torch.full((4_000_000,), float(saved["count"])))
+
+
+# --- Bad files and folders: a clean exit 2 naming the file or flag, nothing written or removed ------------------------
+
+
+def damaged_resume_files() -> dict[str, bytes]:
+    """An empty resume.pt (a disk that filled up) and one cut in half (a copy that did not finish)."""
+    import io
+
+    whole = io.BytesIO()
+    torch.save({"script": "dgrl_mnist.py", "format": 1, "args": {}, "block": torch.zeros(10_000)}, whole)
+    return {"empty": b"", "truncated": whole.getvalue()[: len(whole.getvalue()) // 2]}
+
+
+@pytest.mark.parametrize("damage", ["empty", "truncated"])
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_damaged_resume_file_is_refused_and_left_as_it_is(script, damage, run_script, tmp_path):
+    run_dir = tmp_path / "runs" / "stopped_run"
+    run_dir.mkdir(parents=True)
+    content = damaged_resume_files()[damage]
+    (run_dir / "resume.pt").write_bytes(content)
+    result = run_script(script, "--resume", "runs/stopped_run")
+    assert_clean_refusal(
+        result, "--resume runs/stopped_run: runs/stopped_run/resume.pt cannot be read", "damaged or incomplete"
+    )
+    assert "start the run afresh without --resume, or put back an older copy of the file" in result.stderr
+    assert os.listdir(run_dir) == ["resume.pt"] and (run_dir / "resume.pt").read_bytes() == content
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_file_where_runs_should_be_is_refused_before_any_work(script, run_script, tmp_path):
+    (tmp_path / "runs").write_text("not a folder")
+    assert_clean_refusal(run_script(script), "runs is in the way: the run writes its logs in a folder of that name")
+    assert (tmp_path / "runs").read_text() == "not a folder" and sorted(os.listdir(tmp_path)) == ["runs"]
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_folder_the_run_cannot_write_to_is_refused_before_any_work(script, tmp_path):
+    """As a user without write permission would see it. Root may write anywhere, so as root the run goes without the
+    capabilities that let it ignore permissions (setpriv): the folder's mode bits then apply to it as to anyone."""
+    prefix = []
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.skip("as root, this needs setpriv (util-linux) to drop the capabilities that override permissions")
+        prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--"]
+    folder = tmp_path / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    try:
+        result = subprocess.run(
+            [*prefix, sys.executable, str(ROOT / script)], cwd=folder, env=env, capture_output=True, text=True, timeout=600
+        )
+        assert_clean_refusal(result, f"cannot create runs/ in {folder} (permission denied)", "a folder you can write to")
+        assert os.listdir(folder) == []
+    finally:
+        folder.chmod(0o755)
+
+
+@pytest.mark.parametrize("name", ["a/b", "../x", ""])
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_an_exp_name_that_is_a_path_is_refused(script, name, run_script, tmp_path):
+    result = run_script(script, "--exp-name", name)
+    assert_clean_refusal(result, f"--exp-name {name!r} must be a plain name, without '/'")
+    assert os.listdir(tmp_path) == []
+
+
+# --- Progress: the time left stays current, the step-based resume trigger ----------------------------------------------
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_heartbeat_gives_the_time_left_at_its_own_recent_rate(monkeypatch, capsys):
+    """A fast start (100 steps/s) then a slow phase (1 step/s): the line at the fast rate says 9s left; the heartbeat a
+    minute into the slow phase says what is left at the slow rate, not the line's figure or the whole run's mean."""
+    import dgrl_mnist as script
+
+    clock = FakeClock()
+    monkeypatch.setattr(script.time, "time", clock)
+    progress = script.Progress(1000, unit="step")
+    clock.now += 1
+    progress.line(100, "loss 1.0")
+    clock.now += 30
+    progress.heartbeat(130)  # not yet: half a minute of silence
+    clock.now += 31
+    progress.heartbeat(161)
+    clock.now += 61
+    progress.heartbeat(222)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [
+        "step       100/1000  loss 1.0  SPS 100  1s elapsed, 9s left",
+        "step       161/1000    SPS 2  62s elapsed, 839s left (running)",
+        "step       222/1000    SPS 1  123s elapsed, 778s left (running)",
+    ]
+
+
+def test_resume_due_at_each_multiple_of_the_steps_and_of_the_seconds(monkeypatch):
+    import dgrl_mnist as script
+
+    clock = FakeClock()
+    monkeypatch.setattr(script.time, "time", clock)
+    by_steps = script.Progress(1000, start_step=30)  # a resumed run: the count starts at 30
+    assert [step for step in (50, 99, 100, 150, 230, 299, 300, 301) if by_steps.resume_due(step, 0, 100)] == [100, 230, 300]
+    by_clock = script.Progress(1000)
+    due = []
+    for step in range(1, 8):
+        clock.now += 25
+        due += [step] if by_clock.resume_due(step, 60, 0) else []
+    assert due == [3, 6]  # 75 s, then 150 s
+    assert not any(script.Progress(1000).resume_due(step, 0, 0) for step in range(1, 500))

@@ -1,7 +1,10 @@
 """Run a script as `python SCRIPT FLAGS...` would, and send its own process SIGNAL right after it prints the first line
 matching PATTERN: a stop (SIGTERM, SIGINT) or a kill (SIGKILL) at an exact point of the run, however fast the machine.
+With `hold` for SIGNAL, the run waits at that line instead until a stop signal comes from outside (SIGINT, SIGTERM,
+SIGUSR1 or SIGUSR2, e.g. from a launcher), then hands it to the script's own handler and goes on: it cannot end before
+the signal arrives, however long the sender takes.
 
-    python tests/signal_at_line.py SIGNAL PATTERN SCRIPT [FLAGS...]
+    python tests/signal_at_line.py SIGNAL|hold PATTERN SCRIPT [FLAGS...]
 
 A test that signals a run from outside, on reading a line, races the run: on a fast machine the run may be steps later,
 or done, when the signal lands. Here the signal is sent by the printing call itself, so the run is stopped at the step
@@ -16,11 +19,30 @@ import re
 import runpy
 import signal
 import sys
+import time
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
+
+
+def hold() -> None:
+    """Wait for a stop signal, then give it to the handler the script had installed for it."""
+    handlers, arrived = {number: signal.getsignal(number) for number in STOP_SIGNALS}, []
+    for number in STOP_SIGNALS:
+        signal.signal(number, lambda number, frame: arrived.append((number, frame)))
+    while not arrived:
+        time.sleep(0.05)
+    for number, handler in handlers.items():
+        signal.signal(number, handler)
+    number, frame = arrived[0]
+    if callable(handlers[number]):
+        handlers[number](number, frame)
+    else:
+        os.kill(os.getpid(), number)
 
 
 def main() -> None:
     name, pattern, script, *flags = sys.argv[1:]
-    number, regex = getattr(signal, name), re.compile(pattern, re.MULTILINE)
+    number, regex = None if name == "hold" else getattr(signal, name), re.compile(pattern, re.MULTILINE)
     writers, sent = [], []
 
     from torch.utils.tensorboard import SummaryWriter
@@ -37,6 +59,9 @@ def main() -> None:
             sent.append(True)
             sys.stdout.flush()
             sys.stderr.flush()
+            if number is None:
+                hold()
+                return
             if number == signal.SIGKILL:
                 for writer in writers:
                     writer.flush()

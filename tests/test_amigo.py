@@ -20,6 +20,7 @@ import pytest
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+from conftest import HANG_TIMEOUT
 from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
 from minigrid.core.world_object import Door
 from minigrid.wrappers import FullyObsWrapper
@@ -1071,12 +1072,12 @@ def test_ctrl_c_stops_the_run_with_its_checkpoint_and_logs(run_script, tmp_path)
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"},
     )  # fmt: skip
-    watchdog = threading.Timer(120, process.kill)  # a run that never prints a progress line fails instead of hanging
+    watchdog = threading.Timer(HANG_TIMEOUT, process.kill)  # a run that never prints a progress line fails instead of hanging
     watchdog.start()
     try:
         progress_line = next(line for line in process.stdout if line.startswith("frame"))
         process.send_signal(signal.SIGINT)  # in training: a progress line comes after every 100 frames
-        out, err = process.communicate(timeout=60)
+        out, err = process.communicate(timeout=HANG_TIMEOUT)
     finally:
         watchdog.cancel()
     assert process.returncode == 0, err
@@ -1124,7 +1125,7 @@ def test_resume_after_a_kill_continues_from_the_last_periodic_save(tmp_path):
     27-step unrolls: episodes end by truncation on a collection's last step (270 = 10 x 27) and a random student never
     solves it, so no episode ends on a collection's first step, whose scalars would be logged at the saved frame and kept
     twice (see the docs)."""
-    from conftest import HANG_TIMEOUT, WALL_CLOCK_TAGS, checkpoint_tensors, signal_at_line, tensorboard_scalars
+    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, signal_at_line, tensorboard_scalars
 
     flags = [
         "--env-id", CORRIDOR, "--num-envs", "4", "--batch-envs", "2", "--num-steps", "27", "--total-timesteps", "6480",

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import HANG_TIMEOUT
 
 import dgrl_goal_dqn as gdqn
 from tests.conftest import check_fast_update
@@ -567,7 +568,7 @@ def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path, run_script):
         if PROGRESS_LINE.match(line):
             break
     process.send_signal(signal.SIGINT)
-    stdout, stderr = process.communicate(timeout=120)
+    stdout, stderr = process.communicate(timeout=HANG_TIMEOUT)
     assert process.returncode == 0 and "Traceback" not in stderr, stderr[-3000:]
     assert "stopped: " in stdout and "checkpoint: " in stdout
     events = EventAccumulator(str(next((tmp_path / "runs").glob("*/events.out.tfevents.*"))))
@@ -647,7 +648,7 @@ def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(tmp_path):
     """A run killed with SIGKILL (no clean stop) at the progress line of DQN step 200 goes on from its last periodic resume
     file (every 120 steps of each phase: pre-training step 120, DQN step 120), with everything it logged until the kill
     on disk: the points it logged after that file are purged and logged again, none twice, none missing."""
-    from conftest import HANG_TIMEOUT, assert_same_run, signal_at_line
+    from conftest import assert_same_run, signal_at_line
 
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     flags = [*RESUME, "--checkpoint-every", "0", "--checkpoint-every-steps", "120"]

@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import WALL_CLOCK_TAGS, check_fast_update, checkpoint_tensors, tensorboard_scalars
+from conftest import HANG_TIMEOUT, WALL_CLOCK_TAGS, check_fast_update, checkpoint_tensors, tensorboard_scalars
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_hrac as hrac
@@ -949,7 +949,7 @@ def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved_and_the_logs_flushed(run
         lines.append(process.stdout.readline())
         assert lines[-1], "the run ended before its first progress line"
     process.send_signal(signal.SIGINT)
-    out, err = process.communicate(timeout=120)
+    out, err = process.communicate(timeout=HANG_TIMEOUT)
     assert process.returncode == 0, err
     assert "Traceback" not in err
     assert re.search(r"stopped: \d+ steps", out), out
@@ -980,7 +980,7 @@ def test_ctrl_c_stops_cleanly_with_the_checkpoint_saved_and_the_logs_flushed(run
     )
     assert process.stdout.readline().startswith("evaluating")  # the checkpoint is loaded, the first episode under way
     process.send_signal(signal.SIGTERM)
-    out, err = process.communicate(timeout=120)
+    out, err = process.communicate(timeout=HANG_TIMEOUT)
     assert process.returncode == 0, err
     episodes = int(re.search(r"(\d+) evaluation episodes: success", out).group(1))
     assert 1 <= episodes < 1000
@@ -1142,7 +1142,12 @@ def test_a_run_killed_after_a_periodic_resume_write_resumes_exactly(tmp_path):
     for name, script in (("straight", ROOT / "dgrl_hrac.py"), ("killed", wrapper)):
         (tmp_path / name).mkdir()
         runs[name] = subprocess.run(
-            [sys.executable, str(script), *flags], cwd=tmp_path / name, env=env, capture_output=True, text=True, timeout=300
+            [sys.executable, str(script), *flags],
+            cwd=tmp_path / name,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=HANG_TIMEOUT,
         )
     assert runs["straight"].returncode == 0 and runs["killed"].returncode == -signal.SIGKILL, runs["killed"].stderr
     (straight_dir,) = (tmp_path / "straight" / "runs").iterdir()
@@ -1155,7 +1160,7 @@ def test_a_run_killed_after_a_periodic_resume_write_resumes_exactly(tmp_path):
         env=env,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=HANG_TIMEOUT,
     )
     assert resumed.returncode == 0 and "resuming at step 700" in resumed.stdout, resumed.stderr
     expected, got = tensorboard_scalars(straight_dir), tensorboard_scalars(run_dir)

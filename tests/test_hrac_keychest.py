@@ -12,6 +12,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from conftest import HANG_TIMEOUT
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_hrac_keychest as kc
@@ -631,7 +632,7 @@ def test_ctrl_c_stops_with_the_checkpoint_written_and_the_logs_flushed(run_scrip
             if sum("eval return" in text for text in lines) == 3:
                 break
         process.send_signal(signal.SIGINT)
-        stdout, stderr = process.communicate(timeout=120)
+        stdout, stderr = process.communicate(timeout=HANG_TIMEOUT)
     finally:
         process.kill()
     stdout = "".join(lines) + stdout
@@ -736,7 +737,7 @@ def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_pa
     resume file (every 2000 frames, written between two steps: at frame 2000, with both levels training), everything
     logged until the kill on disk: TensorBoard drops what the killed run logged after the file, and the resumed run's
     scalars and final checkpoint equal a straight run's."""
-    from conftest import HANG_TIMEOUT, assert_same_run, signal_at_line
+    from conftest import assert_same_run, signal_at_line
 
     env = {
         "PATH": "/usr/bin:/bin",

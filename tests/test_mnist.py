@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import HANG_TIMEOUT
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_mnist as mnist
@@ -313,7 +314,7 @@ def test_ctrl_c_stops_with_the_checkpoint_and_the_logs(tmp_path, run_script):
         if line.startswith("image "):
             break
     process.send_signal(signal.SIGINT)
-    output.append(process.communicate(timeout=120)[0])
+    output.append(process.communicate(timeout=HANG_TIMEOUT)[0])
     output = "".join(output)
     assert process.returncode == 0 and "Traceback" not in output, output
     assert "stopped: " in output and "no factor tests (stopped)" in output, output
@@ -371,7 +372,7 @@ def test_a_run_stopped_while_training_its_referees_resumes_with_the_same_factor_
     events = sorted(run.glob("events.out.tfevents.*"))
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags, "--resume", f"runs/{run.name}"]
-    again = subprocess.run(command, cwd=tmp_path / "stopped", env=env, capture_output=True, text=True, timeout=300)
+    again = subprocess.run(command, cwd=tmp_path / "stopped", env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
     assert again.returncode == 0 and "this run is complete (trained and tested); nothing to resume" in again.stdout
     assert sorted(run.glob("events.out.tfevents.*")) == events
 
@@ -381,7 +382,7 @@ def test_a_run_killed_resumes_from_its_last_resume_file_without_duplicated_or_mi
     (every 3000 images: written where a minibatch of 16 passes a multiple) and the loss point of image 9600, everything
     logged on disk: the run continues from the file, and TensorBoard drops what the killed run logged after it, so the
     curves equal a straight run's."""
-    from conftest import HANG_TIMEOUT, checkpoint_tensors, signal_at_line, tensorboard_scalars
+    from conftest import checkpoint_tensors, signal_at_line, tensorboard_scalars
 
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     flags = [*TINY[4:], "--epochs", "2", "--train-size", "10000", "--batch-size", "16", "--save-model"]  # 1,250 minibatches

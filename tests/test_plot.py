@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from conftest import HANG_TIMEOUT
 from torch.utils.tensorboard import SummaryWriter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,7 +37,7 @@ def test_plot_groups_seeds_and_summarises_the_common_steps(tmp_path):
         ],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=HANG_TIMEOUT,
     )
     assert result.returncode == 0, result.stderr[-2000:]
     table = (tmp_path / "out.md").read_text().splitlines()
@@ -54,7 +55,7 @@ def test_plot_fails_clearly_when_nothing_matches(tmp_path):
         [sys.executable, str(ROOT / "benchmark/plot.py"), "--runs-dir", str(tmp_path / "runs"), "--match", "nothing"],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=HANG_TIMEOUT,
     )
     assert result.returncode != 0 and "no run in" in result.stderr
 
@@ -65,7 +66,7 @@ def test_plot_bins_runs_whose_evaluation_steps_differ(tmp_path):
     write_run(runs, "KeyChest__G16__demo__2__200", {10: 1.0, 150: 1.0, 260: 3.0, 300: 5.0, 410: 9.0})
     flags = ["--runs-dir", str(runs), "--match", "__demo__", "--bins", "2", *PLOT_FLAGS, str(tmp_path / "out")]
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/plot.py"), *flags], capture_output=True, text=True, timeout=120
+        [sys.executable, str(ROOT / "benchmark/plot.py"), *flags], capture_output=True, text=True, timeout=HANG_TIMEOUT
     )
     assert result.returncode == 0, result.stderr[-2000:]
     row = (tmp_path / "out.md").read_text().splitlines()[2]

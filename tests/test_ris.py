@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from conftest import HANG_TIMEOUT
 from gymnasium.utils.env_checker import check_env
 
 import dgrl_ris as ris
@@ -744,7 +745,12 @@ def test_capture_video_writes_an_mp4_without_mujoco_gl_or_display(tmp_path):
     env = script_env()
     assert "MUJOCO_GL" not in env and "DISPLAY" not in env
     result = subprocess.run(
-        [sys.executable, str(ROOT / "dgrl_ris.py"), *flags], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+        [sys.executable, str(ROOT / "dgrl_ris.py"), *flags],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=HANG_TIMEOUT,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     videos = list(tmp_path.glob("videos/*/eval_*.mp4"))
@@ -761,7 +767,7 @@ def test_ctrl_c_saves_a_loadable_checkpoint_and_flushes_the_logs(run_script, tmp
         [sys.executable, str(ROOT / "dgrl_ris.py"), *flags, *training, "--buffer-size", "5000", "--save-model"],
         cwd=tmp_path, env=script_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    watchdog = threading.Timer(240, process.kill)
+    watchdog = threading.Timer(HANG_TIMEOUT, process.kill)
     watchdog.start()
     try:
         first_line = next((line for line in process.stdout if line.startswith("step")), "")

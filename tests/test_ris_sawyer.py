@@ -19,6 +19,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from conftest import HANG_TIMEOUT
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_ris_sawyer as sawyer
@@ -770,7 +771,7 @@ def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path):
     flags += ["--eval-frequency", "150", "--eval-episodes", "1", "--groups", "4", "--save-model"]
     script = str(ROOT / "dgrl_ris_sawyer.py")
     process = subprocess.Popen([sys.executable, script, *flags], cwd=tmp_path, env=base, stdout=subprocess.PIPE, text=True)
-    watchdog = threading.Timer(240, process.kill)
+    watchdog = threading.Timer(HANG_TIMEOUT, process.kill)
     watchdog.start()
     lines = []
     while not any(re.search(PROGRESS.format(step=150, total=100000), line) for line in lines):

@@ -12,6 +12,7 @@ from torch.utils.tensorboard import SummaryWriter
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark"))
 
 import seed_stats
+from conftest import HANG_TIMEOUT
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,7 +88,7 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
          "--summaries", "final", "--reach", "eval/return=5", "--markdown", str(tmp_path / "out.md")],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "out.md").read_text()
@@ -106,14 +107,14 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     gains = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
          "--summaries", "final", "--gain-between", "KeyChest__study", "Other__study"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert gains.returncode == 0 and "gain over G0 in KeyChest__study minus gain over G0 in Other__study" in gains.stdout
     assert "| eval/return, final | 4 |" not in gains.stdout  # Other has no G4 (and its G16 run was left out)
     missing = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
          "--gain-between", "KeyChest__study", "Nope"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert missing.returncode != 0 and "named Nope; the sweep's: KeyChest__study, Other__study" in missing.stderr
 
@@ -150,7 +151,7 @@ def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_defaul
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), str(variant),
          "--against", "ColorMNIST__G2__ten", "--markdown", str(tmp_path / "out.md"), "--plot", str(tmp_path / "seeds.png")],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "out.md").read_text()
@@ -163,6 +164,6 @@ def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_defaul
     assert (tmp_path / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     bad = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), "--against", "ColorMNIST__G2__nope"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert bad.returncode != 0 and "--against ColorMNIST__G2__nope: no such mode" in bad.stderr

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import HANG_TIMEOUT
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
@@ -286,7 +287,12 @@ def test_a_folder_the_run_cannot_write_to_is_refused_before_any_work(script, tmp
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     try:
         result = subprocess.run(
-            [*prefix, sys.executable, str(ROOT / script)], cwd=folder, env=env, capture_output=True, text=True, timeout=600
+            [*prefix, sys.executable, str(ROOT / script)],
+            cwd=folder,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=HANG_TIMEOUT,
         )
         assert_clean_refusal(result, f"cannot create runs/ in {folder} (permission denied)", "a folder you can write to")
         assert os.listdir(folder) == []

@@ -176,6 +176,41 @@ def resume_check(tmp_path):
     return check
 
 
+@pytest.fixture
+def kill_check(tmp_path):
+    """`check(script, flags, kill_after, before_resume=None)`: run A straight through; run B killed outright (SIGKILL, no
+    clean stop) right after it prints a line matching the regex `kill_after`, with everything it logged until then on
+    disk, then continued with --resume from its last periodic resume file (pass --checkpoint-every-steps in `flags`).
+    Every TensorBoard scalar of B (but WALL_CLOCK_TAGS) must equal A's, step for step: what B logged after its file is
+    dropped and logged again, none twice, none missing; so must every tensor of the final checkpoints (pass
+    --save-model). `before_resume(run_dir)` may look at B's folder as the kill left it. Returns the resume file the
+    kill left (loaded) and the resumed run's output."""
+
+    def check(script: str, flags: list[str], kill_after: str, before_resume=None) -> tuple[dict, str]:
+        env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+        command = [sys.executable, str(ROOT / script), *flags]
+        straight, killed = tmp_path / "straight", tmp_path / "killed"
+        straight.mkdir()
+        killed.mkdir()
+        result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+        assert result.returncode == 0, result.stderr[-3000:]
+        kill = signal_at_line("SIGKILL", kill_after, script, *flags)
+        run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+        assert run.returncode == -9, f"no line matched {kill_after!r}:\n{run.stdout[-2000:]}{run.stderr[-2000:]}"
+        (run_dir,) = (killed / "runs").iterdir()
+        saved = torch.load(run_dir / "resume.pt", weights_only=False)
+        if before_resume is not None:
+            before_resume(run_dir)
+        resume_command = [*command, "--resume", f"runs/{run_dir.name}"]
+        resumed = subprocess.run(resume_command, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        (straight_dir,) = (straight / "runs").iterdir()
+        assert_same_run(straight_dir, run_dir)
+        return saved, resumed.stdout
+
+    return check
+
+
 def training_tensors(agent) -> dict[str, torch.Tensor]:
     """Every tensor of an agent's training state: its modules' parameters and buffers and its optimizers' state, by
     name. `agent` is a dataclass whose fields are modules, optimizers, nested such dataclasses, or other values."""

@@ -1118,54 +1118,19 @@ def test_resume_after_the_second_progress_line_equals_a_straight_run_and_its_vid
     assert resumed == straight and len(straight) >= 2
 
 
-def test_resume_after_a_kill_continues_from_the_last_periodic_save(tmp_path):
+def test_resume_after_a_kill_continues_from_the_last_periodic_save(kill_check):
     """SIGKILL (no grace) at the progress line of frame 3240, mid-window after the periodic save at frame 3024 (every 1000
-    frames: saves where a collection of 108 frames passes a multiple), with everything logged until the kill on disk: the
-    resumed run purges what the killed run logged after the save and ends like a straight run. KeyCorridorS3R1 with
-    27-step unrolls: episodes end by truncation on a collection's last step (270 = 10 x 27) and a random student never
-    solves it, so no episode ends on a collection's first step, whose scalars would be logged at the saved frame and kept
-    twice (see the docs)."""
-    from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, signal_at_line, tensorboard_scalars
-
+    frames: saves where a collection of 108 frames passes a multiple): the resumed run purges what the killed run logged
+    after the save and ends like a straight run. KeyCorridorS3R1 with 27-step unrolls: episodes end by truncation on a
+    collection's last step (270 = 10 x 27) and a random student never solves it, so no episode ends on a collection's
+    first step, whose scalars would be logged at the saved frame and kept twice (see the docs)."""
     flags = [
         "--env-id", CORRIDOR, "--num-envs", "4", "--batch-envs", "2", "--num-steps", "27", "--total-timesteps", "6480",
         "--progress-frequency", "1080", "--teacher-batch-size", "20", "--seed", "5", "--groups", "16", "--save-model",
         "--checkpoint-every", "0", "--checkpoint-every-steps", "1000",
     ]  # fmt: skip
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    command = [sys.executable, str(ROOT / "dgrl_amigo.py"), *flags]
-    straight, killed = tmp_path / "straight", tmp_path / "killed"
-    straight.mkdir()
-    killed.mkdir()
-    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
-    assert result.returncode == 0, result.stderr
-    kill = signal_at_line("SIGKILL", r"^frame +3240/", "dgrl_amigo.py", *flags)
-    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
-    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
-    (run_dir,) = (killed / "runs").iterdir()
-    saved_step = torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["step"]
-    assert saved_step == 3024
-    resumed = subprocess.run(
-        [*command, "--resume", f"runs/{run_dir.name}"],
-        cwd=killed,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=HANG_TIMEOUT,
-    )
-    assert resumed.returncode == 0, resumed.stderr
-    assert f"resumed from runs/{run_dir.name}/resume.pt at frame {saved_step}" in resumed.stdout
-    (straight_dir,) = (straight / "runs").iterdir()
-    expected = {tag: points for tag, points in tensorboard_scalars(straight_dir).items() if tag not in WALL_CLOCK_TAGS}
-    got = {tag: points for tag, points in tensorboard_scalars(run_dir).items() if tag not in WALL_CLOCK_TAGS}
-    assert sorted(got) == sorted(expected)
-    for tag, points in expected.items():
-        assert got[tag] == points, f"{tag} (saved at frame {saved_step}): straight {points[:6]}... resumed {got[tag][:6]}..."
-    expected_tensors = checkpoint_tensors(next(straight_dir.glob("*.cleanrl_model")))
-    got_tensors = checkpoint_tensors(next(run_dir.glob("*.cleanrl_model")))
-    assert sorted(got_tensors) == sorted(expected_tensors)
-    for key, tensor in expected_tensors.items():
-        assert torch.equal(got_tensors[key], tensor), key
+    saved, resumed = kill_check("dgrl_amigo.py", flags, r"^frame +3240/")
+    assert saved["loop"]["step"] == 3024 and "resume.pt at frame 3024" in resumed
 
 
 def test_resume_refuses_changed_flags_and_keeps_images_uint8(run_script, tmp_path):

@@ -644,38 +644,13 @@ def test_resume_inside_a_dqn_episode_continues_exactly(resume_check):
     assert 50 <= stopped_at < 300
 
 
-def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(tmp_path):
+def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(kill_check):
     """A run killed with SIGKILL (no clean stop) at the progress line of DQN step 200 goes on from its last periodic resume
-    file (every 120 steps of each phase: pre-training step 120, DQN step 120), with everything it logged until the kill
-    on disk: the points it logged after that file are purged and logged again, none twice, none missing."""
-    from conftest import assert_same_run, signal_at_line
-
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    file (every 120 steps of each phase: pre-training step 120, DQN step 120): the points it logged after that file are
+    purged and logged again, none twice, none missing."""
     flags = [*RESUME, "--checkpoint-every", "0", "--checkpoint-every-steps", "120"]
-    command = [sys.executable, str(ROOT / "dgrl_goal_dqn.py"), *flags]
-    straight, killed = tmp_path / "straight", tmp_path / "killed"
-    straight.mkdir()
-    killed.mkdir()
-    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
-    assert result.returncode == 0, result.stderr[-3000:]
-    kill = signal_at_line("SIGKILL", r"^step +200/300 ", "dgrl_goal_dqn.py", *flags)
-    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
-    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
-    (run_dir,) = (killed / "runs").iterdir()
-    saved_step = torch.load(run_dir / "resume.pt", weights_only=False)["loop"]["global_step"]
-    assert saved_step == 120
-    resumed = subprocess.run(
-        [*command, "--resume", f"runs/{run_dir.name}"],
-        cwd=killed,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=HANG_TIMEOUT,
-    )
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert f"resumed at DQN step {saved_step}" in resumed.stdout
-    (straight_dir,) = (straight / "runs").iterdir()
-    assert_same_run(straight_dir, run_dir)
+    saved, resumed = kill_check("dgrl_goal_dqn.py", flags, r"^step +200/300 ")
+    assert saved["loop"]["global_step"] == 120 and "resumed at DQN step 120" in resumed
 
 
 def test_resume_refuses_changed_flags_and_accepts_free_ones(tmp_path, run_script):

@@ -732,44 +732,15 @@ def test_resume_from_a_stop_inside_episodes_while_both_levels_train(resume_check
     assert 2400 <= int(re.search(r"stopped: (\d+) frames", output)[1]) < 3000
 
 
-def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(tmp_path):
+def test_resume_after_kill_9_continues_from_the_last_periodic_resume_file(kill_check):
     """A run killed outright (SIGKILL: no clean stop) at the progress line of frame 2400 goes on from its last periodic
-    resume file (every 2000 frames, written between two steps: at frame 2000, with both levels training), everything
-    logged until the kill on disk: TensorBoard drops what the killed run logged after the file, and the resumed run's
-    scalars and final checkpoint equal a straight run's."""
-    from conftest import assert_same_run, signal_at_line
-
-    env = {
-        "PATH": "/usr/bin:/bin",
-        "PYTHONPATH": os.path.dirname(kc.__file__),
-        "OMP_NUM_THREADS": "1",
-        "PYTHONUNBUFFERED": "1",
-    }
+    resume file (every 2000 frames, written between two steps: at frame 2000, with both levels training): TensorBoard
+    drops what the killed run logged after the file, and the resumed run's scalars and final checkpoint equal a straight
+    run's."""
     flags = [*tiny(max_episode_steps=85, adj_frequency=600), "--save-model"]
     flags += ["--checkpoint-every", "0", "--checkpoint-every-steps", "2000"]
-    command = [sys.executable, kc.__file__, *flags]
-    straight, killed = tmp_path / "straight", tmp_path / "killed"
-    straight.mkdir()
-    killed.mkdir()
-    result = subprocess.run(command, cwd=straight, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
-    assert result.returncode == 0, result.stderr[-3000:]
-    kill = signal_at_line("SIGKILL", r"^frame +2400/3000", kc.__file__, *flags)
-    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
-    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
-    (run_dir,) = (killed / "runs").iterdir()
-    assert torch.load(run_dir / "resume.pt", weights_only=False)["variables"]["frames"] == 2000
-    resumed = subprocess.run(
-        [*command, "--resume", f"runs/{run_dir.name}"],
-        cwd=killed,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=HANG_TIMEOUT,
-    )
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert "resumed at frame 2000" in resumed.stdout
-    (straight_dir,) = (straight / "runs").iterdir()
-    assert_same_run(straight_dir, run_dir)
+    saved, resumed = kill_check("dgrl_hrac_keychest.py", flags, r"^frame +2400/3000")
+    assert saved["variables"]["frames"] == 2000 and "resumed at frame 2000" in resumed
 
 
 def test_resume_refuses_changed_flags(run_script, tmp_path):

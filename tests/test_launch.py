@@ -247,10 +247,9 @@ else:
 """
 
 
-def test_ctrl_c_stops_a_local_sweep_cleanly_and_a_relaunch_resumes_it_exactly(tmp_path):
-    """A sweep interrupted by SIGINT mid-run (its run held at its first progress line until the launcher's stop reaches
-    it), then launched again, ends with the curves and checkpoint of a sweep that ran straight through."""
-    held = tmp_path / "scripts" / "dgrl_goal_dqn.py"  # the same name: the same sweep and run names
+def held_goal_dqn(tmp_path: Path) -> Path:
+    """The held goal-DQN script, under the name of the real one (so the same sweep and run names)."""
+    held = tmp_path / "scripts" / "dgrl_goal_dqn.py"
     held.parent.mkdir()
     held.write_text(
         HOLD_AT_THE_FIRST_PROGRESS_LINE.format(
@@ -258,9 +257,15 @@ def test_ctrl_c_stops_a_local_sweep_cleanly_and_a_relaunch_resumes_it_exactly(tm
             pattern=PROGRESS.pattern,
         )
     )  # fmt: skip
+    return held
+
+
+def test_ctrl_c_stops_a_local_sweep_cleanly_and_a_relaunch_resumes_it_exactly(tmp_path):
+    """A sweep interrupted by SIGINT mid-run (its run held at its first progress line until the launcher's stop reaches
+    it), then launched again, ends with the curves and checkpoint of a sweep that ran straight through."""
     flags = ["--groups", "4", "--seeds", "1", "--", *GOAL_DQN]
     straight = popen_launcher(tmp_path / "straight", "--script", "dgrl_goal_dqn.py", *flags)
-    flags = ["--script", str(held), *flags]
+    flags = ["--script", str(held_goal_dqn(tmp_path)), *flags]
     stopped = popen_launcher(tmp_path / "stopped", *flags)
     sweep, run_id = tmp_path / "stopped" / "dgrl_goal_dqn", "goal_dqn__G4__s1"
     wait_for(lambda: log_has_progress(sweep, run_id), HANG_TIMEOUT, "the first progress line")
@@ -349,12 +354,14 @@ def test_a_slurm_sweep_of_two_scripts_equals_the_same_sweep_run_locally(tmp_path
 
 def interrupted_run_resumes_exactly(tmp_path: Path, slurm_flags: list[str], interrupt) -> str:
     """A one-run goal-DQN sweep on Slurm, interrupted by `interrupt(job)` once training is under way (or by its time
-    limit when `interrupt` is None), must requeue, resume and end equal to the same sweep run locally. Returns the log."""
-    flags = ["--script", "dgrl_goal_dqn.py", "--env-ids", "SpiralWorld", "--groups", "4", "--seeds", "1"]
-    run_flags = ["--", *GOAL_DQN, "--total-timesteps", str(40_000 if interrupt is None else 15_000)]
-    local = popen_launcher(tmp_path / "local", *flags, *run_flags)
+    limit when `interrupt` is None), must requeue, resume and end equal to the same sweep run locally. Returns the log.
+    The first attempt holds at its first progress line until the stop signal reaches it, so that it is interrupted
+    mid-run however fast the machine; the requeued attempt runs the plain script."""
+    flags = ["--env-ids", "SpiralWorld", "--groups", "4", "--seeds", "1"]
+    local = popen_launcher(tmp_path / "local", "--script", "dgrl_goal_dqn.py", *flags, "--", *GOAL_DQN)
+    flags = ["--script", str(held_goal_dqn(tmp_path)), *flags]
     on_slurm = popen_launcher(
-        tmp_path / "slurm", *flags, "--backend", "slurm", "--table-every", "10", *slurm_flags, *run_flags
+        tmp_path / "slurm", *flags, "--backend", "slurm", "--table-every", "10", *slurm_flags, "--", *GOAL_DQN
     )
     sweep, run_id = tmp_path / "slurm" / "dgrl_goal_dqn", "goal_dqn__SpiralWorld__G4__s1"
     if interrupt is not None:
@@ -381,7 +388,8 @@ def test_a_preempted_slurm_job_requeues_and_ends_equal_to_an_uninterrupted_run(t
 @pytest.mark.slurm
 @needs_slurm
 def test_a_slurm_job_at_its_time_limit_requeues_and_ends_equal_to_an_uninterrupted_run(tmp_path):
-    """A 1-minute limit with the stop signal 30 s before it: a run of about a minute needs at least one requeue."""
+    """A 1-minute limit with the stop signal 30 s before it: the run, held at its first progress line, is stopped by it
+    and requeued."""
     log = interrupted_run_resumes_exactly(tmp_path, ["--time-min", "1", "--signal-delay-s", "30"], None)
     assert re.search(r"^stopped: ", log, re.M)
 

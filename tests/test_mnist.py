@@ -377,39 +377,15 @@ def test_a_run_stopped_while_training_its_referees_resumes_with_the_same_factor_
     assert sorted(run.glob("events.out.tfevents.*")) == events
 
 
-def test_a_run_killed_resumes_from_its_last_resume_file_without_duplicated_or_missing_points(tmp_path):
+def test_a_run_killed_resumes_from_its_last_resume_file_without_duplicated_or_missing_points(kill_check):
     """SIGKILL (no clean stop) at the end of the first epoch (image 10000), after the periodic resume file of image 9008
-    (every 3000 images: written where a minibatch of 16 passes a multiple) and the loss point of image 9600, everything
-    logged on disk: the run continues from the file, and TensorBoard drops what the killed run logged after it, so the
-    curves equal a straight run's."""
-    from conftest import checkpoint_tensors, signal_at_line, tensorboard_scalars
-
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    (every 3000 images: written where a minibatch of 16 passes a multiple) and the loss point of image 9600: the run
+    continues from the file, and TensorBoard drops what the killed run logged after it, so the curves equal a straight
+    run's."""
     flags = [*TINY[4:], "--epochs", "2", "--train-size", "10000", "--batch-size", "16", "--save-model"]  # 1,250 minibatches
     flags += ["--checkpoint-every", "0", "--checkpoint-every-steps", "3000"]
-    command = [sys.executable, str(ROOT / "dgrl_mnist.py"), *flags]
-    straight, killed = tmp_path / "straight", tmp_path / "killed"
-    straight.mkdir()
-    killed.mkdir()
-    assert subprocess.run(command, cwd=straight, env=env, capture_output=True, timeout=HANG_TIMEOUT).returncode == 0
-    kill = signal_at_line("SIGKILL", r"^image +10000/20000 ", "dgrl_mnist.py", *flags)
-    run = subprocess.run(kill, cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
-    assert run.returncode == -signal.SIGKILL, run.stdout[-2000:] + run.stderr[-2000:]
-    (run,) = (killed / "runs").iterdir()
-    resumed = subprocess.run(
-        [*command, "--resume", f"runs/{run.name}"], cwd=killed, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT
-    )
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert "resuming at image 9008 of 20000" in resumed.stdout, resumed.stdout
-    (straight_run,) = (straight / "runs").iterdir()
-    expected, got = tensorboard_scalars(straight_run), tensorboard_scalars(run)
-    for scalars in (expected, got):
-        scalars.pop("charts/SPS")
-    assert got == expected
-    expected_tensors = checkpoint_tensors(straight_run / "dgrl_mnist.cleanrl_model")
-    got_tensors = checkpoint_tensors(run / "dgrl_mnist.cleanrl_model")
-    assert sorted(got_tensors) == sorted(expected_tensors)
-    assert all(torch.equal(got_tensors[key], tensor) for key, tensor in expected_tensors.items())
+    saved, resumed = kill_check("dgrl_mnist.py", flags, r"^image +10000/20000 ")
+    assert saved["counters"]["images_seen"] == 9008 and "resuming at image 9008 of 20000" in resumed, resumed
 
 
 @pytest.mark.parametrize(

@@ -121,9 +121,12 @@ class Args:
     ctrl_entropy: float = 0.01
     """entropy bonus coefficient"""
     ctrl_reward_scale: float = 1.0
-    """low-level reward for a step that ends within --goal-threshold of the subgoal in both coordinates"""
+    """low-level reward for a step that ends on its subgoal (--reach-rule, --goal-threshold)"""
     goal_threshold: float = 0.5
-    """the subgoal counts as reached when |s' - g| <= this in both coordinates, in cells"""
+    """reach radius, in cells (see --reach-rule)"""
+    reach_rule: Literal["euclidean", "box"] = "euclidean"
+    """when a subgoal counts as reached: Euclidean distance below --goal-threshold (the paper's appendix), or HRAC's box,
+    within --goal-threshold in both coordinates"""
 
     # Algorithm: adjacency network
     adj_lr: float = 2e-4
@@ -168,8 +171,9 @@ class Args:
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
     embed_dim: int = 64  # DGRL
     """size of the subgoal embedding (m); must be divisible by groups"""
-    dgrl_goal: Literal["decoded", "embedding"] = "decoded"  # DGRL
-    """what the low level gets under DGRL: the decoded discretized subgoal (rewarded for reaching it), or the embedding"""
+    dgrl_goal: Literal["embedding", "decoded"] = "embedding"  # DGRL
+    """what the low level gets under DGRL: the discrete embedding (the paper; rewarded for reaching the raw subgoal), or
+    the decoded discretized subgoal (ours; rewarded for reaching that point)"""
     ae_hidden_dim: int = 128  # DGRL
     """hidden units of the subgoal encoder and decoder"""
     ae_lr: float = 1e-3  # DGRL
@@ -182,7 +186,7 @@ class Args:
 
 # The flags a checkpoint must have been saved with to be evaluated: the task and what evaluation measures (the k-step
 # segments, the reach threshold), then the networks' shapes; under DGRL also the autoencoder's and the low level's input.
-MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold")
+MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule")
 MUST_MATCH += ("hidden_dim", "adj_hidden_dim", "adj_embed_dim", "groups")
 DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")  # DGRL
 
@@ -608,9 +612,13 @@ def segment_returns(rewards: torch.Tensor, discounts: torch.Tensor) -> torch.Ten
     return (padded.view(n_segments, k) @ discounts.T).reshape(-1)[: len(rewards)]
 
 
-def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: float) -> torch.Tensor:
-    """1 where the next cell is within `threshold` of the subgoal in both coordinates (the low level's reward)."""
-    return ((next_states[:, :2] - goals).abs() <= threshold).all(1).float()
+def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: float, rule: str) -> torch.Tensor:
+    """1 where the next cell has reached the subgoal (the low level's reward): rule "euclidean", at a Euclidean distance
+    below `threshold` (the paper's appendix); rule "box", within `threshold` in both coordinates (HRAC's code)."""
+    offsets = next_states[:, :2] - goals
+    if rule == "euclidean":
+        return (offsets.norm(dim=1) < threshold).float()
+    return (offsets.abs() <= threshold).all(1).float()
 
 
 def a2c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, returns: torch.Tensor, entropy_coef: float):
@@ -801,6 +809,7 @@ def controller_update(
     entropy_coef: float,
     reward_scale: float,
     goal_threshold: float,
+    reach_rule: str,
 ) -> dict[str, torch.Tensor]:
     """HRAC's low-level A2C update on one episode (raw subgoals as stored), returns truncated at each k-step segment's
     end (`discounts`: segment_discounts(gamma, k)). Under DGRL the low level's goals are recomputed by the current
@@ -816,7 +825,7 @@ def controller_update(
         figures["vq/commit_loss"] = vq_loss.detach()  # DGRL
         figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)  # DGRL
         figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)  # DGRL
-    intrinsic = reward_scale * goal_reached(next_states, target_goals, goal_threshold)
+    intrinsic = reward_scale * goal_reached(next_states, target_goals, goal_threshold, reach_rule)
     returns = segment_returns(intrinsic, discounts).float()
     logits, values = agent.controller(states, goal_inputs)
     loss, policy_loss, value_loss, entropy = a2c_loss(logits, values, actions, returns, entropy_coef)
@@ -880,6 +889,7 @@ def evaluate(
     k: int,
     max_episode_steps: int,
     goal_threshold: float,
+    reach_rule: str,
     frames: list | None = None,
     random_subgoals: bool = False,
 ) -> tuple[float, float, float]:
@@ -908,7 +918,7 @@ def evaluate(
         done = terminations | truncations
         real_next = np.where(done[:, None], infos["final_obs"], observations) if done.any() else observations
         next_states = torch.as_tensor(real_next, device=device)
-        reached_in_segment |= goal_reached(next_states, goals, goal_threshold).bool()
+        reached_in_segment |= goal_reached(next_states, goals, goal_threshold, reach_rule).bool()
         returns += rewards * running
         if (step + 1) % k == 0:  # a complete segment: score it for the envs still in their first episode
             mask = torch.as_tensor(running, device=device)
@@ -1397,6 +1407,7 @@ if __name__ == "__main__":
     eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
     eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
     evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}
+    evaluation["reach_rule"] = args.reach_rule
 
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
 
@@ -1605,6 +1616,7 @@ if __name__ == "__main__":
                 entropy_coef=args.ctrl_entropy,
                 reward_scale=args.ctrl_reward_scale,
                 goal_threshold=args.goal_threshold,
+                reach_rule=args.reach_rule,
             )
             figures = dict(figures)  # (under cudagraphs the update's own dict, which must stay as it is)
             for _ in range(max(length // args.k, 1)):

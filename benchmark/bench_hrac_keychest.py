@@ -118,6 +118,7 @@ def controller_seconds(groups: int, envs: kc.KeyChestVecEnv, rng: np.random.Gene
             entropy_coef=args.ctrl_entropy,
             reward_scale=args.ctrl_reward_scale,
             goal_threshold=args.goal_threshold,
+            reach_rule=args.reach_rule,
         )
 
     acting_states = torch.as_tensor(envs._observe())
@@ -162,6 +163,7 @@ def fast_updates(rng: np.random.Generator) -> dict[str, tuple]:
         torch.as_tensor(rng.random((500, 3)) * 10, dtype=torch.float32),
     )
     flags = {"entropy_coef": args.ctrl_entropy, "reward_scale": args.ctrl_reward_scale, "goal_threshold": args.goal_threshold}
+    flags["reach_rule"] = args.reach_rule
     discounts = kc.segment_discounts(args.ctrl_gamma, args.k)
     for groups in (0, 16):
         torch.manual_seed(0)

@@ -141,6 +141,7 @@ AMIGO_FLAGS = "--progress-frequency 50000 --save-model"
 RIS_TAGS = ("eval/success_rate", "eval/final_distance", "charts/success_rate", "charts/subgoal_distance")
 HRAC_TAGS = ("eval/final_distance", "eval/success_rate", "charts/final_distance", "charts/subgoal_distance")
 KEYCHEST_TAGS = ("eval/return", "eval/return_random_subgoals", "eval/subgoal_reach_rate", "eval/subgoal_distance")
+KEYCHEST_VQ_TAGS = ("vq/perplexity", "vq/active_codes", "losses/goal_reconstruction", "vq/distinct_cells")
 SAWYER_TAGS = ("eval/hand_success_rate", "eval/success_rate", "eval/final_hand_distance", "eval/final_puck_distance")
 SAWYER_CPU = "--batch-size 32 --start-timesteps 2000 --eval-frequency 2000 --eval-episodes 10 --save-model"
 HIRO_ENVS = ("AntMazeSparse", "AntPush", "AntFall", "AntMaze", "AntGather")
@@ -207,13 +208,42 @@ PRESETS: dict[str, Preset] = {
         (Plot("mnist_factors", MNIST_TAGS, "Color-MNIST: decoding and swapping the factors"),),
     ),
     "keychest": Preset(
-        "docs/dgrl_hrac_keychest.md: Key-Chest, HRAC (G0) and DGRL G = 4, 8, 16, 5 seeds at the paper's 2M frames",
-        (Arm("dgrl_hrac_keychest.py", (), (0, 4, 8, 16), (1, 2, 3, 4, 5), "--total-timesteps 2000000 --save-model"),),
+        "docs/dgrl_hrac_keychest.md: Key-Chest as the paper wires it, HRAC (G0) and DGRL G = 4, 16, 5 seeds at 2M frames",
+        (Arm("dgrl_hrac_keychest.py", (), (0, 4, 16), (1, 2, 3, 4, 5), "--total-timesteps 2000000 --save-model"),),
         (
             Plot(
                 "hrac_keychest",
                 (*KEYCHEST_TAGS, "charts/adjacency_accuracy"),
-                "Key-Chest: HRAC (G0) vs HRAC+DGRL (G4, G8, G16), 2M frames",
+                "Key-Chest: HRAC (G0) vs HRAC+DGRL (G4, G16), 2M frames",
+                bins=20,
+            ),
+            Plot("hrac_keychest_codebook", KEYCHEST_VQ_TAGS, "Key-Chest: DGRL's codebook, 2M frames", r"__G[1-9]", bins=20),
+        ),
+    ),
+    "keychest-decoded": Preset(
+        "docs/dgrl_hrac_keychest.md: Key-Chest, our decoded-subgoal variant and HRAC's box reach rule, HRAC (G0) and "
+        "DGRL G = 4, 8, 16, 5 seeds at 2M frames",
+        (
+            Arm(
+                "dgrl_hrac_keychest.py",
+                (),
+                (0, 4, 8, 16),
+                (1, 2, 3, 4, 5),
+                "--total-timesteps 2000000 --save-model --dgrl-goal decoded --reach-rule box",
+            ),
+        ),
+        (
+            Plot(
+                "hrac_keychest_decoded",
+                (*KEYCHEST_TAGS, "charts/adjacency_accuracy"),
+                "Key-Chest, decoded subgoals, box reach rule: HRAC (G0) vs HRAC+DGRL (G4, G8, G16), 2M frames",
+                bins=20,
+            ),
+            Plot(
+                "hrac_keychest_decoded_codebook",
+                KEYCHEST_VQ_TAGS,
+                "Key-Chest, decoded subgoals: DGRL's codebook, 2M frames",
+                r"__G[1-9]",
                 bins=20,
             ),
         ),

@@ -283,10 +283,38 @@ def test_segment_discounts_are_numpys_powers():
         assert np.array_equal(kc.segment_discounts(gamma, 10).numpy(), expected)
 
 
-def test_goal_reached_is_a_box_of_half_width_threshold():
-    next_states = torch.tensor([[3.0, 4.0, 0.0]] * 4)
-    goals = torch.tensor([[3.5, 4.5], [3.51, 4.0], [2.6, 3.6], [3.0, 5.0]])
-    np.testing.assert_array_equal(kc.goal_reached(next_states, goals, 0.5).numpy(), [1, 0, 1, 0])
+def test_goal_reached_by_euclidean_distance_below_the_threshold_or_by_hracs_box():
+    next_states = torch.tensor([[3.0, 4.0, 0.0]] * 7)
+    goals = torch.tensor([[3.5, 4.5], [3.51, 4.0], [2.6, 3.6], [3.0, 5.0], [3.3, 4.3], [3.49, 4.0], [3.5, 4.0]])
+    euclidean = kc.goal_reached(next_states, goals, 0.5, "euclidean").numpy()
+    np.testing.assert_array_equal(euclidean, [0, 0, 0, 0, 1, 1, 0])  # distance < 0.5, strictly
+    np.testing.assert_array_equal(kc.goal_reached(next_states, goals, 0.5, "box").numpy(), [1, 0, 1, 0, 1, 1, 1])
+
+
+def test_the_defaults_are_the_papers_wiring():
+    """The paper's appendix: the low level is conditioned on the discrete embedding of the subgoal and rewarded when its
+    Euclidean distance to the subgoal is below 0.5; HRAC (G = 0) is rewarded by the same rule."""
+    args = kc.Args(n_embed=8, **SMALL)
+    assert (args.dgrl_goal, args.reach_rule, args.goal_threshold) == ("embedding", "euclidean", 0.5)
+    torch.manual_seed(0)
+    agent = agent_from(args)
+    assert agent.controller.policy[0].in_features == 3 + args.embed_dim
+    goals = torch.tensor([[3.0, 4.0], [11.0, 15.0]])
+    inputs, targets, _ = kc.controller_goals(agent.goal_ae, goals, agent.dgrl_goal)
+    assert torch.equal(inputs, agent.goal_ae(goals)[0]) and torch.equal(targets, goals)
+    states = torch.tensor([[11.0, 7.0, 0.0]] * 10)
+    next_states = torch.tensor([[11.0, 8.0, 0.0]] * 10)
+    for groups in (0, args.groups):
+        agent = agent_from(kc.Args(groups=groups, n_embed=8, **SMALL))
+        rewards = {}
+        for offset in (0.3, 0.4):  # diagonal offsets 0.42 and 0.57 from the cell: inside, then outside the radius
+            figures = kc.controller_update(
+                agent, states, next_states[:, :2] + offset, torch.zeros(10, dtype=torch.long), next_states,
+                discounts=kc.segment_discounts(0.9, 5), entropy_coef=args.ctrl_entropy, reward_scale=args.ctrl_reward_scale,
+                goal_threshold=args.goal_threshold, reach_rule=args.reach_rule,
+            )  # fmt: skip
+            rewards[offset] = figures["charts/intrinsic_reward"].item()
+        assert rewards == {0.3: 1.0, 0.4: 0.0}
 
 
 def test_a2c_loss_matches_its_formula():
@@ -463,6 +491,7 @@ def test_controller_update_trains_the_low_level_and_under_dgrl_the_autoencoder(g
     figures = kc.controller_update(
         agent, states, goals, torch.zeros(12, dtype=torch.long), next_states,
         discounts=kc.segment_discounts(0.9, 5), entropy_coef=0.01, reward_scale=1.0, goal_threshold=0.5,
+        reach_rule="euclidean",
     )  # fmt: skip
     assert not torch.equal(parameters(agent.controller), controller)
     if groups:  # the autoencoder's step, and the EMA update of its codebook
@@ -526,7 +555,7 @@ def test_fast_controller_update_is_one_graph_equal_to_eager_and_free_of_host_syn
     discounts = kc.segment_discounts(0.9, 5)
 
     def call(function, state, i):
-        flags = {"entropy_coef": 0.01, "reward_scale": 1.0, "goal_threshold": 0.5}
+        flags = {"entropy_coef": 0.01, "reward_scale": 1.0, "goal_threshold": 0.5, "reach_rule": "euclidean"}
         return function(state, *episodes[i], discounts=discounts, **flags)
 
     optimizers = lambda state: [state.controller_optimizer] + ([state.ae_optimizer] if groups else [])  # noqa: E731
@@ -585,9 +614,9 @@ def scalars(run_dir) -> dict[str, list[float]]:
     return {tag: [event.value for event in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}
 
 
-@pytest.mark.parametrize(("groups", "dgrl_goal"), [("0", "decoded"), ("16", "decoded"), ("16", "embedding")])
+@pytest.mark.parametrize(("groups", "dgrl_goal"), [("0", None), ("16", None), ("16", "decoded")])
 def test_smoke_run_trains_evaluates_and_reloads(run_script, tmp_path, groups, dgrl_goal):
-    flags = ("--groups", groups, "--dgrl-goal", dgrl_goal)
+    flags = ("--groups", groups, *(("--dgrl-goal", dgrl_goal) if dgrl_goal else ()))
     result = run_script("dgrl_hrac_keychest.py", *tiny(), *flags, "--save-model", "--capture-video")
     assert result.returncode == 0, result.stderr
     assert "adjacency pre-training" in result.stdout and "eval return" in result.stdout
@@ -595,7 +624,9 @@ def test_smoke_run_trains_evaluates_and_reloads(run_script, tmp_path, groups, dg
     checkpoint = next(tmp_path.glob("runs/*/dgrl_hrac_keychest.cleanrl_model"))
     saved = torch.load(checkpoint, weights_only=True)
     assert saved["script"] == "dgrl_hrac_keychest.py" and saved["format"] == kc.CHECKPOINT_FORMAT
-    assert saved["args"]["hidden_dim"] == 32
+    assert saved["args"]["hidden_dim"] == 32 and saved["args"]["reach_rule"] == "euclidean"
+    low_level_inputs = 3 + (64 if groups != "0" and dgrl_goal is None else 2)  # by default the 64-d discrete embedding
+    assert saved["controller"]["policy.0.weight"].shape == (32, low_level_inputs)
     assert (saved["goal_autoencoder"] is None) == (groups == "0")
     if groups != "0":
         assert "vq.codebook" in saved["goal_autoencoder"] and "vq.ema_count" in saved["goal_autoencoder"]
@@ -611,10 +642,10 @@ def test_smoke_run_trains_evaluates_and_reloads(run_script, tmp_path, groups, dg
     assert reloaded.returncode == 0, reloaded.stderr
     assert re.search(r"3 episodes: return [\d.]+", reloaded.stdout)
     assert re.search(r"3 episodes with uniform random subgoals: return [\d.]+", reloaded.stdout)
-    if dgrl_goal == "embedding":  # a checkpoint saved with other settings names the flags to pass
-        changed = run_script("dgrl_hrac_keychest.py", "--groups", "8", "--checkpoint", str(checkpoint))
+    if dgrl_goal == "decoded":  # a checkpoint saved with other settings names the flags to pass
+        changed = run_script("dgrl_hrac_keychest.py", "--groups", "8", "--reach-rule", "box", "--checkpoint", str(checkpoint))
         assert changed.returncode == 2 and "Traceback" not in changed.stderr
-        pass_flags = "pass --max-episode-steps 100 --hidden-dim 32 --groups 16 --dgrl-goal embedding"
+        pass_flags = "pass --max-episode-steps 100 --reach-rule euclidean --hidden-dim 32 --groups 16 --dgrl-goal decoded"
         assert f"was saved with other settings: {pass_flags}" in changed.stderr
 
 

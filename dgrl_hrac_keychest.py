@@ -4,10 +4,11 @@ Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction 
 "Goal Grounding in KeyChest Maze Navigation Domain" and appendix "KeyChest Domain". The agent is HRAC's discrete
 agent (Zhang et al., NeurIPS 2020): a TD3 high level proposes an absolute cell (row, col) every k = 10 steps, kept
 within k-step reach by an adjacency network trained with a contrastive loss; an on-policy A2C low level is rewarded
-for reaching the proposed cell. DGRL (`--groups G`) passes each subgoal through an encoder, the shared-codebook
-bottleneck of vq.py and a decoder back to the grid; the low level is conditioned on (and rewarded for reaching) the
-decoded discretized subgoal instead of the raw one, or with `--dgrl-goal embedding` sees the discrete embedding
-itself. `--groups 0` is plain HRAC from the same file.
+for reaching the proposed cell (a Euclidean distance below 0.5, the paper's test). DGRL (`--groups G`) passes each
+subgoal through an encoder and the shared-codebook bottleneck of vq.py, with a decoder back to the grid whose
+reconstruction grounds the codes; as the paper wires it, the low level is conditioned on the discrete embedding of the
+subgoal and rewarded for reaching the raw one (`--dgrl-goal decoded`, ours, gives it the decoded discretized subgoal).
+`--groups 0` is plain HRAC from the same file.
 
     python dgrl_hrac_keychest.py --groups 16            # paper setting, DGRL G=16: 2M frames (about 28 min on a CPU core)
     python dgrl_hrac_keychest.py --groups 0             # HRAC
@@ -15,7 +16,8 @@ itself. `--groups 0` is plain HRAC from the same file.
     python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400 \
         --eval-frequency 5000                           # smoke run (about 30 s)
 
-The study: benchmark/hrac_keychest.sh; update times: benchmark/bench_hrac_keychest.py. Docs: docs/dgrl_hrac_keychest.md.
+The study: python benchmark/launch.py --preset keychest; update times: benchmark/bench_hrac_keychest.py. Docs:
+docs/dgrl_hrac_keychest.md.
 """
 
 import importlib.util

@@ -18,7 +18,7 @@ defaults here (1,000 pre-training steps, 20,000 DQN steps) take about 1 min on o
     python dgrl_goal_dqn.py --total-timesteps 2000 --rep-steps 50                # a quick CPU smoke run (seconds)
     python dgrl_goal_dqn.py <the same flags> --resume runs/<run_name>           # continue a stopped run exactly
 
-The whole study (3 seeds, as in the paper): benchmark/goal_dqn.sh. Docs: docs/dgrl_goal_dqn.md.
+The whole study (5 seeds; the paper has 3): python benchmark/launch.py --preset goal-dqn. Docs: docs/dgrl_goal_dqn.md.
 """
 
 import importlib.util

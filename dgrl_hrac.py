@@ -19,7 +19,8 @@ run time (rllab's and HIRO's maze generator, rewritten here); AntGather adds app
     python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5   # 15-second smoke run
     python dgrl_hrac.py --env-id AntPush --groups 16 --resume runs/<run_name>   # continue a stopped run, same flags
 
-The study: benchmark/hrac.sh; env speed and renders: benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
+The studies: python benchmark/launch.py --preset hrac-antmaze-cpu (CPU) or --preset hrac-paper; env speed and renders:
+benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """
 
 import importlib.util

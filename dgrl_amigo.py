@@ -8,15 +8,18 @@ there, picking up an object there); the teacher earns +0.7 when the student need
 -0.3 otherwise, and t* rises as the student improves. DGRL (`--groups G`) embeds each goal with a goal encoder (the goal
 frame and a one-hot goal cell), snaps the embedding to G codes of one shared EMA codebook and feeds the discrete
 embedding to the student. `--groups 0` is AMIGo from the same file, with the same goal encoder left continuous.
+The original student sees its goal as a one-hot channel of its grid: AMIGo keeps it, and under DGRL the goal reaches
+the student only through the codes, the paper's "goal discretization" (`--goal-channel auto`; `on` or `off` in both).
 The student is trained like the original's IMPALA learner: one pass of V-trace actor-critic per batch of rollouts.
 Budgets and frequencies count frames: env steps x --num-envs.
 
     python dgrl_amigo.py --groups 16                           # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
     python dgrl_amigo.py --groups 0                            # AMIGo
+    python dgrl_amigo.py --groups 16 --goal-channel on         # DGRL with the goal channel too (the CPU studies' variant)
     python dgrl_amigo.py --env-id MiniGrid-DoorKey-5x5-v0 --total-timesteps 1000000 --groups 16   # learns in ~3 min on a CPU
     python dgrl_amigo.py --groups 16 --resume runs/<run_name>  # continue a stopped run exactly (its flags, same folder)
 
-The study: benchmark/amigo.sh. Docs: docs/dgrl_amigo.md.
+The studies: `python benchmark/launch.py --preset amigo-paper` (and the CPU presets amigo-*). Docs: docs/dgrl_amigo.md.
 """
 
 import copy
@@ -31,7 +34,7 @@ import signal
 import sys
 import time
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid-* ids)
@@ -108,8 +111,8 @@ class Args:
     """gradient clipping (both optimizers)"""
     intrinsic_coef: float = 1.0
     """weight of the goal-reaching reward 1 - 0.9 * steps_since_goal / max_steps"""
-    goal_channel: bool = True
-    """the student also sees the goal as a one-hot map channel (the original student); else only through the goal encoder"""
+    goal_channel: Literal["auto", "on", "off"] = "auto"
+    """the student's one-hot goal-cell map channel: auto = on for AMIGo, off under DGRL (the goal only through the codes)"""
 
     # Algorithm: teacher (goal generator)
     teacher_learning_rate: float = 2e-3
@@ -433,8 +436,9 @@ def conv_stack(in_channels: int, width: int, height: int) -> tuple[nn.Sequential
 
 
 class Student(nn.Module):
-    """AMIGo's student: the conv trunk over the embedded full grid (plus the goal channel), the carried object and
-    colour embeddings and the goal embedding, then FC 256 - FC 256 (ReLU), a policy and a baseline head."""
+    """AMIGo's student: the conv trunk over the embedded full grid (10 channels, plus the one-hot goal channel when
+    `goal_channel`), the carried object and colour embeddings and the goal embedding, then FC 256 - FC 256 (ReLU), a
+    policy and a baseline head. Without the channel the goal reaches it only through `goal_embedding`."""
 
     def __init__(self, width: int, height: int, n_actions: int, goal_channel: bool, embed_dim: int):
         super().__init__()
@@ -534,13 +538,26 @@ class Agent:
         self.teacher.load_state_dict(saved["teacher"])
 
 
+GOAL_CHANNELS = ("auto", "on", "off")  # --goal-channel's choices
+
+
+def resolve_goal_channel(goal_channel: str, groups: int) -> str:
+    """--goal-channel as a run uses and saves it, "on" or "off": "auto" keeps the original student's one-hot goal channel
+    for AMIGo (G = 0) and drops it under DGRL, where the goal reaches the student only through the bottleneck."""
+    if goal_channel not in GOAL_CHANNELS:
+        raise ValueError(f"goal_channel must be one of {', '.join(GOAL_CHANNELS)}; got {goal_channel!r}")
+    if goal_channel == "auto":
+        return "off" if groups > 0 else "on"  # DGRL: the goal only as discrete codes
+    return goal_channel
+
+
 def make_agent(
     width: int,
     height: int,
     n_actions: int,
     device,
     *,
-    goal_channel: bool,
+    goal_channel: str,
     embed_dim: int,
     learning_rate: float,
     teacher_learning_rate: float,
@@ -552,9 +569,11 @@ def make_agent(
     vq_decay: float,  # DGRL
     vq_dead_code_steps: int,  # DGRL
 ) -> Agent:
-    """The student, the goal encoder (continuous for --groups 0) and the teacher, built in this order (the seeded
-    initial weights depend on it), with their RMSProp optimizers."""
-    student = Student(width, height, n_actions, goal_channel, embed_dim).to(device)
+    """The student (with the one-hot goal channel when `goal_channel`, resolved with `groups`, is "on"), the goal encoder
+    (continuous for --groups 0) and the teacher, built in this order (the seeded initial weights depend on it), with
+    their RMSProp optimizers."""
+    channel = resolve_goal_channel(goal_channel, groups) == "on"
+    student = Student(width, height, n_actions, channel, embed_dim).to(device)
     goal_encoder = GoalEncoder(
         width,
         height,
@@ -1239,6 +1258,31 @@ def env_error(env_id: str) -> str | None:
     return None
 
 
+def boolean_goal_channel_errors(args: Args) -> list[str]:
+    """--checkpoint's file or --resume's resume.pt written when --goal-channel was a boolean (True: today's on, False:
+    off) can match no value of today's flag: say so, instead of naming a flag spelling that no longer exists. A file
+    that cannot be read is left to load_checkpoint's or load_resume's message."""
+    files = [
+        ("--checkpoint", args.checkpoint, True),
+        ("--resume", args.resume and os.path.join(args.resume, RESUME_FILE), False),
+    ]
+    errors = []
+    for flag, path, weights_only in files:
+        if path is None or not os.path.isfile(path):
+            continue
+        try:
+            value = torch.load(path, map_location="cpu", weights_only=weights_only)["args"]["goal_channel"]
+        except Exception:
+            continue
+        if isinstance(value, bool):
+            errors.append(
+                f"{flag} {path} was saved when --goal-channel was a boolean ({value}, what --goal-channel "
+                f"{'on' if value else 'off'} is now): its flags can match no value of today's, so this version cannot "
+                f"{'evaluate' if weights_only else 'continue'} it; use the version of dgrl_amigo.py that wrote it"
+            )
+    return errors
+
+
 def validate(args: Args) -> None:
     """Refuse bad flags before any work, naming the flag and the valid choices; exit with status 2."""
     errors = common_errors(args)
@@ -1275,12 +1319,16 @@ def validate(args: Args) -> None:
         errors.append(  # DGRL
             f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"  # DGRL
         )  # DGRL
+    if args.goal_channel not in GOAL_CHANNELS:
+        errors.append(f"--goal-channel {args.goal_channel!r} is unknown: use one of {', '.join(GOAL_CHANNELS)}")
+    errors += boolean_goal_channel_errors(args)
     exit_on_errors(errors)
 
 
 if __name__ == "__main__":
     args = tyro.cli(Args)
     validate(args)
+    args.goal_channel = resolve_goal_channel(args.goal_channel, args.groups)  # saved, matched and resumed as on or off
     saved = load_resume(args) if args.resume is not None else None
     dgrl = args.groups > 0  # DGRL
     if saved is None:

@@ -3,7 +3,7 @@
     python benchmark/amigo_replay.py SNAPSHOT.pt --first 120 --last 136 -- THE RUN'S FLAGS
     python benchmark/amigo_replay.py snapshots/resume_105808.pt --first 120 --last 136 -- \\
         --env-id MiniGrid-KeyCorridorS3R1-v0 --groups 16 --seed 2 --total-timesteps 3000000 \\
-        --progress-frequency 50000 --exp-name amigo-collapse --threads 1
+        --progress-frequency 50000 --goal-channel on --exp-name amigo-collapse --threads 1
 
 A resume file continues a run exactly (dgrl_amigo.py's `--resume`), so a collapse that happened after it happens again,
 update for update. This copies dgrl_amigo.py and vq.py to a scratch folder, adds a measurement after each student

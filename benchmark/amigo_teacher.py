@@ -45,7 +45,9 @@ def teacher_maps(checkpoint: str, seeds: int) -> tuple[list[tuple[np.ndarray, np
     """One checkpoint's teacher on the layouts of env seeds 0 .. seeds - 1: a list of (rendered frame, goal
     probabilities as (W, H), wall mask as (W, H)), and a label for the checkpoint."""
     saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
-    flags = saved["args"]
+    flags = dict(saved["args"])
+    if isinstance(flags.get("goal_channel"), bool):  # saved when --goal-channel was a boolean (True: today's on)
+        flags["goal_channel"] = "on" if flags["goal_channel"] else "off"
     envs = amigo.MiniGridVecEnv(flags["env_id"], 1, render_env0=True)
     agent = amigo.make_agent(envs.width, envs.height, envs.n_actions, "cpu", **{name: flags[name] for name in AGENT_FLAGS})
     agent.load_state_dicts(saved)

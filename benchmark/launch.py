@@ -268,14 +268,34 @@ PRESETS: dict[str, Preset] = {
         (Arm("dgrl_ris_sawyer.py", (), (0, 16), (1, 2), f"--total-timesteps 30000 {SAWYER_CPU}"),),
         (Plot("ris_sawyer_cpu", (*SAWYER_TAGS, "losses/q_values"), "Sawyer push-and-reach from pixels, 30,000 steps"),),
     ),
+    # The CPU studies of docs/dgrl_amigo.md ran with the goal channel in both modes (--goal-channel on), or without it in
+    # both (off); the script's default, the paper's wiring, keeps it for AMIGo only (amigo-paper).
     "amigo-doorkey": _amigo(
-        "MiniGrid-DoorKey-5x5-v0", 1_000_000, (0, 8, 16), "amigo_doorkey_cpu", "docs/dgrl_amigo.md", "1M frames"
+        "MiniGrid-DoorKey-5x5-v0",
+        1_000_000,
+        (0, 8, 16),
+        "amigo_doorkey_cpu",
+        "docs/dgrl_amigo.md",
+        "1M frames, the goal channel in both modes (--goal-channel on)",
+        "--goal-channel on",
     ),
     "amigo-s3r1": _amigo(
-        "MiniGrid-KeyCorridorS3R1-v0", 1_000_000, (0, 8, 16), "amigo_s3r1_cpu", "docs/dgrl_amigo.md", "1M frames"
+        "MiniGrid-KeyCorridorS3R1-v0",
+        1_000_000,
+        (0, 8, 16),
+        "amigo_s3r1_cpu",
+        "docs/dgrl_amigo.md",
+        "1M frames, the goal channel in both modes (--goal-channel on)",
+        "--goal-channel on",
     ),
     "amigo-s3r1-3m": _amigo(
-        "MiniGrid-KeyCorridorS3R1-v0", 3_000_000, (0, 16), "amigo_s3r1_3m", "docs/dgrl_amigo.md", "3M frames"
+        "MiniGrid-KeyCorridorS3R1-v0",
+        3_000_000,
+        (0, 16),
+        "amigo_s3r1_3m",
+        "docs/dgrl_amigo.md",
+        "3M frames, the goal channel in both modes (--goal-channel on)",
+        "--goal-channel on",
     ),
     "amigo-nochannel": _amigo(
         "MiniGrid-DoorKey-5x5-v0",
@@ -283,8 +303,8 @@ PRESETS: dict[str, Preset] = {
         (0, 16),
         "amigo_doorkey_nochannel",
         "docs/dgrl_amigo.md",
-        "1M frames, the goal only through the encoder (--no-goal-channel)",
-        "--no-goal-channel",
+        "1M frames, the goal only through the encoder in both modes (--goal-channel off)",
+        "--goal-channel off",
     ),
     # The paper's figures at the paper's budgets: GPU jobs, for a cluster (`--backend slurm`) or a big machine.
     "amigo-paper": _amigo(
@@ -293,7 +313,7 @@ PRESETS: dict[str, Preset] = {
         (0, 8, 16),
         "amigo_kcmedium",
         "the paper's AMIGo figure",
-        "KCmedium, 3e7 frames",
+        "KCmedium, 3e7 frames, the paper's wiring (the goal channel for AMIGo only)",
         bins=30,
         workers=1,
     ),

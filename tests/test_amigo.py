@@ -6,6 +6,7 @@ teacher and one student update with and without DGRL, evaluation with scripted n
 points or killed after periodic saves equal straight runs, changed flags refused)."""
 
 import dataclasses
+import inspect
 import math
 import re
 import signal
@@ -31,7 +32,7 @@ from tests.conftest import NoHostSync, check_fast_update, training_tensors
 LEFT, RIGHT, FORWARD, PICKUP, DROP, TOGGLE, DONE = range(7)
 DOORKEY, EMPTY, CORRIDOR = "MiniGrid-DoorKey-5x5-v0", "MiniGrid-Empty-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0"
 ROOT = Path(__file__).resolve().parents[1]
-TINY_AGENT = dict(goal_channel=True, embed_dim=16, n_embed=8, vq_beta=0.25, vq_decay=0.99, vq_dead_code_steps=50)
+TINY_AGENT = dict(goal_channel="on", embed_dim=16, n_embed=8, vq_beta=0.25, vq_decay=0.99, vq_dead_code_steps=50)
 TINY_AGENT |= dict(learning_rate=1e-3, teacher_learning_rate=2e-3, rmsprop_alpha=0.99, rmsprop_eps=0.01)
 STUDENT_HYPER = {"gamma": 0.99, "baseline_coef": 0.5, "entropy_coef": 0.0005, "max_grad_norm": 40.0}
 
@@ -665,6 +666,62 @@ def test_make_agent_wires_the_optimizers(groups):
     assert set(agent.state_dicts()) == {"student", "goal_encoder", "teacher"}
 
 
+@pytest.mark.parametrize(
+    ("goal_channel", "groups", "resolved"),
+    [("auto", 0, "on"), ("auto", 4, "off"), ("auto", 16, "off"), ("on", 16, "on"), ("off", 0, "off"), ("on", 0, "on")],
+)
+def test_goal_channel_auto_is_on_for_amigo_and_off_under_dgrl(goal_channel, groups, resolved):
+    assert amigo.resolve_goal_channel(goal_channel, groups) == resolved
+    assert amigo.Args().goal_channel == "auto"
+
+
+@pytest.mark.parametrize("goal_channel", [True, "yes", None])
+def test_make_agent_refuses_a_goal_channel_that_is_not_auto_on_or_off(goal_channel):
+    with pytest.raises(ValueError, match="goal_channel must be one of auto, on, off"):
+        tiny_agent(groups=4, goal_channel=goal_channel)
+
+
+def trunk_inputs_and_logits(agent: amigo.Agent, goals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """What the student's conv trunk receives and the student's logits, for 4 DoorKey frames with `goals` and one fixed
+    goal embedding (so that the goal can reach the student only through the map)."""
+    grids = torch.as_tensor(amigo.MiniGridVecEnv(DOORKEY, 4).reset(seed=0)[0]["grid"])
+    carried = torch.zeros(4, 2, dtype=torch.long)
+    embedding = torch.randn(1, agent.student.embed_dim, generator=torch.Generator().manual_seed(0)).expand(4, -1)
+    seen = []
+    hook = agent.student.trunk[0].register_forward_hook(lambda module, inputs, output: seen.append(inputs[0]))
+    with torch.no_grad():
+        logits, _ = agent.student(grids, carried, goals, embedding)
+    hook.remove()
+    return seen[0], logits
+
+
+@pytest.mark.parametrize("groups", [0, 16])
+def test_the_default_student_sees_the_goal_map_for_amigo_and_only_the_codes_under_dgrl(groups):
+    """The agent main builds from the default flags: AMIGo's student gets the 10 embedded channels plus the one-hot goal
+    cell (11), as the original; DGRL's gets the 10 alone, so a goal reaches it only through the goal embedding."""
+    args = amigo.Args(env_id=DOORKEY, groups=groups)
+    agent_flags = [name for name, p in inspect.signature(amigo.make_agent).parameters.items() if p.kind is p.KEYWORD_ONLY]
+    agent = amigo.make_agent(5, 5, 7, "cpu", **{name: getattr(args, name) for name in agent_flags})
+    goals, other_goals = torch.tensor([6, 7, 12, 18]), torch.tensor([8, 11, 13, 16])
+    inputs, logits = trunk_inputs_and_logits(agent, goals)
+    _, other_logits = trunk_inputs_and_logits(agent, other_goals)
+    assert agent.student.trunk[0].in_channels == inputs.shape[1] == (11 if groups == 0 else 10)
+    if groups == 0:
+        one_hot = F.one_hot(goals, 25).float().view(4, 5, 5)  # cell x * H + y of a (W, H) map
+        torch.testing.assert_close(inputs[:, 10], one_hot, rtol=0, atol=0)
+        assert not torch.allclose(logits, other_logits)  # the goal map changes what the student does
+    else:
+        torch.testing.assert_close(logits, other_logits, rtol=0, atol=0)  # no goal map: the goals change nothing
+
+
+def test_goal_channel_on_and_off_override_the_mode():
+    goals = torch.tensor([6, 7, 12, 18])
+    with_map, _ = trunk_inputs_and_logits(tiny_agent(groups=4, goal_channel="on"), goals)
+    without_map, _ = trunk_inputs_and_logits(tiny_agent(groups=0, goal_channel="off"), goals)
+    assert with_map.shape[1] == 11 and without_map.shape[1] == 10
+    torch.testing.assert_close(with_map[:, 10], F.one_hot(goals, 25).float().view(4, 5, 5), rtol=0, atol=0)
+
+
 def collect(envs, agent, steps: int):
     """A rollout of `steps` steps, collected with the script's acting functions."""
     n = envs.num_envs
@@ -952,6 +1009,8 @@ def refusal(capsys, **overrides) -> str:
         ({"n_embed": 0}, ["--n-embed must be >= 1; got 0"]),
         ({"vq_dead_code_steps": -1}, ["--vq-dead-code-steps must be >= 0; got -1"]),
         ({"checkpoint": "missing.pt"}, ["--checkpoint missing.pt: no such file"]),
+        ({"goal_channel": "yes"}, ["--goal-channel 'yes' is unknown: use one of auto, on, off"]),
+        ({"goal_channel": True}, ["--goal-channel True is unknown: use one of auto, on, off"]),
     ],
 )
 def test_validate_names_the_flag(capsys, overrides, messages):
@@ -964,6 +1023,31 @@ def test_validate_refuses_training_flags_with_a_checkpoint(capsys, tmp_path):
     (tmp_path / "saved.pt").write_bytes(b"")
     message = refusal(capsys, checkpoint=str(tmp_path / "saved.pt"), save_model=True)
     assert "--save-model and --capture-video apply to training" in message
+
+
+@pytest.mark.parametrize("value", [True, False])
+def test_validate_refuses_a_checkpoint_or_resume_file_saved_with_a_boolean_goal_channel(capsys, tmp_path, monkeypatch, value):
+    """Files written when --goal-channel was a boolean: the message says what the value was, not a flag to pass that no
+    longer exists; today's values pass this check."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs" / "old").mkdir(parents=True)
+    for path, goal_channel in (("old.cleanrl_model", value), ("runs/old/resume.pt", value), ("new.cleanrl_model", "on")):
+        torch.save(
+            {"script": "dgrl_amigo.py", "format": amigo.CHECKPOINT_FORMAT, "args": {"goal_channel": goal_channel}}, path
+        )
+    now = "on" if value else "off"
+    message = refusal(capsys, checkpoint="old.cleanrl_model")
+    assert (
+        f"--checkpoint old.cleanrl_model was saved when --goal-channel was a boolean ({value}, what --goal-channel {now}"
+        in (message)
+    )
+    assert "this version cannot evaluate it" in message
+    message = refusal(capsys, resume="runs/old")
+    assert f"--resume runs/old/resume.pt was saved when --goal-channel was a boolean ({value}, what --goal-channel {now}" in (
+        message
+    )
+    assert "this version cannot continue it" in message
+    assert amigo.boolean_goal_channel_errors(amigo.Args(checkpoint="new.cleanrl_model")) == []
 
 
 def test_validate_refuses_a_minigrid_id_that_fails_to_build(capsys):
@@ -1028,10 +1112,13 @@ def test_smoke_run_amigo_saves_evaluates_and_refuses_other_settings(run_script, 
     assert re.search(
         r"2 episodes \(t\* 7 at save\): return [\d.]+, success \d+%, goals reached per episode [\d.]+", evaluation.stdout
     )
-    mismatched = run_script(
-        "dgrl_amigo.py", "--env-id", DOORKEY, "--groups", "16", "--no-goal-channel", "--checkpoint", str(checkpoint)
+    assert saved["args"]["goal_channel"] == "on" and saved["student"]["trunk.0.weight"].shape[1] == 11  # auto, resolved
+    mismatched = run_script("dgrl_amigo.py", "--env-id", DOORKEY, "--groups", "16", "--checkpoint", str(checkpoint))
+    assert_clean_refusal(mismatched, "was saved with other settings: pass --groups 0 --goal-channel on")
+    unmapped = run_script(
+        "dgrl_amigo.py", "--env-id", DOORKEY, "--groups", "0", "--goal-channel", "off", "--checkpoint", str(checkpoint)
     )
-    assert_clean_refusal(mismatched, "was saved with other settings: pass --groups 0 --goal-channel")
+    assert_clean_refusal(unmapped, "was saved with other settings: pass --goal-channel on")
 
 
 def test_smoke_run_dgrl_with_video(run_script, tmp_path):
@@ -1060,6 +1147,19 @@ def test_bad_flags_fail_before_any_work(run_script, tmp_path):
         "--seed must be in [0, 2**64)",
         "--total-timesteps (100) must cover one collection",
     )  # fmt: skip
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--goal-channel", "maybe"], "invalid choice 'maybe'"),
+        (["--no-goal-channel"], "Unrecognized options: --no-goal-channel"),
+    ],
+)
+def test_goal_channel_takes_auto_on_or_off_only(run_script, tmp_path, flags, message):
+    result = run_script("dgrl_amigo.py", *TINY, *flags)
+    assert_clean_refusal(result, message, "--goal-channel {auto,on,off}" if "--no-goal-channel" in flags else "'off'")
     assert not (tmp_path / "runs").exists()
 
 
@@ -1140,9 +1240,11 @@ def test_resume_refuses_changed_flags_and_keeps_images_uint8(run_script, tmp_pat
     (run_dir,) = (tmp_path / "runs").iterdir()
     saved = torch.load(run_dir / "resume.pt", weights_only=False)
     assert saved["loop"]["step"] == 160 and saved["envs"]["grids"].dtype == saved["goal_book"]["frame"].dtype == np.uint8
+    assert saved["args"]["goal_channel"] == "off"  # auto, resolved for DGRL before the run started
+    assert saved["networks"]["student"]["trunk.0.weight"].shape[1] == 10  # no goal map: the goal only as codes
     resume = ["--resume", f"runs/{run_dir.name}"]
-    changed = run_script("dgrl_amigo.py", *TINY, *model, "--seed", "5", "--no-goal-channel", *resume)
-    assert_clean_refusal(changed, "was started with other settings: pass --seed 4 --goal-channel")
+    changed = run_script("dgrl_amigo.py", *TINY, *model, "--seed", "5", "--goal-channel", "on", *resume)
+    assert_clean_refusal(changed, "was started with other settings: pass --seed 4 --goal-channel off")
     finished = run_script("dgrl_amigo.py", *TINY, *model, *resume, "--no-save-model")  # a free flag may change
     assert finished.returncode == 0, finished.stderr
     assert "resumed from" in finished.stdout and "done: 160 frames" in finished.stdout

@@ -170,6 +170,27 @@ def test_the_studies_of_the_docs_are_presets_and_no_fan_out_is_left_in_benchmark
 
 
 @pytest.mark.parametrize(
+    ("preset", "channel"),
+    [
+        ("amigo-doorkey", {0: "on", 8: "on", 16: "on"}),  # run with the goal channel in both modes
+        ("amigo-s3r1", {0: "on", 8: "on", 16: "on"}),
+        ("amigo-s3r1-3m", {0: "on", 16: "on"}),
+        ("amigo-nochannel", {0: "off", 16: "off"}),  # without it in both
+        ("amigo-paper", {0: "on", 8: "off", 16: "off"}),  # the script's default, the paper's wiring
+    ],
+)
+def test_the_amigo_presets_keep_the_goal_channel_their_documented_runs_had(preset, channel):
+    import dgrl_amigo
+
+    for run in launch.expand(launch.PRESETS[preset].arms, preset, Path("/nonexistent"), 1):
+        argv = run.argv
+        given = argv[argv.index("--goal-channel") + 1] if "--goal-channel" in argv else "auto"
+        groups = int(argv[argv.index("--groups") + 1])
+        assert dgrl_amigo.resolve_goal_channel(given, groups) == channel[groups], (run.run_id, argv)
+    assert ("--goal-channel" in launch.PRESETS[preset].arms[0].flags) == (preset != "amigo-paper")
+
+
+@pytest.mark.parametrize(
     ("flags", "message"),
     [
         (["--preset", "nope"], "--preset nope: no such preset; the presets: smoke, quick"),

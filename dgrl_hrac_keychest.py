@@ -127,8 +127,7 @@ class Args:
     goal_threshold: float = 0.5
     """reach radius, in cells (see --reach-rule)"""
     reach_rule: Literal["euclidean", "box"] = "euclidean"
-    """when a subgoal counts as reached: Euclidean distance below --goal-threshold (the paper's appendix), or HRAC's box,
-    within --goal-threshold in both coordinates"""
+    """reached: a Euclidean distance below --goal-threshold (the paper), or within it in both coordinates (HRAC's box)"""
 
     # Algorithm: adjacency network
     adj_lr: float = 2e-4
@@ -174,8 +173,7 @@ class Args:
     embed_dim: int = 64  # DGRL
     """size of the subgoal embedding (m); must be divisible by groups"""
     dgrl_goal: Literal["embedding", "decoded"] = "embedding"  # DGRL
-    """what the low level gets under DGRL: the discrete embedding (the paper; rewarded for reaching the raw subgoal), or
-    the decoded discretized subgoal (ours; rewarded for reaching that point)"""
+    """the low level's input under DGRL: the discrete embedding (the paper) or the decoded discretized subgoal (ours)"""
     ae_hidden_dim: int = 128  # DGRL
     """hidden units of the subgoal encoder and decoder"""
     ae_lr: float = 1e-3  # DGRL

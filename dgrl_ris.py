@@ -7,12 +7,14 @@ a high-level policy that proposes subgoal states halfway to the goal (trained by
 and an actor loss that replaces SAC's entropy term by a KL divergence to a prior policy: the target actor averaged over
 imagined subgoals. DGRL (`--groups G`) embeds goals, subgoals and states with an MLP encoder trained as an autoencoder,
 discretizes the embeddings with the shared-codebook bottleneck of vq.py, and conditions the actor, the critics and the
-prior on the discrete goal and subgoal embeddings. `--groups 0` is plain RIS from the same file.
+prior on the discrete goal and subgoal embeddings. The encoder's loss takes the mean of the commitment losses of state,
+next state, goal and subgoal (the paper's text; `--vq-loss-reduction sum` is its snippet's sum, the setting of the docs'
+CPU studies). `--groups 0` is plain RIS from the same file.
 
     python dgrl_ris.py --env-id AntMaze --groups 16        # paper setting (Pi maze, G=16): 5M steps at batch 2048, a GPU job
     python dgrl_ris.py --env-id AntU --groups 0             # RIS on the U maze
     python dgrl_ris.py --env-id PointMaze_UMaze-v3 --total-timesteps 30000 --batch-size 128 --start-timesteps 2000 \
-        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (20 min on a CPU core; --groups 0: 10 min)
+        --eval-frequency 2000 --eval-episodes 10 --vq-loss-reduction sum   # the CPU preset (20 min; --groups 0: 10 min)
     python dgrl_ris.py --env-id AntU --total-timesteps 3000 --start-timesteps 500 --batch-size 64   # 1-minute smoke run
     python dgrl_ris.py --env-id AntU --checkpoint runs/<run>/dgrl_ris.cleanrl_model   # evaluate a --save-model checkpoint
     python dgrl_ris.py --env-id AntMaze --groups 16 --resume runs/<run>   # continue a stopped run exactly (its flags)
@@ -147,6 +149,8 @@ class Args:
     """EMA decay of the codebook, in [0, 1)"""
     vq_dead_code_steps: int = 0  # DGRL
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
+    vq_loss_reduction: str = "mean"  # DGRL
+    """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (the paper's code snippet)"""
     embed_dim: int = 64  # DGRL
     """size of the goal embedding (m); must be divisible by groups"""
     encoder_lr: float = 1e-4  # DGRL
@@ -489,6 +493,16 @@ class GoalEncoder(nn.Module):  # DGRL
         return self.vq(self.encoder(goals), update=update)  # DGRL
 
 
+VQ_LOSS_REDUCTIONS = ("mean", "sum")  # --vq-loss-reduction's choices
+
+
+def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:  # DGRL
+    """The commitment losses of n equal-sized embeddings quantized in one call, from that call's loss (their mean): the
+    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet adds
+    the VQ losses of state, next state, goal and subgoal)."""
+    return pooled if reduction == "mean" else n_embeddings * pooled  # DGRL
+
+
 def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:  # DGRL
     """What the actor and critics see of a goal: the raw goal (RIS) or its discrete embedding (DGRL), codebook untouched."""
     if goal_encoder is None:  # DGRL
@@ -688,11 +702,12 @@ def ris_update(
     h_lambda: float,
     n_subgoals: int,
     prior_epsilon: float,
+    vq_loss_reduction: str,  # DGRL
 ) -> dict[str, torch.Tensor]:
     """One RIS update (critic, high level, actor, targets) with the DGRL representation loss; returns detached metrics.
 
     `batch` is EpisodeReplay.sample's (s, a, s', g, r, done, s_g); goal_dim: the goal-space projection of a state is
-    its first goal_dim entries.
+    its first goal_dim entries; vq_loss_reduction: how the four commitment losses combine (combined_commitment_loss).
     """
     actor, critic, high = agent.actor, agent.critic, agent.high
     goal_encoder = agent.goal_encoder  # DGRL
@@ -706,7 +721,8 @@ def ris_update(
         z_q, vq_loss, codes = goal_encoder(points, update=True)  # DGRL: one pooled EMA step over the four embeddings
         reconstruction_loss = F.mse_loss(goal_encoder.decoder(z_q[:batch_size]), points[:batch_size])  # DGRL
         goal_z = z_q[2 * batch_size : 3 * batch_size]  # DGRL: straight-through, so the critic loss shapes the encoder
-        representation_loss = reconstruction_loss + 4 * vq_loss  # DGRL: 4 x the mean over the union = the sum of the four
+        commitment_loss = combined_commitment_loss(vq_loss, 4, vq_loss_reduction)  # DGRL: the call's loss is their mean
+        representation_loss = reconstruction_loss + commitment_loss  # DGRL
         metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)  # DGRL
     else:
         goal_z = goals
@@ -1294,6 +1310,9 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "max_episode_steps start_timesteps goal_threshold", 0)
     errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr", 0, low_open=True)
     errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
+    if args.vq_loss_reduction not in VQ_LOSS_REDUCTIONS:  # DGRL
+        choices = "mean (the paper's text) or sum (the paper's snippet)"  # DGRL
+        errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")  # DGRL
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
     if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
         errors.append(
@@ -1470,6 +1489,7 @@ if __name__ == "__main__":
                     h_lambda=args.h_lambda,
                     n_subgoals=args.n_subgoals,
                     prior_epsilon=args.prior_epsilon,
+                    vq_loss_reduction=args.vq_loss_reduction,  # DGRL
                 )
                 updates += 1
             if updates >= next_loss_log:

@@ -8,7 +8,10 @@ the features; a high-level policy proposes subgoal features halfway to the goal;
 term by a KL divergence to the target actor averaged over imagined subgoals. The encoder is also trained by DRIML's
 local-global InfoNCE loss on (s_t, a_t, s_t+1) (Mazoure et al. 2020), as in the paper's snippet. DGRL (`--groups G`)
 discretizes the encoder's embeddings with the shared-codebook bottleneck of vq.py and conditions the actor, the critics
-and the prior on the discrete goal and subgoal embeddings. `--groups 0` is RIS (with the DRIML loss) from the same file.
+and the prior on the discrete goal and subgoal embeddings; the mean of the commitment losses of s, s', g and s_g (the
+paper's text; `--vq-loss-reduction sum` is its snippet's sum) trains the encoder through all four, as the snippet encodes
+them (`--vq-commitment-grad state`: through s alone, RIS's stop-gradient, the wiring of the docs' CPU study). `--groups
+0` is RIS (with the DRIML loss) from the same file.
 
 The task: multiworld's `SawyerPushAndReachXYEnv` in its "TrainEnvBig" / "TestEnvBig" configurations, rebuilt on the
 modern `mujoco` bindings with an MJCF scene generated in code (a table, four low walls around the arena, a puck and an end
@@ -18,7 +21,8 @@ Training resets everywhere in the arena; evaluation on the test configuration, w
     python dgrl_ris_sawyer.py --groups 16     # paper setting (G=16, batch 256, one update per step): a GPU job
     python dgrl_ris_sawyer.py --groups 0      # RIS
     python dgrl_ris_sawyer.py --total-timesteps 30000 --batch-size 32 --start-timesteps 2000 \
-        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (30 min on a CPU core, 16-19 SPS)
+        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (30-35 min a run with --vq-commitment-grad
+                                                            # state; the default's DGRL update takes about 2x as long)
     python dgrl_ris_sawyer.py --total-timesteps 600 --start-timesteps 300 --batch-size 16 \
         --eval-frequency 600 --eval-episodes 2              # 1-minute smoke run
     python dgrl_ris_sawyer.py --groups 16 --resume runs/<run_name>   # continue a stopped run (with its flags)
@@ -157,6 +161,10 @@ class Args:
     """EMA decay of the codebook"""
     vq_dead_code_steps: int = 0  # DGRL
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
+    vq_loss_reduction: str = "mean"  # DGRL
+    """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (the paper's code snippet)"""
+    vq_commitment_grad: str = "all"  # DGRL
+    """whose commitment losses train the encoder: all (s, s', g, s_g: the paper's snippet) or state (s only: RIS's no-grad)"""
 
 
 # --- Environments -----------------------------------------------------------------------------------------------------
@@ -531,6 +539,17 @@ class DrimlHeads(nn.Module):
         self.globl = nn.Sequential(nn.Linear(feature_dim, dim), nn.ReLU(), nn.Linear(dim, dim))
 
 
+VQ_LOSS_REDUCTIONS = ("mean", "sum")  # --vq-loss-reduction's choices
+VQ_COMMITMENT_GRADS = ("all", "state")  # --vq-commitment-grad's choices
+
+
+def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:  # DGRL
+    """The commitment losses of n equal-sized embeddings quantized in one call, from that call's loss (their mean): the
+    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet adds
+    the VQ losses of state, next state, goal and subgoal)."""
+    return pooled if reduction == "mean" else n_embeddings * pooled  # DGRL
+
+
 def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.Tensor:  # DGRL
     """What the actor and critics see of a goal or subgoal: its features (RIS) or their discrete embedding (DGRL), with the
     codebook untouched."""
@@ -829,28 +848,42 @@ def ris_update(
     prior_epsilon: float,
     image_pad: int,
     driml_coef: float,
+    vq_loss_reduction: str,  # DGRL
+    vq_commitment_grad: str,  # DGRL
 ) -> dict[str, torch.Tensor]:
     """One RIS update from pixels (encoder + critic with the DRIML loss, high level, actor, targets) with DGRL's bottleneck;
     returns detached metrics. `batch` is ImageEpisodeReplay.sample's, tensors on the agent's device (the uint8 images
-    become floats here); nothing in it waits for the device, so --fast compiles it into one graph."""
+    become floats here); nothing in it waits for the device, so --fast compiles it into one graph. vq_loss_reduction: how
+    the four commitment losses combine (combined_commitment_loss); vq_commitment_grad: all (s, s', g and s_g encoded
+    with gradient, for their commitment losses) or state (s alone)."""
     actions, rewards, done = batch["actions"], batch["rewards"], batch["done"]
     batch_size = len(actions)
     metrics = {}
 
-    # Features of the augmented s, s', g, s_g: only s passes through the encoder with gradient (RIS); the target critic
-    # and the DRIML loss's global side see the online encoder's features of s' (no target encoder, as in RIS).
+    # Features of the augmented s, s', g, s_g. RIS passes only s through the encoder with gradient; under DGRL the snippet
+    # also encodes s', g and s_g with gradient, for their commitment losses, and RIS's own losses still see those three
+    # detached. The target critic and the DRIML loss's global side see the online encoder's features of s' (no target
+    # encoder, as in RIS).
     images = random_translate(batch["images"], image_pad)
-    conv_map = agent.encoder.conv_map(images[:batch_size])
-    state_z = agent.encoder.head(conv_map)
-    with torch.no_grad():
-        next_z, goal_z, subgoal_z = agent.encoder(images[batch_size:]).chunk(3)
+    if agent.vq is not None and vq_commitment_grad == "all":  # DGRL: one pass over the four, all with gradient
+        conv_maps = agent.encoder.conv_map(images)  # DGRL
+        conv_map, features = conv_maps[:batch_size], agent.encoder.head(conv_maps)  # DGRL
+        state_z = features[:batch_size]  # DGRL
+        next_z, goal_z, subgoal_z = features[batch_size:].detach().chunk(3)  # DGRL: RIS's paths see them detached
+    else:
+        conv_map = agent.encoder.conv_map(images[:batch_size])
+        state_z = agent.encoder.head(conv_map)
+        with torch.no_grad():
+            next_z, goal_z, subgoal_z = agent.encoder(images[batch_size:]).chunk(3)
+        features = torch.cat((state_z, next_z, goal_z, subgoal_z))
     driml = driml_loss(agent.driml_heads, conv_map, actions, next_z)
     representation_loss = driml_coef * driml
     goal_in = goal_z  # what the actor and the critics see of the goal
     if agent.vq is not None:  # DGRL
-        z_q, vq_loss, codes = agent.vq(torch.cat((state_z, next_z, goal_z, subgoal_z)), update=True)  # DGRL: one EMA step
+        z_q, vq_loss, codes = agent.vq(features, update=True)  # DGRL: the four embeddings in one call, one EMA step
         goal_in = z_q[2 * batch_size : 3 * batch_size].detach()  # DGRL: the nets see the discrete goal embedding
-        representation_loss = representation_loss + vq_loss  # DGRL: the mean of the four commitment losses
+        commitment_loss = combined_commitment_loss(vq_loss, 4, vq_loss_reduction)  # DGRL: the call's loss is their mean
+        representation_loss = representation_loss + commitment_loss  # DGRL
         metrics.update(vq_loss=vq_loss, codes=codes)  # DGRL
 
     # Critic (policy evaluation); its loss also trains the encoder, the DRIML heads (and, under DGRL, commits to codes).
@@ -1405,6 +1438,12 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "eval_episodes", 1)
     errors += range_errors(args, "q_lr actor_lr h_lr encoder_lr alpha h_lambda prior_epsilon", 0, low_open=True)
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
+    if args.vq_loss_reduction not in VQ_LOSS_REDUCTIONS:  # DGRL
+        choices = "mean (the paper's text) or sum (the paper's snippet)"  # DGRL
+        errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")  # DGRL
+    if args.vq_commitment_grad not in VQ_COMMITMENT_GRADS:  # DGRL
+        choices = "all (s, s', g and s_g, the paper's snippet) or state (s only, RIS's stop-gradient)"  # DGRL
+        errors.append(f"--vq-commitment-grad must be {choices}; got {args.vq_commitment_grad!r}")  # DGRL
     if args.feature_dim >= 1 and (args.groups < 0 or (args.groups and args.feature_dim % args.groups)):  # DGRL
         divisors = [g for g in range(1, args.feature_dim + 1) if args.feature_dim % g == 0]  # DGRL
         choices = f"0 (RIS) or divide --feature-dim {args.feature_dim}: one of {divisors}"  # DGRL
@@ -1597,7 +1636,8 @@ if __name__ == "__main__":
                 metrics = update(
                     agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
                     n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
-                    driml_coef=args.driml_coef,
+                    driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
+                    vq_commitment_grad=args.vq_commitment_grad,
                 )  # fmt: skip
                 updates += 1
             if updates >= next_log:

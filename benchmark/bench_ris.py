@@ -81,6 +81,7 @@ def update_time(
             h_lambda=args.h_lambda,
             n_subgoals=args.n_subgoals,
             prior_epsilon=args.prior_epsilon,
+            vq_loss_reduction=args.vq_loss_reduction,
         )
         if device.type == "cuda":
             torch.cuda.synchronize()

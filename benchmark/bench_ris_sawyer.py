@@ -8,15 +8,19 @@ pixels, with and without DGRL.
 Prints one line per measurement (median of 5 blocks): one training step's acting (an 84x84 render of the new state, the
 encoder on state and goal images, the actor's sample), and one `ris_update` (HER batch of 4 x batch uint8 images sampled
 from the replay on the device, random translate, encoder, DRIML loss, critic, high level, actor
-with 10 imagined subgoals, targets) for --groups 0 and 16 at each batch size. RIS does one update per environment
-step, so training steps/s is about 1 / (update time + acting time). The agents come from the script's make_agent.
+with 10 imagined subgoals, targets) for --groups 0 and 16 at each batch size, G16 both with its default
+--vq-commitment-grad all (s, s', g and s_g through the encoder with gradient) and with --vq-commitment-grad state (s
+alone, RIS's stop-gradient), the three timed in turn, block by block. RIS does one update per environment step, so
+training steps/s is about 1 / (update time + acting time). The agents come from the script's make_agent.
 Then, for each --fast path (default: eager and compile), the update alone (batches sampled beforehand) of the same agent,
 in one process, after warm-up calls (compile time excluded): `update ... eager X ms, compile Y ms (eager / compile)`.
 """
 
 import argparse
 import copy
+import statistics
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -73,21 +77,39 @@ def act_time(groups: int, device: torch.device) -> float:
     return seconds
 
 
-def update_time(replay, groups: int, batch: int, device: torch.device, rng: np.random.Generator) -> float:
-    args = sawyer.Args(groups=groups, batch_size=batch)
-    agent = agent_of(args, device)
+UPDATE_SETTINGS = {"RIS": {"groups": 0}, "G16": {"groups": 16}, "G16 state": {"groups": 16, "vq_commitment_grad": "state"}}
 
-    def step():
-        sample = replay.sample(batch, args.her_goal_frac, args.her_random_frac, rng)
-        sawyer.ris_update(
-            agent, sample, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
-            n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
-            driml_coef=args.driml_coef,
-        )  # fmt: skip
-        if device.type == "cuda":
-            torch.cuda.synchronize()
 
-    return median_time(step, repeats=max(2, 256 // batch * 2))
+def update_times(replay, batch: int, device: torch.device, rng: np.random.Generator, blocks: int = 5) -> dict[str, float]:
+    """Median seconds of one ris_update for each of UPDATE_SETTINGS, their blocks interleaved (one block of each in turn),
+    so that a machine whose load changes slows them alike."""
+    repeats = max(2, 256 // batch * 2)
+    steps = {}
+    for name, flags in UPDATE_SETTINGS.items():
+        args = sawyer.Args(batch_size=batch, **flags)
+        agent = agent_of(args, device)
+
+        def step(agent=agent, args=args):
+            sample = replay.sample(batch, args.her_goal_frac, args.her_random_frac, rng)
+            sawyer.ris_update(
+                agent, sample, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
+                n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
+                driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
+                vq_commitment_grad=args.vq_commitment_grad,
+            )  # fmt: skip
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+
+        step()  # warm-up
+        steps[name] = step
+    times = {name: [] for name in steps}
+    for _ in range(blocks):
+        for name, step in steps.items():
+            start = time.perf_counter()
+            for _ in range(repeats):
+                step()
+            times[name].append((time.perf_counter() - start) / repeats)
+    return {name: statistics.median(values) for name, values in times.items()}
 
 
 def fast_update_times(replay, groups: int, batch: int, device: torch.device, rng, paths: list[str]) -> dict[str, float]:
@@ -107,7 +129,8 @@ def fast_update_times(replay, groups: int, batch: int, device: torch.device, rng
             update(
                 state, batches[calls % len(batches)], gamma=args.gamma, tau=args.tau, alpha=args.alpha,
                 h_lambda=args.h_lambda, n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon,
-                image_pad=args.image_pad, driml_coef=args.driml_coef,
+                image_pad=args.image_pad, driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
+                vq_commitment_grad=args.vq_commitment_grad,
             )  # fmt: skip
             calls += 1
             if device.type == "cuda":
@@ -135,10 +158,11 @@ if __name__ == "__main__":
             f"act + env step, G{groups:<2}: {act_time(groups, device) * 1e3:6.1f} ms ({options.threads} thread(s), {device})"
         )
     for batch in options.batches:
-        times = {groups: update_time(replay, groups, batch, device, rng) for groups in (0, 16)}
+        times = update_times(replay, batch, device, rng)
         print(
-            f"update batch {batch:>4}: RIS {times[0] * 1e3:7.1f} ms, RIS+DGRL G16 {times[16] * 1e3:7.1f} ms "
-            f"({times[16] / times[0]:.2f}x), {options.threads} thread(s), {device}"
+            f"update batch {batch:>4}: RIS {times['RIS'] * 1e3:7.1f} ms, RIS+DGRL G16 {times['G16'] * 1e3:7.1f} ms "
+            f"({times['G16'] / times['RIS']:.2f}x), G16 --vq-commitment-grad state {times['G16 state'] * 1e3:7.1f} ms "
+            f"({times['G16 state'] / times['RIS']:.2f}x), {options.threads} thread(s), {device}"
         )
     for batch in options.batches if options.fast else ():
         for groups in (0, 16):

@@ -87,9 +87,15 @@ class Preset:
     note: str = ""  # printed after the table: what the study can and cannot show
 
 
-def _ris(env: str, steps: int, batch: int, start: int, every: int, episodes: int, groups=(0, 16), seeds=(1, 2, 3)) -> Arm:
+def _ris(
+    env: str, steps: int, batch: int, start: int, every: int, episodes: int, groups=(0, 16), seeds=(1, 2, 3), extra: str = ""
+) -> Arm:
     flags = f"--total-timesteps {steps} --batch-size {batch} --start-timesteps {start} --eval-frequency {every}"
-    return Arm("dgrl_ris.py", (env,), groups, seeds, f"{flags} --eval-episodes {episodes} --save-model", "")
+    flags = f"{flags} --eval-episodes {episodes} {extra}".strip()
+    return Arm("dgrl_ris.py", (env,), groups, seeds, f"{flags} --save-model", "")
+
+
+RIS_SNIPPET_SUM = "--vq-loss-reduction sum"  # the CPU studies of docs/dgrl_ris.md ran with the snippet's sum of the losses
 
 
 def _amigo(
@@ -250,12 +256,12 @@ PRESETS: dict[str, Preset] = {
     ),
     "ris-pointmaze": Preset(
         "docs/dgrl_ris.md's CPU preset: RIS vs RIS+DGRL (G16) on PointMaze_UMaze-v3, 30,000 steps, batch 128, 3 seeds",
-        (_ris("PointMaze_UMaze-v3", 30_000, 128, 2_000, 2_000, 10),),
+        (_ris("PointMaze_UMaze-v3", 30_000, 128, 2_000, 2_000, 10, extra=RIS_SNIPPET_SUM),),
         (Plot("ris_pointmaze_cpu", RIS_TAGS, "PointMaze_UMaze-v3: RIS vs RIS+DGRL, 30,000 steps, batch 128", bins=15),),
     ),
     "ris-antu-cpu": Preset(
         "docs/dgrl_ris.md: AntU on a CPU, RIS vs RIS+DGRL (G16), 40,000 steps, batch 256, 1 seed",
-        (_ris("AntU", 40_000, 256, 10_000, 5_000, 10, seeds=(1,)),),
+        (_ris("AntU", 40_000, 256, 10_000, 5_000, 10, seeds=(1,), extra=RIS_SNIPPET_SUM),),
         (Plot("ris_antu_cpu", RIS_TAGS, "AntU: RIS vs RIS+DGRL, 40,000 steps, batch 256", bins=15),),
     ),
     "hrac-antmaze-cpu": Preset(

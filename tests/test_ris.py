@@ -3,6 +3,7 @@ episode replay, RIS's losses (advantage weights, subgoal cost, prior KL), one RI
 gymnasium-robotics wrapper, smoke runs of every env id, checkpoints, Ctrl-C, stopping and resuming exactly, bad flags."""
 
 import ast
+import copy
 import math
 import os
 import re
@@ -501,6 +502,7 @@ def test_prior_kl_is_finite_where_the_density_underflows():
 # --- one RIS update ---------------------------------------------------------------------------------------------------
 
 RIS_SETTINGS = dict(gamma=0.99, tau=0.25, alpha=0.1, h_lambda=0.1, n_subgoals=3, prior_epsilon=1e-16)  # tau: visible steps
+RIS_SETTINGS |= dict(vq_loss_reduction="mean")
 STATE_DIM_UPDATE, GOAL_DIM_UPDATE, ACTION_DIM_UPDATE, BATCH = 6, 2, 2, 32
 
 
@@ -532,9 +534,9 @@ def tiny_agent(groups: int) -> tuple[ris.Agent, ris.EpisodeReplay]:
     return agent, replay
 
 
-def update(agent: ris.Agent, replay: ris.EpisodeReplay) -> dict[str, torch.Tensor]:
+def update(agent: ris.Agent, replay: ris.EpisodeReplay, **settings) -> dict[str, torch.Tensor]:
     batch = replay.sample(BATCH, GOAL_DIM_UPDATE, 0.45, 0.2, 0.4)
-    return ris.ris_update(agent, batch, goal_dim=GOAL_DIM_UPDATE, **RIS_SETTINGS)
+    return ris.ris_update(agent, batch, goal_dim=GOAL_DIM_UPDATE, **(RIS_SETTINGS | settings))
 
 
 def test_make_agent_wiring():
@@ -610,16 +612,44 @@ def test_dgrl_update_moves_the_codebook_and_acting_does_not():
     assert any(not torch.equal(p, q) for p, q in zip(encoder.encoder.parameters(), encoder_weights, strict=True))
 
 
-def test_dgrl_representation_loss_is_the_sum_of_the_four_commitment_losses():
-    """ris_update passes s, s', g and s_g through the bottleneck in one call and adds 4 x its commitment loss (a mean over
-    the union): the sum of the four separate commitment losses of the paper's snippet."""
-    agent, _ = tiny_agent(4)
-    encoder = agent.goal_encoder.eval()  # no EMA step, so the separate calls see the same codebook
-    parts = [torch.randn(BATCH, GOAL_DIM_UPDATE) for _ in range(4)]
-    with torch.no_grad():
-        pooled = encoder(torch.cat(parts))[1]
-        separate = sum(encoder(part)[1] for part in parts)
-    torch.testing.assert_close(4 * pooled, separate)
+def test_commitment_losses_combine_as_their_mean_or_their_sum():
+    """Four embeddings with known distances to their codes, in one call of the bottleneck: its loss is the mean of their
+    four commitment losses beta/G sum_i ||c_i - e_oi||^2 (the paper's text), 4 x that mean is their sum (the snippet)."""
+    vq = ris.VectorQuantizerEMA(2, 2, 2, beta=0.5).eval()  # G = 2 one-entry segments; codes 0 and 10
+    vq.codebook.copy_(torch.tensor([[0.0], [10.0]]))
+    embeddings = [torch.tensor([[k, 0.0]]) for k in (1.0, 2.0, 3.0, 4.0)]  # segment k is k from code 0, segment 2 is on it
+    separate = [vq(z)[1] for z in embeddings]
+    torch.testing.assert_close(torch.stack(separate), torch.tensor([1.0, 4.0, 9.0, 16.0]) * 0.5 / 2)  # beta/G k^2
+    pooled = vq(torch.cat(embeddings))[1]
+    torch.testing.assert_close(ris.combined_commitment_loss(pooled, 4, "mean"), torch.tensor(30.0 / 16))
+    torch.testing.assert_close(ris.combined_commitment_loss(pooled, 4, "sum"), torch.tensor(30.0 / 4))
+
+
+@pytest.mark.parametrize(("reduction", "factor"), [("mean", 1), ("sum", 4)])
+def test_the_encoder_feels_the_commitment_losses_as_combined(reduction, factor):
+    """In ris_update the encoder's outputs for s' and s_g take part in nothing but the commitment loss, so the gradient
+    they receive is that loss's: factor x 2 beta (z - e) / (4 B G), with e the code each segment snapped to (the codebook
+    before the update) and factor 1 for the mean of the four losses, 4 for their sum."""
+    agent, replay = tiny_agent(4)
+    vq_before = copy.deepcopy(agent.goal_encoder.vq).eval()
+    outputs, grads = [], []  # the encoder's outputs that carry a gradient, and the gradients they receive
+
+    def keep(module, inputs, output):
+        if output.requires_grad:
+            outputs.append(output.detach())
+            output.register_hook(grads.append)
+
+    agent.goal_encoder.encoder.register_forward_hook(keep)
+    update(agent, replay, vq_loss_reduction=reduction)
+    assert len(outputs) == len(grads) == 1  # one encoder pass with gradient: s, s', g and s_g together
+    embeddings = outputs[0]
+    assert embeddings.shape == (4 * BATCH, 8)
+    codes = vq_before(embeddings)[0]
+    expected = factor * 2 * 0.25 * (embeddings - codes) / (4 * BATCH * 4)
+    for block in (1, 3):  # s' and s_g
+        rows = slice(block * BATCH, (block + 1) * BATCH)
+        assert expected[rows].abs().min() > 0
+        torch.testing.assert_close(grads[0][rows], expected[rows])
 
 
 def test_act_mean_action_is_tanh_of_the_mean():
@@ -918,6 +948,7 @@ def assert_clean_refusal(result: subprocess.CompletedProcess, *messages: str) ->
         ({"tau": math.inf}, r"--tau must be a finite number; got inf"),
         ({"total_timesteps": 10_000}, r"--total-timesteps \(10000\) must exceed --start-timesteps \(10000\)"),
         ({"total_timesteps": 1000, "start_timesteps": 0, "batch_size": 2048}, r"must exceed --start-timesteps \(0\) and "),
+        ({"vq_loss_reduction": "max"}, r"--vq-loss-reduction must be mean \(the paper's text\) or sum .*; got 'max'"),
     ],
 )
 def test_validate_names_the_bad_flag(overrides, message, capsys):
@@ -926,6 +957,7 @@ def test_validate_names_the_bad_flag(overrides, message, capsys):
     assert error.value.code == 2
     assert re.search(message, capsys.readouterr().err)
     ris.validate(ris.Args(env_id="AntU", groups=16))  # the defaults pass
+    ris.validate(ris.Args(env_id="AntU", groups=16, vq_loss_reduction="sum"))
 
 
 @pytest.mark.parametrize(

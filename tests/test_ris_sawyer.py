@@ -7,6 +7,7 @@ MUJOCO_GL, with a checkpoint evaluated, refused with other network flags, a vide
 stopping and resuming (env state and cut-short evaluation round trips, runs stopped by SIGTERM in the warm-up and
 mid-episode that resume to the scalars and checkpoint of a run straight through, changed flags refused)."""
 
+import copy
 import math
 import re
 import signal
@@ -514,6 +515,7 @@ def update(agent: sawyer.Agent, batch: dict, args: sawyer.Args, function=sawyer.
     return function(
         agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda, n_subgoals=args.n_subgoals,
         prior_epsilon=args.prior_epsilon, image_pad=args.image_pad, driml_coef=args.driml_coef,
+        vq_loss_reduction=args.vq_loss_reduction, vq_commitment_grad=args.vq_commitment_grad,
     )  # fmt: skip
 
 
@@ -581,6 +583,56 @@ def test_one_update_moves_every_network_the_codebook_and_the_targets_by_polyak(g
                 assert ((segments[:, None, :] == rows[None]).all(-1)).any(1).all(), name
     else:
         assert "codes" not in metrics and "vq_loss" not in metrics
+
+
+def test_commitment_losses_combine_as_their_mean_or_their_sum():
+    """Four embeddings with known distances to their codes, in one call of the bottleneck: its loss is the mean of their
+    four commitment losses beta/G sum_i ||c_i - e_oi||^2 (the paper's text), 4 x that mean is their sum (the snippet)."""
+    vq = VectorQuantizerEMA(2, 2, 2, beta=0.5).eval()  # G = 2 one-entry segments; codes 0 and 10
+    vq.codebook.copy_(torch.tensor([[0.0], [10.0]]))
+    embeddings = [torch.tensor([[k, 0.0]]) for k in (1.0, 2.0, 3.0, 4.0)]  # segment k is k from code 0, segment 2 is on it
+    separate = [vq(z)[1] for z in embeddings]
+    torch.testing.assert_close(torch.stack(separate), torch.tensor([1.0, 4.0, 9.0, 16.0]) * 0.5 / 2)  # beta/G k^2
+    pooled = vq(torch.cat(embeddings))[1]
+    torch.testing.assert_close(sawyer.combined_commitment_loss(pooled, 4, "mean"), torch.tensor(30.0 / 16))
+    torch.testing.assert_close(sawyer.combined_commitment_loss(pooled, 4, "sum"), torch.tensor(30.0 / 4))
+
+
+@pytest.mark.parametrize(
+    ("reduction", "grad", "factor"), [("mean", "all", 1), ("sum", "all", 4), ("mean", "state", 1), ("sum", "state", 4)]
+)
+def test_the_encoder_feels_the_commitment_loss_of_each_embedding(reduction, grad, factor):
+    """By default (--vq-commitment-grad all) the encoder's features of s', g and s_g carry a gradient, and it is their
+    commitment loss's alone: factor x 2 beta (z - e) / (4 B G), with e the code each segment snapped to (the codebook before
+    the update), factor 1 for the mean of the four losses and 4 for their sum; s's features get that and the critic's
+    gradient. With --vq-commitment-grad state only s's features carry a gradient (RIS's stop-gradient)."""
+    args, agent, replay, rng = tiny_agent(4)
+    args.vq_loss_reduction, args.vq_commitment_grad = reduction, grad
+    assert sawyer.Args().vq_loss_reduction == "mean" and sawyer.Args().vq_commitment_grad == "all"  # the defaults
+    vq_before = copy.deepcopy(agent.vq).eval()
+    outputs, grads = [], []  # the encoder's outputs that carry a gradient, and the gradients they receive
+
+    def keep(module, inputs, output):
+        if output.requires_grad:
+            outputs.append(output.detach())
+            output.register_hook(grads.append)
+
+    agent.encoder.linear.register_forward_hook(keep)
+    update(agent, replay.sample(args.batch_size, 0.2, 0.4, rng), args)
+    batch = args.batch_size
+    assert len(outputs) == len(grads) == 1
+    features, grad_features = outputs[0], grads[0]
+    commitment = factor * 2 * args.vq_beta * (features - vq_before(features)[0]) / (4 * batch * 4)
+    if grad == "state":
+        assert features.shape == (batch, 16)  # s alone: its critic and commitment gradients
+        assert not torch.allclose(grad_features, commitment)
+        return
+    assert features.shape == (4 * batch, 16)  # s, s', g, s_g in one pass with gradient
+    for block in (1, 2, 3):  # s', g, s_g: the commitment loss and nothing else (no critic gradient through the goal)
+        rows = slice(block * batch, (block + 1) * batch)
+        assert commitment[rows].abs().min() > 0
+        torch.testing.assert_close(grad_features[rows], commitment[rows])
+    assert not torch.allclose(grad_features[:batch], commitment[:batch])  # s: the critic's gradient as well
 
 
 @pytest.mark.parametrize("groups", [0, 4])
@@ -682,6 +734,8 @@ def assert_clean_refusal(result: subprocess.CompletedProcess, *messages: str) ->
         ({"driml_coef": -1.0}, "--driml-coef must be >= 0; got -1.0"),
         ({"seed": -1}, "--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got -1"),
         ({"image_pad": 84}, "--image-pad must be in [0, 83]; got 84"),
+        ({"vq_loss_reduction": "max"}, "--vq-loss-reduction must be mean (the paper's text) or sum (the paper's snippet)"),
+        ({"vq_commitment_grad": "none"}, "--vq-commitment-grad must be all (s, s', g and s_g, the paper's snippet) or state"),
         ({"eval_episodes": 0}, "--eval-episodes must be >= 1; got 0"),
         ({"her_goal_frac": 0.8, "her_random_frac": 0.4}, "--her-goal-frac (0.8) and --her-random-frac (0.4)"),
         # a replay that restarts at row 0 before it holds a batch would never start training
@@ -700,6 +754,7 @@ def test_validate_names_the_bad_flag(overrides, message, capsys):
     assert message in capsys.readouterr().err
     for groups in (0, 1, 2, 4, 8, 16):
         sawyer.validate(sawyer.Args(groups=groups))  # the defaults pass
+    sawyer.validate(sawyer.Args(vq_loss_reduction="sum", vq_commitment_grad="state"))
     sawyer.validate(sawyer.Args(total_timesteps=115, start_timesteps=0, batch_size=16, buffer_size=117))  # the least
 
 

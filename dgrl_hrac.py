@@ -1331,6 +1331,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
         print(f"{script}: --checkpoint {path} holds {found}; it needs {wanted}", file=sys.stderr)
         raise SystemExit(2)
+    older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
+    if older:  # a flag added since: the file cannot say which value it had
+        print(f"{script}: --checkpoint {path} was written before {older} existed; use its version", file=sys.stderr)
+        raise SystemExit(2)
     differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
     if differ:
         print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
@@ -1382,6 +1386,11 @@ def load_resume(args) -> dict:
         print(f"{script}: --resume {args.resume} holds another script's or format's state", file=sys.stderr)
         raise SystemExit(2)
     flags, kept = vars(args), {key: value for key, value in saved["args"].items() if key not in FREE_FLAGS}
+    older = " ".join(f"--{key.replace('_', '-')}" for key in flags if key not in saved["args"] and key not in FREE_FLAGS)
+    if older:  # a flag added since: continuing with today's default could change the run halfway
+        problem = f"--resume {args.resume} was started before {older} existed"
+        print(f"{script}: {problem}; continue it with the version that started it", file=sys.stderr)
+        raise SystemExit(2)
     differ = [flag_text(key, value) for key, value in kept.items() if flags.get(key) != value]
     if differ:
         print(f"{script}: --resume {args.resume} was started with other settings: pass {' '.join(differ)}", file=sys.stderr)

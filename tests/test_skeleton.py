@@ -357,3 +357,33 @@ def test_resume_due_at_each_multiple_of_the_steps_and_of_the_seconds(monkeypatch
         due += [step] if by_clock.resume_due(step, 60, 0) else []
     assert due == [3, 6]  # 75 s, then 150 s
     assert not any(script.Progress(1000).resume_due(step, 0, 0) for step in range(1, 500))
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_files_written_before_a_flag_existed_are_refused(script, tmp_path, capsys):
+    """A resume.pt or checkpoint whose saved flags lack one the script has now (a flag added since) cannot say which
+    value its run had: continuing or evaluating it with today's default could silently change the run, so it is
+    refused, naming the flag."""
+    sys.path.insert(0, str(ROOT))
+    module = __import__(script[:-3])
+    args = module.Args()
+    saved_args = dict(vars(args))
+    del saved_args["seed"]  # every script has it and it is never a free flag
+    run_dir = tmp_path / "runs" / "old_run"
+    run_dir.mkdir(parents=True)
+    format_ = module.CHECKPOINT_FORMAT
+    torch.save({"script": script, "format": format_, "args": saved_args}, run_dir / module.RESUME_FILE)
+    args.resume = str(run_dir)
+    with pytest.raises(SystemExit) as stopped:
+        module.load_resume(args)
+    assert stopped.value.code == 2
+    assert f"--resume {run_dir} was started before --seed existed" in capsys.readouterr().err
+    checkpoint_args = dict(vars(module.Args()))
+    dropped = module.MUST_MATCH[0]
+    del checkpoint_args[dropped]
+    torch.save({"script": script, "format": format_, "args": checkpoint_args}, tmp_path / "old.cleanrl_model")
+    with pytest.raises(SystemExit) as stopped:
+        module.load_checkpoint(str(tmp_path / "old.cleanrl_model"), module.Args(), module.MUST_MATCH, torch.device("cpu"))
+    assert stopped.value.code == 2
+    flag = "--" + dropped.replace("_", "-")
+    assert f"old.cleanrl_model was written before {flag} existed; use its version" in capsys.readouterr().err

@@ -21,7 +21,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from timing import median_time  # benchmark/timing.py
 
 import dgrl_goal_dqn as gdqn
-import dgrl_mnist as mnist
 
 
 def timed(update, optimizers, fast: str, call, device: torch.device, repeats: int = 20) -> float:
@@ -103,6 +102,8 @@ def td_time(groups: int, finetune: bool, device: torch.device, fast: str) -> flo
 
 def mnist_time(groups: int, device: torch.device, fast: str) -> float:
     """One Color-MNIST training step at the defaults (batch 128, hidden 400, latent 30, 256 codes) on random images."""
+    import dgrl_mnist as mnist  # imported here: it needs matplotlib, which the goal-DQN cases (and gpu_check.sh) do not
+
     args = mnist.Args(groups=groups)
     torch._dynamo.reset()
     model = mnist.make_model(

@@ -10,7 +10,9 @@ probe sends SIGINT (the scripts stop after the current step) and prints one line
 
 The rate is taken between the first progress line after `--skip` seconds (start-up, the random warm-up phase and any
 compilation fall before it) and the last line; with fewer than two such lines it falls back to the script's own
-whole-run figure from its final line, and says so.
+whole-run figure from its final line, and says so. With `--stop-wait S`, a command still running S seconds after the
+SIGINT (a step that takes minutes, such as a first compilation on a slow machine) is killed, and the line says so: the
+rate from the progress lines it printed still stands.
 """
 
 import argparse
@@ -27,7 +29,7 @@ PROGRESS = re.compile(r"^(?:step|frame|image)\s+(\d+)/(\d+)")
 FINAL = re.compile(r"^(?:done|stopped): (\d+) \w+.*?; (\d+)s;")
 
 
-def probe(command: list[str], seconds: float, skip: float) -> str:
+def probe(command: list[str], seconds: float, skip: float, stop_wait: float | None = None) -> str:
     lines: list[tuple[float, int]] = []
     final = None
     with tempfile.TemporaryDirectory(prefix="sps_probe_") as folder:
@@ -36,8 +38,18 @@ def probe(command: list[str], seconds: float, skip: float) -> str:
             env=os.environ | {"PYTHONUNBUFFERED": "1"},
         )  # fmt: skip
         start = time.time()
-        timer = threading.Timer(seconds, lambda: process.poll() is None and process.send_signal(signal.SIGINT))
-        timer.start()
+        killed = []
+
+        def kill():  # the command outlived its stop wait
+            if process.poll() is None:
+                process.kill()
+                killed.append(True)
+
+        timers = [threading.Timer(seconds, lambda: process.poll() is None and process.send_signal(signal.SIGINT))]
+        if stop_wait is not None:
+            timers.append(threading.Timer(seconds + stop_wait, kill))
+        for timer in timers:
+            timer.start()
         tail = []
         for line in process.stdout:
             now = time.time() - start
@@ -47,10 +59,13 @@ def probe(command: list[str], seconds: float, skip: float) -> str:
             elif match := FINAL.match(line.strip()):
                 final = (int(match.group(1)), int(match.group(2)))
         process.wait()
-        timer.cancel()
+        for timer in timers:
+            timer.cancel()
     elapsed = time.time() - start
     name = " ".join(os.path.basename(part) if part.endswith(".py") else part for part in command[1:])
     name = " ".join(name.split())[:200]  # one line
+    if killed:
+        name = f"killed {stop_wait:.0f} s after its SIGINT; {name}"
     steady = [(at, step) for at, step in lines if at >= skip]
     if len(steady) >= 2 and steady[-1][1] > steady[0][1]:
         (t0, s0), (t1, s1) = steady[0], steady[-1]
@@ -67,10 +82,11 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=90.0, help="how long the command runs before SIGINT")
     parser.add_argument("--skip", type=float, default=30.0, help="progress lines before this many seconds are ignored")
+    parser.add_argument("--stop-wait", type=float, default=None, help="kill the command this long after its SIGINT")
     parser.add_argument("command", nargs=argparse.REMAINDER, help="the command, after --")
     options = parser.parse_args()
     command = options.command[1:] if options.command[:1] == ["--"] else options.command
     if not command:
         parser.error("give the command after --")
-    print(probe(command, options.seconds, options.skip), flush=True)
+    print(probe(command, options.seconds, options.skip, options.stop_wait), flush=True)
     sys.exit(0)

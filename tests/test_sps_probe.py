@@ -43,6 +43,14 @@ def test_probe_measures_the_rate_after_the_skip_and_stops_the_command():
     assert int(re.search(r"(\d+) s in all", line).group(1)) >= 3, line  # stopped by the SIGINT at 3 s, not before
 
 
+def test_probe_kills_a_command_that_outlasts_its_stop_wait():
+    deaf = FAKE.replace("lambda *_: stop.append(1)", "lambda *_: None")  # a command whose step outlasts the stop wait
+    line = sps_probe.probe([sys.executable, "-c", deaf], seconds=2.0, skip=0.5, stop_wait=1.0)
+    assert "killed 1 s after its SIGINT" in line, line
+    assert "over the last" in line, line  # the progress lines before the kill still give the rate
+    assert 7000 < float(line.split()[1]) < 13000, line
+
+
 def test_probe_script_prints_one_line():
     command = [sys.executable, str(ROOT / "benchmark" / "sps_probe.py"), "--seconds", "2", "--skip", "0.5", "--"]
     result = subprocess.run([*command, sys.executable, "-c", FAKE], capture_output=True, text=True, timeout=HANG_TIMEOUT)

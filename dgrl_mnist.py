@@ -480,6 +480,9 @@ def common_errors(args) -> list[str]:
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
+    oldest_torch = (2, 11)  # the oldest torch these scripts run on (README, Install)
+    if tuple(int(part) for part in torch.__version__.split("+")[0].split(".")[:2]) < oldest_torch:
+        errors.append(f"torch {torch.__version__} is older than 2.11, the oldest these scripts run on: see requirements.txt")
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)

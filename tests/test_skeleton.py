@@ -188,6 +188,18 @@ def test_common_errors_cover_seed_threads_and_the_codebook_flags():
     assert script.common_errors(script.Args(seed=2**64))[0].endswith("got 18446744073709551616")
 
 
+OLD_AND_NEW_TORCHES = [("2.10.1+cu128", True), ("2.9.0", True), ("2.11.0+cu130", False), ("2.13.0", False)]
+
+
+@pytest.mark.parametrize(("version", "refused"), OLD_AND_NEW_TORCHES)
+def test_a_torch_older_than_the_oldest_supported_is_refused(version, refused, monkeypatch):
+    import dgrl_mnist as script
+
+    monkeypatch.setattr(torch, "__version__", version)
+    message = f"torch {version} is older than 2.11, the oldest these scripts run on: see requirements.txt"
+    assert (message in script.common_errors(script.Args())) == refused
+
+
 def test_flag_text_writes_booleans_as_tyro_does():
     import dgrl_mnist as script
 

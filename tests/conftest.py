@@ -270,3 +270,17 @@ def check_fast_update(script, update, agent, call, optimizers, warm: int = 20, u
     with guard:
         call(update, copy.deepcopy(agent), warm)
     assert guard.ops > 0
+
+
+def record_outputs_with_grad(module: torch.nn.Module) -> tuple[list, list]:
+    """(outputs, gradients), filled as `module` runs: each of its outputs that carries a gradient (detached) and, after
+    the backward pass, the gradient that output received."""
+    outputs, grads = [], []
+
+    def keep(module, inputs, output):
+        if output.requires_grad:
+            outputs.append(output.detach())
+            output.register_hook(grads.append)
+
+    module.register_forward_hook(keep)
+    return outputs, grads

@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import HANG_TIMEOUT
+from conftest import HANG_TIMEOUT, record_outputs_with_grad
 from gymnasium.utils.env_checker import check_env
 
 import dgrl_ris as ris
@@ -632,14 +632,7 @@ def test_the_encoder_feels_the_commitment_losses_as_combined(reduction, factor):
     before the update) and factor 1 for the mean of the four losses, 4 for their sum."""
     agent, replay = tiny_agent(4)
     vq_before = copy.deepcopy(agent.goal_encoder.vq).eval()
-    outputs, grads = [], []  # the encoder's outputs that carry a gradient, and the gradients they receive
-
-    def keep(module, inputs, output):
-        if output.requires_grad:
-            outputs.append(output.detach())
-            output.register_hook(grads.append)
-
-    agent.goal_encoder.encoder.register_forward_hook(keep)
+    outputs, grads = record_outputs_with_grad(agent.goal_encoder.encoder)
     update(agent, replay, vq_loss_reduction=reduction)
     assert len(outputs) == len(grads) == 1  # one encoder pass with gradient: s, s', g and s_g together
     embeddings = outputs[0]

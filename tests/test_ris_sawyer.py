@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import HANG_TIMEOUT
+from conftest import HANG_TIMEOUT, record_outputs_with_grad
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_ris_sawyer as sawyer
@@ -610,14 +610,7 @@ def test_the_encoder_feels_the_commitment_loss_of_each_embedding(reduction, grad
     args.vq_loss_reduction, args.vq_commitment_grad = reduction, grad
     assert sawyer.Args().vq_loss_reduction == "mean" and sawyer.Args().vq_commitment_grad == "all"  # the defaults
     vq_before = copy.deepcopy(agent.vq).eval()
-    outputs, grads = [], []  # the encoder's outputs that carry a gradient, and the gradients they receive
-
-    def keep(module, inputs, output):
-        if output.requires_grad:
-            outputs.append(output.detach())
-            output.register_hook(grads.append)
-
-    agent.encoder.linear.register_forward_hook(keep)
+    outputs, grads = record_outputs_with_grad(agent.encoder.linear)
     update(agent, replay.sample(args.batch_size, 0.2, 0.4, rng), args)
     batch = args.batch_size
     assert len(outputs) == len(grads) == 1

@@ -612,17 +612,20 @@ def test_dgrl_update_moves_the_codebook_and_acting_does_not():
     assert any(not torch.equal(p, q) for p, q in zip(encoder.encoder.parameters(), encoder_weights, strict=True))
 
 
-def test_commitment_losses_combine_as_their_mean_or_their_sum():
+@pytest.mark.parametrize("script", ["dgrl_ris", "dgrl_ris_sawyer"])
+def test_commitment_losses_combine_as_their_mean_or_their_sum(script):
     """Four embeddings with known distances to their codes, in one call of the bottleneck: its loss is the mean of their
-    four commitment losses beta/G sum_i ||c_i - e_oi||^2 (the paper's text), 4 x that mean is their sum (the snippet)."""
+    four commitment losses beta/G sum_i ||c_i - e_oi||^2 (the paper's text), 4 x that mean is their sum (the snippet).
+    Both RIS scripts hold the same rule (combined_commitment_loss)."""
+    combined = __import__(script).combined_commitment_loss
     vq = ris.VectorQuantizerEMA(2, 2, 2, beta=0.5).eval()  # G = 2 one-entry segments; codes 0 and 10
     vq.codebook.copy_(torch.tensor([[0.0], [10.0]]))
     embeddings = [torch.tensor([[k, 0.0]]) for k in (1.0, 2.0, 3.0, 4.0)]  # segment k is k from code 0, segment 2 is on it
     separate = [vq(z)[1] for z in embeddings]
     torch.testing.assert_close(torch.stack(separate), torch.tensor([1.0, 4.0, 9.0, 16.0]) * 0.5 / 2)  # beta/G k^2
     pooled = vq(torch.cat(embeddings))[1]
-    torch.testing.assert_close(ris.combined_commitment_loss(pooled, 4, "mean"), torch.tensor(30.0 / 16))
-    torch.testing.assert_close(ris.combined_commitment_loss(pooled, 4, "sum"), torch.tensor(30.0 / 4))
+    torch.testing.assert_close(combined(pooled, 4, "mean"), torch.tensor(30.0 / 16))
+    torch.testing.assert_close(combined(pooled, 4, "sum"), torch.tensor(30.0 / 4))
 
 
 @pytest.mark.parametrize(("reduction", "factor"), [("mean", 1), ("sum", 4)])

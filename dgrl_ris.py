@@ -21,7 +21,7 @@ CPU studies). `--groups 0` is plain RIS from the same file.
 
 Environments: the four Ant mazes of RIS (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built here from the Ant model inside
 gymnasium, and every gymnasium-robotics maze id (`PointMaze_UMaze-v3`, `AntMaze_UMaze-v5`, ...).
-The study: benchmark/ris.sh. Docs: docs/dgrl_ris.md.
+The CPU studies: python benchmark/launch.py --preset ris-pointmaze (or ris-antu-cpu). Docs: docs/dgrl_ris.md.
 """
 
 import copy

@@ -29,7 +29,7 @@ Training resets everywhere in the arena; evaluation on the test configuration, w
 
 Without a display, rendering is headless (MUJOCO_GL defaults to egl; set it to osmesa where EGL is missing). Env frames/s
 and a picture of state and goal images: benchmark/sawyer_env.py; update times: benchmark/bench_ris_sawyer.py; the CPU
-study: benchmark/ris_sawyer.sh. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
+study: python benchmark/launch.py --preset sawyer-cpu. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
 """
 
 import importlib.util

@@ -7,7 +7,8 @@ read). Each case starts from the same state and seed, runs one training call eag
 codebook the compiled output holds: "before the update" (as eager) or "after the update". The second case makes every
 code due for a dead-code restart in that call. On torch 2.13.0 both cases agree with eager; on torch 2.11.0 the case
 with restarts returns the codes after the update (the restarted ones), the cause of the compiled-vs-eager test failures
-of DGRL updates on that version (docs/launch.md).
+of DGRL updates on that version (docs/launch.md). `TORCH_LOGS=output_code` shows why: torch 2.11's inductor fuses the
+write of the restarted codebook and the gather of the selected codes into one kernel.
 """
 
 import copy

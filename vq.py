@@ -151,16 +151,19 @@ class VectorQuantizerEMA(nn.Module):
         self.ema_sum.mul_(self.decay).add_(sums, alpha=1.0 - self.decay)
         total = self.ema_count.sum()
         smoothed = (self.ema_count + self.eps) / (total + self.n_embed * self.eps) * total
-        self.codebook.copy_(self.ema_sum / smoothed.unsqueeze(1))
+        codebook = self.ema_sum / smoothed.unsqueeze(1)
         if self.dead_code_steps > 0:
             self.steps_unused.add_(1).masked_fill_(counts > 0, 0)
             # Written without a data-dependent branch so that the GPU never waits for the host.
             dead = (self.steps_unused >= self.dead_code_steps).unsqueeze(1)
             restart = segments[torch.randint(len(segments), (self.n_embed,), device=segments.device)]
-            self.codebook.copy_(torch.where(dead, restart, self.codebook))
+            codebook = torch.where(dead, restart, codebook)
             self.ema_sum.copy_(torch.where(dead, restart, self.ema_sum))
             self.ema_count.copy_(torch.where(dead.squeeze(1), torch.ones_like(self.ema_count), self.ema_count))
             self.steps_unused.masked_fill_(dead.squeeze(1), 0)
+        # Every row written, as copy_ would. Not copy_: torch 2.11's compiler fuses that copy with the forward's gather of
+        # the selected codes, which then reads restarted codes (benchmark/compiled_vq_probe.py); index_copy_ it does not.
+        self.codebook.index_copy_(0, torch.arange(self.n_embed, device=codebook.device), codebook)
 
     def embed_indices(self, indices: torch.Tensor) -> torch.Tensor:
         """Codes for indices of shape (..., groups), concatenated to shape (..., dim): the inverse of quantization."""

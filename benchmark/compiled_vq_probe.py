@@ -5,10 +5,11 @@
 The quantized output must be the codes as they were before the call's EMA update (the codebook moves after it has been
 read). Each case starts from the same state and seed, runs one training call eagerly and one compiled, and says which
 codebook the compiled output holds: "before the update" (as eager) or "after the update". The second case makes every
-code due for a dead-code restart in that call. On torch 2.13.0 both cases agree with eager; on torch 2.11.0 the case
-with restarts returns the codes after the update (the restarted ones), the cause of the compiled-vs-eager test failures
-of DGRL updates on that version (docs/launch.md). `TORCH_LOGS=output_code` shows why: torch 2.11's inductor fuses the
-write of the restarted codebook and the gather of the selected codes into one kernel.
+code due for a dead-code restart in that call. Both cases agree with eager on torch 2.13.0 and on torch 2.11.0. On torch
+2.11.0 the case with restarts returned the codes after the update (the restarted ones) while vq.py wrote the new
+codebook with `copy_`: torch 2.11's inductor fused that write and the gather of the selected codes into one kernel
+(`TORCH_LOGS=output_code`), the cause of the compiled-vs-eager test failures of DGRL updates on that version
+(docs/launch.md). vq.py now writes it with `index_copy_`, which that version does not fuse so.
 """
 
 import copy

@@ -8,8 +8,8 @@ codebook the compiled output holds: "before the update" (as eager) or "after the
 code due for a dead-code restart in that call. Both cases agree with eager on torch 2.13.0 and on torch 2.11.0. On torch
 2.11.0 the case with restarts returned the codes after the update (the restarted ones) while vq.py wrote the new
 codebook with `copy_`: torch 2.11's inductor fused that write and the gather of the selected codes into one kernel
-(`TORCH_LOGS=output_code`), the cause of the compiled-vs-eager test failures of DGRL updates on that version
-(docs/launch.md). vq.py now writes it with `index_copy_`, which that version does not fuse so.
+(`TORCH_LOGS=output_code`), the cause of eight of the nine compiled-vs-eager test failures of DGRL updates on that
+version (docs/launch.md). vq.py now writes it with `index_copy_`, which that version does not fuse so.
 """
 
 import copy

@@ -471,6 +471,7 @@ def start(run: Run, python: str, threads: int) -> Attempt:
 
 def write_status(run: Run, status: dict) -> None:
     path = run.folder / STATUS_FILE
+    run.folder.mkdir(parents=True, exist_ok=True)  # a Slurm job that died before its run started made no folder
     temporary = path.with_name(f"{STATUS_FILE}.{os.getpid()}.tmp")  # the launcher and a job may write at once
     temporary.write_text(json.dumps(status, indent=1) + "\n")
     os.replace(temporary, path)

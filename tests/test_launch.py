@@ -409,9 +409,9 @@ def test_a_preempted_slurm_job_requeues_and_ends_equal_to_an_uninterrupted_run(t
 @pytest.mark.slurm
 @needs_slurm
 def test_a_slurm_job_at_its_time_limit_requeues_and_ends_equal_to_an_uninterrupted_run(tmp_path):
-    """A 1-minute limit with the stop signal 30 s before it: the run, held at its first progress line, is stopped by it
-    and requeued."""
-    log = interrupted_run_resumes_exactly(tmp_path, ["--time-min", "1", "--signal-delay-s", "30"], None)
+    """A 2-minute limit with the stop signal 60 s before it: the run, held at its first progress line, is stopped by it
+    and requeued. The signal kills a job still starting Python, so it comes late enough for a loaded machine."""
+    log = interrupted_run_resumes_exactly(tmp_path, ["--time-min", "2", "--signal-delay-s", "60"], None)
     assert re.search(r"^stopped: ", log, re.M)
 
 

@@ -159,243 +159,6 @@ class Args:
     """size of the goal embedding (m) in both modes; must be divisible by --groups"""
 
 
-# --- Environment ------------------------------------------------------------------------------------------------------
-
-N_OBJECTS, N_COLORS, N_STATES = 11, 6, 4  # MiniGrid's object, colour and state ids (the agent's state is its direction)
-AGENT, EMPTY = OBJECT_TO_IDX["agent"], OBJECT_TO_IDX["empty"]
-
-
-def minigrid_ids() -> list[str]:
-    return sorted(name for name in gym.registry if name.startswith("MiniGrid-"))
-
-
-def full_grid(env) -> np.ndarray:
-    """The fully observed (W, H, 3) grid of [object, colour, state] ids, the agent as [agent, red, direction]: minigrid's
-    FullyObsWrapper encoding, built from the grid's cell list (row-major, y * W + x) in one pass (2.3x faster)."""
-    cells = [(EMPTY, 0, 0) if cell is None else cell.encode() for cell in env.grid.grid]
-    grid = np.array(cells, dtype=np.uint8).reshape(env.height, env.width, 3).transpose(1, 0, 2)
-    grid[env.agent_pos[0], env.agent_pos[1]] = (AGENT, COLOR_TO_IDX["red"], env.agent_dir)
-    return grid
-
-
-def _no_partial_view():
-    """Replaces MiniGridEnv.gen_obs: the egocentric 7x7 view it renders at every step (80% of a step's time) is unused
-    here, where teacher and student see the full grid."""
-    return None
-
-
-def carried(env) -> tuple[int, int]:
-    """(object id, colour id) of what the agent carries; (empty, 0) when it carries nothing."""
-    return (EMPTY, 0) if env.carrying is None else (OBJECT_TO_IDX[env.carrying.type], COLOR_TO_IDX[env.carrying.color])
-
-
-class MiniGridVecEnv(gym.vector.VectorEnv):
-    """`num_envs` MiniGrid envs stepped in one loop, fully observed, with same-step autoreset: gymnasium's VectorEnv API.
-
-    An observation is a dict of batched arrays: "grid", (num_envs, W, H, 3) uint8 [object, colour, state] ids
-    (`full_grid`), and "carried", (num_envs, 2) int64 (`carried`). `reset(seed=s)` seeds env i with s + i (a list gives
-    each env its seed) and returns (obs, {}). `step(actions)` returns (obs, rewards, terminated, truncated, info); an env
-    whose episode ended is reset in the same step (AutoresetMode.SAME_STEP: obs holds its reset frame), and info holds
-    - "final_grid": every env's grid right after the step, before any reset: what the goal-reach test compares (equal
-      to obs["grid"] where no episode ended). A dense (num_envs, W, H, 3) array rather than gymnasium's "final_obs"
-      object array of the ended envs only, so that the reach test runs on all envs at once;
-    - "episode": {"r": return, "l": length} of the episodes that ended, where the mask "_episode" is set (the layout of
-      gymnasium's RecordEpisodeStatistics).
-    A new layout is generated at every reset (procedural generation). Only env 0 renders (`render_env0`): `render()`
-    returns (env 0's frame,), and while `record` is set, `frame0` is env 0's frame after the last step, before any reset.
-    """
-
-    metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
-
-    def __init__(self, env_id: str, num_envs: int, render_env0: bool = False):
-        self.envs = [
-            gym.make(env_id, render_mode="rgb_array" if render_env0 and i == 0 else None).unwrapped for i in range(num_envs)
-        ]
-        for env in self.envs:
-            env.gen_obs = _no_partial_view
-        self.env_id = env_id
-        self.num_envs = num_envs
-        self.render_mode = "rgb_array" if render_env0 else None
-        self.width = self.envs[0].width
-        self.height = self.envs[0].height
-        self.max_steps = self.envs[0].max_steps
-        self.n_actions = int(self.envs[0].action_space.n)
-        highest_id = np.broadcast_to(np.array([N_OBJECTS, N_COLORS, N_STATES]) - 1, (self.width, self.height, 3))
-        grid_space = gym.spaces.Box(0, highest_id.astype(np.uint8), dtype=np.uint8)
-        carried_space = gym.spaces.Box(0, np.array([N_OBJECTS - 1, N_COLORS - 1]), dtype=np.int64)
-        self.single_observation_space = gym.spaces.Dict({"grid": grid_space, "carried": carried_space})
-        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
-        self.single_action_space = gym.spaces.Discrete(self.n_actions)
-        self.action_space = gym.spaces.MultiDiscrete(np.full(num_envs, self.n_actions))
-        self.grids = np.zeros((num_envs, self.width, self.height, 3), dtype=np.uint8)  # observation to act on
-        self.after = np.zeros_like(self.grids)  # frame right after the last step, before autoreset
-        self.carried = np.zeros((num_envs, 2), dtype=np.int64)
-        self.episode_return = np.zeros(num_envs)
-        self.episode_length = np.zeros(num_envs, dtype=np.int64)
-        self.record = False  # while set, `frame0` is env 0's render after each step
-        self.frame0 = None
-
-    def _observe(self, i: int, target: np.ndarray) -> None:
-        env = self.envs[i]
-        grid = full_grid(env)
-        if grid.shape != target.shape[1:]:
-            raise RuntimeError(f"{self.env_id}: the grid changed size from {target.shape[1:3]} to {grid.shape[:2]}")
-        target[i] = grid
-        self.carried[i] = carried(env)
-
-    def _observation(self) -> dict[str, np.ndarray]:
-        return {"grid": self.grids.copy(), "carried": self.carried.copy()}
-
-    def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
-        seeds = seed if isinstance(seed, list) else [None if seed is None else seed + i for i in range(self.num_envs)]
-        for i, env in enumerate(self.envs):
-            env.reset(seed=seeds[i], options=options)
-            self._observe(i, self.grids)
-        self.episode_return[:] = 0
-        self.episode_length[:] = 0
-        return self._observation(), {}
-
-    def step(self, actions: np.ndarray):
-        rewards = np.zeros(self.num_envs)
-        terminated = np.zeros(self.num_envs, dtype=bool)
-        truncated = np.zeros(self.num_envs, dtype=bool)
-        for i, env in enumerate(self.envs):
-            _, rewards[i], terminated[i], truncated[i], _ = env.step(int(actions[i]))
-            self._observe(i, self.after)
-        if self.record:
-            self.frame0 = self.envs[0].render()
-        self.grids[:] = self.after
-        self.episode_return += rewards
-        self.episode_length += 1
-        done = terminated | truncated
-        info = {
-            "final_grid": self.after.copy(),
-            "episode": {"r": np.where(done, self.episode_return, 0.0), "l": np.where(done, self.episode_length, 0)},
-            "_episode": done,
-        }
-        for i in np.flatnonzero(done):
-            self.envs[i].reset()
-            self._observe(i, self.grids)
-        self.episode_return[done] = 0
-        self.episode_length[done] = 0
-        return self._observation(), rewards, terminated, truncated, info
-
-    def render(self) -> tuple[np.ndarray]:
-        return (self.envs[0].render(),)
-
-    def close_extras(self, **kwargs) -> None:
-        for env in self.envs:
-            env.close()
-
-    def get_state(self) -> dict:
-        """A copy of everything the next steps and resets depend on, for --resume: each env's attributes but the renderer's
-        and its spec (the grid with its objects, agent position and direction, what it carries, step count, mission,
-        np_random, and what an env class adds, e.g. KeyCorridor's target object, kept identical to the object carried),
-        and the current observation and episode statistics. Copied as a whole, so objects shared between envs' attributes
-        stay shared (pickling a gymnasium env instead would rebuild it from its constructor arguments)."""
-        envs = [{key: value for key, value in env.__dict__.items() if key not in NOT_ENV_STATE} for env in self.envs]
-        arrays = {key: getattr(self, key) for key in ("grids", "carried", "episode_return", "episode_length")}
-        return copy.deepcopy({"envs": envs, **arrays})
-
-    def set_state(self, state: dict) -> None:
-        """Continue from `get_state()`'s copy (which stays the caller's): the episodes in progress go on."""
-        state = copy.deepcopy(state)
-        for env, attributes in zip(self.envs, state.pop("envs"), strict=True):
-            env.__dict__.update(attributes)
-        for key, value in state.items():
-            getattr(self, key)[:] = value
-
-
-NOT_ENV_STATE = ("window", "clock", "render_mode", "spec", "gen_obs")  # renderer, free --capture-video, spec, our patch
-
-
-class GoalBook:
-    """Per-env goal bookkeeping in numpy: the goal cell (flat index x * H + y), the frame it was issued on, the
-    teacher's log-probability of it and the steps taken since."""
-
-    def __init__(self, num_envs: int, width: int, height: int):
-        self.height = height
-        self.goal = np.zeros(num_envs, dtype=np.int64)
-        self.frame = np.zeros((num_envs, width, height, 3), dtype=np.uint8)
-        self.logp = np.zeros(num_envs, dtype=np.float32)
-        self.steps = np.zeros(num_envs, dtype=np.int64)
-
-    def reached(self, frames: np.ndarray) -> np.ndarray:
-        """The goal test of AMIGo's published runs: the goal cell's [object, colour, state] differs from the same cell
-        in the goal frame (the agent stepped on it or turned there, a door there opened, an object there was moved)."""
-        rows = np.arange(len(self.goal))
-        x, y = np.divmod(self.goal, self.height)
-        return (frames[rows, x, y] != self.frame[rows, x, y]).any(-1)
-
-    def advance(self, after: np.ndarray) -> np.ndarray:
-        """Count the step just taken and test every env's goal on the frame right after it (before any autoreset)."""
-        self.steps += 1
-        return self.reached(after)
-
-    def issue(self, mask: np.ndarray, frames: np.ndarray, goals: np.ndarray, logps: np.ndarray) -> None:
-        self.goal[mask] = goals
-        self.frame[mask] = frames
-        self.logp[mask] = logps
-        self.steps[mask] = 0
-
-
-def intrinsic_reward(reached: np.ndarray, steps: np.ndarray, max_steps: int, coef: float) -> np.ndarray:
-    """AMIGo's goal reward: 1 - 0.9 * (steps since the goal was issued) / (episode step limit), on reaching it."""
-    return coef * reached * (1.0 - 0.9 * steps / max_steps)
-
-
-def student_reward(extrinsic: np.ndarray, intrinsic: np.ndarray) -> np.ndarray:
-    """AMIGo's student reward: extrinsic + intrinsic clipped to [-1, 1], plus 1 more on extrinsic success."""
-    return np.clip(extrinsic + intrinsic, -1.0, 1.0) + (extrinsic > 0)
-
-
-def teacher_reward(reached, steps, extrinsic_success, t_star: int, negative: float = -0.3, positive: float = 1.0):
-    """AMIGo's teacher reward per goal outcome: `negative`, plus `positive` if the goal was reached after at least t*
-    steps, clipped to [-1, 1]; 1 whenever the episode's extrinsic reward came in the outcome's step."""
-    rewards = np.clip(negative + positive * (reached & (steps >= t_star)), -1.0, 1.0)
-    return np.where(extrinsic_success, 1.0, rewards)
-
-
-class TStar:
-    """AMIGo's difficulty schedule: after each teacher update, a mean teacher reward >= threshold extends a streak
-    (anything lower ends it); a streak of `patience` raises t* by one (up to `maximum`) and starts a new streak."""
-
-    def __init__(self, start: int, threshold: float, patience: int, maximum: int):
-        self.value = start
-        self.threshold = threshold
-        self.patience = patience
-        self.maximum = maximum
-        self.streak = 0
-
-    def update(self, mean_teacher_reward: float) -> int:
-        self.streak = self.streak + 1 if mean_teacher_reward >= self.threshold else 0
-        if self.streak >= self.patience:
-            self.value = min(self.value + 1, self.maximum)
-            self.streak = 0
-        return self.value
-
-
-class OutcomeBuffer:
-    """Goal outcomes waiting for a teacher update: one per reached goal and one per episode end (goal not reached)."""
-
-    def __init__(self):
-        self.parts: list[dict[str, np.ndarray]] = []
-        self.size = 0
-
-    def add(self, **columns: np.ndarray) -> None:
-        n = len(next(iter(columns.values())))
-        if n:
-            self.parts.append(columns)
-            self.size += n
-
-    def pop(self, n: int) -> dict[str, np.ndarray]:
-        """The oldest n outcomes; the rest stay for the next update."""
-        merged = {key: np.concatenate([part[key] for part in self.parts]) for key in self.parts[0]}
-        self.parts = [{key: value[n:] for key, value in merged.items()}] if self.size > n else []
-        self.size = max(self.size - n, 0)
-        return {key: value[:n] for key, value in merged.items()}
-
-
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 
@@ -730,6 +493,241 @@ def learning_rates_as_tensors(optimizers: list[torch.optim.Optimizer], as_tensor
             group["lr"] = torch.tensor(lr, dtype=torch.float32, device=group["params"][0].device) if as_tensors else lr
 
 
+def main(args: Args) -> None:
+    """Train AMIGo (--groups 0) or DGRL on AMIGo (--groups G) with `args`, or evaluate --checkpoint."""
+    validate(args)
+    args.goal_channel = resolve_goal_channel(args.goal_channel, args.groups)  # saved, matched and resumed as on or off
+    saved = load_resume(args) if args.resume is not None else None
+    dgrl = args.groups > 0  # DGRL
+    if saved is None:
+        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    else:
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    device = seed_and_device(args)
+    envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
+    width = envs.width
+    height = envs.height
+    n_envs = args.num_envs
+    T = args.num_steps
+    agent = make_agent(
+        width,
+        height,
+        envs.n_actions,
+        device,
+        goal_channel=args.goal_channel,
+        embed_dim=args.embed_dim,
+        learning_rate=args.learning_rate,
+        teacher_learning_rate=args.teacher_learning_rate,
+        rmsprop_alpha=args.rmsprop_alpha,
+        rmsprop_eps=args.rmsprop_eps,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+    )
+    stop = stop_on_signals()
+
+    if args.checkpoint is not None:
+        evaluate_checkpoint(args, agent, envs, device, stop)
+        return
+
+    # A resumed run's TensorBoard drops what the stopped run logged after its resume.pt: it logged up to that step.
+    writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
+    print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
+    t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
+    outcomes = OutcomeBuffer()
+
+    # Rollout storage: raw observations and goals (never code indices), the behaviour policy's log-probabilities.
+    rollout = {
+        "grids": np.zeros((T, n_envs, width, height, 3), dtype=np.uint8),
+        "carried": np.zeros((T, n_envs, 2), dtype=np.int64),
+        "goal_frames": np.zeros((T, n_envs, width, height, 3), dtype=np.uint8),
+        "goals": np.zeros((T, n_envs), dtype=np.int64),
+        "actions": np.zeros((T, n_envs), dtype=np.int64),
+        "logps": np.zeros((T, n_envs), dtype=np.float32),
+        "rewards": np.zeros((T, n_envs), dtype=np.float32),
+        "dones": np.zeros((T, n_envs), dtype=np.float32),
+    }
+    obs, _ = envs.reset(seed=args.seed)
+    book = GoalBook(n_envs, width, height)
+    goal_embedding = torch.zeros(n_envs, args.embed_dim, device=device)
+    renew_goals(agent, book, np.ones(n_envs, dtype=bool), obs["grid"], goal_embedding, device)
+    envs.record = args.capture_video  # record env 0's first episode, then every --video-frequency-th
+    video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
+    episodes_env0 = 0
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    step = 0  # frames: env steps x --num-envs
+    student_updates = 0
+    teacher_updates = 0
+    next_progress = args.progress_frequency
+    next_loss_log = LOSS_LOG_UPDATES
+    window = new_window()
+    metrics = {}
+    if saved is not None:  # continue where the stopped run left off: its envs mid-episode, its goals, its counters
+        loop = restore_training_state(saved, agent, envs, book, t_star, outcomes)
+        obs, step, window = loop["obs"], loop["step"], loop["window"]
+        student_updates, teacher_updates = loop["student_updates"], loop["teacher_updates"]
+        next_progress, next_loss_log, episodes_env0 = loop["next_progress"], loop["next_loss_log"], loop["episodes_env0"]
+        envs.record = args.capture_video and loop["record"]  # --capture-video may change on resume
+        video = loop["video"] if envs.record else []
+        print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {step}")
+        set_rng_states(saved["rng"])  # last: building the run above drew from them
+    optimizers = [agent.student_optimizer, agent.teacher_optimizer]
+    learning_rates_as_tensors(optimizers, as_tensors=args.fast != "eager")  # compiled: no recompile for a new LR
+    update_student = fast_update(student_update, args.fast, [agent.student_optimizer])
+    update_teacher = fast_update(teacher_update, args.fast, [agent.teacher_optimizer])
+    progress = Progress(args.total_timesteps, unit="frame", start_step=step)
+    while step < args.total_timesteps and not stop:
+        # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
+        goal_embedding = embed_goals(agent.goal_encoder, book.frame, book.goal, device)  # the encoder changed since
+        for t in range(T):
+            goal0 = book.goal[0]
+            actions, logps = act(agent.student, obs, book.goal, goal_embedding, device)
+            rollout["grids"][t] = obs["grid"]
+            rollout["carried"][t] = obs["carried"]
+            rollout["goal_frames"][t] = book.frame
+            rollout["goals"][t] = book.goal
+            rollout["actions"][t] = actions
+            rollout["logps"][t] = logps
+            obs, extrinsic, terminated, truncated, info = envs.step(actions)
+            reached = book.advance(info["final_grid"])
+            done = terminated | truncated
+            intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
+            rollout["rewards"][t] = student_reward(extrinsic, intrinsic)
+            rollout["dones"][t] = done
+            # One teacher outcome per reached goal, and one per episode end for a goal still pending.
+            renew = reached | done
+            outcomes.add(
+                frame=book.frame[renew],
+                goal=book.goal[renew],
+                logp=book.logp[renew],
+                reached=reached[renew],
+                steps=book.steps[renew],
+                extrinsic_success=extrinsic[renew] > 0,
+            )
+            window["reached"] += int(reached.sum())
+            window["outcomes"] += int(renew.sum())
+            window["goal_steps"] += book.steps[reached].tolist()
+            if renew.any():  # a new goal on the frame the student is in now (the reset frame after an episode end)
+                renew_goals(agent, book, renew, obs["grid"], goal_embedding, device)
+            ended = info["_episode"]
+            for ret, length in zip(info["episode"]["r"][ended], info["episode"]["l"][ended], strict=True):
+                window["return"].append(ret)
+                window["success"].append(float(ret > 0))
+                writer.add_scalar("charts/episodic_return", ret, step)
+                writer.add_scalar("charts/episodic_length", length, step)
+                writer.add_scalar("charts/success_rate", float(ret > 0), step)
+            step += n_envs
+            # Video of env 0: its frame before any reset, its goal as it was when acting.
+            if envs.record:
+                video.append(goal_frame(envs.frame0, goal0, height))
+            if done[0]:
+                if envs.record:
+                    write_video(f"videos/{run_name}/episode_{episodes_env0}.mp4", video, VIDEO_FPS)
+                episodes_env0 += 1
+                envs.record = args.capture_video and episodes_env0 % args.video_frequency == 0
+                video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
+
+        # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
+        student_lr = args.learning_rate * linear_decay(step - n_envs * T, args.total_timesteps)  # from the collection's start
+        set_learning_rate(agent.student_optimizer, student_lr)
+        last = {"grids": obs["grid"], "carried": obs["carried"], "goal_frames": book.frame, "goals": book.goal}
+        for first in range(0, n_envs, args.batch_envs):
+            envs_slice = slice(first, first + args.batch_envs)
+            learner_batch = student_batch(
+                {key: value[:, envs_slice] for key, value in rollout.items()},
+                {key: value[envs_slice] for key, value in last.items()},
+                device,
+            )
+            metrics = update_student(
+                agent,
+                learner_batch,
+                gamma=args.gamma,
+                baseline_coef=args.baseline_coef,
+                entropy_coef=args.entropy_coef,
+                max_grad_norm=args.max_grad_norm,
+            )
+            student_updates += 1
+
+        # Teacher: one update per --teacher-batch-size outcomes, rewards under the current t*; then the t* schedule.
+        while outcomes.size >= args.teacher_batch_size:
+            batch = outcomes.pop(args.teacher_batch_size)
+            rewards = teacher_reward(
+                batch["reached"],
+                batch["steps"],
+                batch["extrinsic_success"],
+                t_star.value,
+                args.teacher_reward_negative,
+                args.teacher_reward_positive,
+            )
+            set_learning_rate(agent.teacher_optimizer, args.teacher_learning_rate * linear_decay(step, args.total_timesteps))
+            losses = update_teacher(
+                agent,
+                teacher_tensors(batch, rewards, device),
+                baseline_coef=args.teacher_baseline_coef,
+                entropy_coef=args.teacher_entropy_coef,
+                max_grad_norm=args.max_grad_norm,
+            )
+            teacher_updates += 1
+            t_star.update(float(rewards.mean()))
+            window["teacher_reward"].append(float(rewards.mean()))
+            writer.add_scalar("teacher/reward", rewards.mean(), step)
+            writer.add_scalar("teacher/t_star", t_star.value, step)
+            writer.add_scalar("teacher/policy_loss", losses["policy_loss"].item(), step)
+            writer.add_scalar("teacher/baseline_loss", losses["baseline_loss"].item(), step)
+            writer.add_scalar("teacher/entropy", losses["entropy"].item(), step)
+            writer.add_scalar("teacher/reached_rate", batch["reached"].mean(), step)
+
+        # The student's losses (of the collection's last update), every LOSS_LOG_UPDATES student updates.
+        if student_updates >= next_loss_log:
+            next_loss_log += LOSS_LOG_UPDATES
+            for name in ("policy_loss", "baseline_loss", "entropy"):
+                writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
+            writer.add_scalar("charts/learning_rate", student_lr, step)
+            if dgrl:  # DGRL
+                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
+                writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
+
+        # Progress line (and checkpoint), every --progress-frequency frames and at the end.
+        if step >= next_progress or step >= args.total_timesteps:
+            next_progress += args.progress_frequency
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
+            if window["outcomes"]:
+                writer.add_scalar("charts/goal_reach_rate", window["reached"] / window["outcomes"], step)
+            if window["goal_steps"]:
+                writer.add_scalar("charts/steps_per_goal", np.mean(window["goal_steps"]), step)
+            progress.line(
+                step,
+                f"return {mean_text(window['return'])}  success {mean_text(window['success'])}  t* {t_star.value}  "
+                f"teacher reward {mean_text(window['teacher_reward'])}  "
+                f"goals reached {window['reached'] / max(window['outcomes'], 1):.0%}",
+            )
+            window = new_window()
+            if args.save_model:
+                save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
+        progress.heartbeat(step, f"{student_updates} student updates  t* {t_star.value}")
+        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
+            writer.flush()  # a run killed outright after this save still has every scalar up to it on disk
+            loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
+            loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
+            loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
+            save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)
+
+    loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
+    loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
+    loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
+    save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)  # stopped or done
+    if args.save_model:
+        save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
+        print(f"checkpoint: {checkpoint_path}")
+    updates = f"{student_updates} student and {teacher_updates} teacher updates"
+    progress.finish(bool(stop), run_name, f"{step} frames, {updates}, t* {t_star.value}")
+    envs.close()
+    writer.close()
+
+
 # --- Acting, evaluation -----------------------------------------------------------------------------------------------
 
 
@@ -761,7 +759,7 @@ def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Te
     return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
 
 
-def renew_goals(agent: Agent, book: GoalBook, mask: np.ndarray, grids: np.ndarray, goal_embedding: torch.Tensor, device):
+def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndarray, goal_embedding: torch.Tensor, device):
     """New teacher goals for the envs in `mask`, issued on their current frames, and their embeddings."""
     book.issue(mask, grids[mask], *propose_goals(agent.teacher, grids[mask], device))
     embeddings = embed_goals(agent.goal_encoder, book.frame[mask], book.goal[mask], device)
@@ -780,7 +778,7 @@ def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.
     return frame
 
 
-def evaluate(agent: Agent, envs: MiniGridVecEnv, episodes: int, seed: int, device, stop=()) -> dict[str, float]:
+def evaluate(agent: Agent, envs: "MiniGridVecEnv", episodes: int, seed: int, device, stop=()) -> dict[str, float]:
     """Run the student with its teacher's goals (as during training, actions sampled) until `episodes` episodes end or
     `stop` (the signals received) fills: episodes run, mean extrinsic return, success rate, goals reached per episode."""
     obs, _ = envs.reset(seed=seed)
@@ -818,6 +816,258 @@ def new_window() -> dict:
     return {"return": [], "success": [], "reached": 0, "outcomes": 0, "goal_steps": [], "teacher_reward": []}
 
 
+def evaluate_checkpoint(args: Args, agent: Agent, envs: "MiniGridVecEnv", device: torch.device, stop: list[int]) -> None:
+    """--checkpoint: load its networks into `agent`, evaluate them for --eval-episodes episodes, print the result."""
+    evaluated = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+    agent.load_state_dicts(evaluated)
+    result = evaluate(agent, envs, args.eval_episodes, args.seed + 10_000, device, stop)
+    print(
+        f"{result['episodes']} episodes (t* {evaluated['t_star']} at save): return {result['return']:.3f}, "
+        f"success {result['success']:.0%}, goals reached per episode {result['goals_per_episode']:.1f}"
+    )
+    envs.close()
+
+
+# --- Environment ------------------------------------------------------------------------------------------------------
+
+N_OBJECTS, N_COLORS, N_STATES = 11, 6, 4  # MiniGrid's object, colour and state ids (the agent's state is its direction)
+AGENT, EMPTY = OBJECT_TO_IDX["agent"], OBJECT_TO_IDX["empty"]
+
+
+def minigrid_ids() -> list[str]:
+    return sorted(name for name in gym.registry if name.startswith("MiniGrid-"))
+
+
+def full_grid(env) -> np.ndarray:
+    """The fully observed (W, H, 3) grid of [object, colour, state] ids, the agent as [agent, red, direction]: minigrid's
+    FullyObsWrapper encoding, built from the grid's cell list (row-major, y * W + x) in one pass (2.3x faster)."""
+    cells = [(EMPTY, 0, 0) if cell is None else cell.encode() for cell in env.grid.grid]
+    grid = np.array(cells, dtype=np.uint8).reshape(env.height, env.width, 3).transpose(1, 0, 2)
+    grid[env.agent_pos[0], env.agent_pos[1]] = (AGENT, COLOR_TO_IDX["red"], env.agent_dir)
+    return grid
+
+
+def _no_partial_view():
+    """Replaces MiniGridEnv.gen_obs: the egocentric 7x7 view it renders at every step (80% of a step's time) is unused
+    here, where teacher and student see the full grid."""
+    return None
+
+
+def carried(env) -> tuple[int, int]:
+    """(object id, colour id) of what the agent carries; (empty, 0) when it carries nothing."""
+    return (EMPTY, 0) if env.carrying is None else (OBJECT_TO_IDX[env.carrying.type], COLOR_TO_IDX[env.carrying.color])
+
+
+class MiniGridVecEnv(gym.vector.VectorEnv):
+    """`num_envs` MiniGrid envs stepped in one loop, fully observed, with same-step autoreset: gymnasium's VectorEnv API.
+
+    An observation is a dict of batched arrays: "grid", (num_envs, W, H, 3) uint8 [object, colour, state] ids
+    (`full_grid`), and "carried", (num_envs, 2) int64 (`carried`). `reset(seed=s)` seeds env i with s + i (a list gives
+    each env its seed) and returns (obs, {}). `step(actions)` returns (obs, rewards, terminated, truncated, info); an env
+    whose episode ended is reset in the same step (AutoresetMode.SAME_STEP: obs holds its reset frame), and info holds
+    - "final_grid": every env's grid right after the step, before any reset: what the goal-reach test compares (equal
+      to obs["grid"] where no episode ended). A dense (num_envs, W, H, 3) array rather than gymnasium's "final_obs"
+      object array of the ended envs only, so that the reach test runs on all envs at once;
+    - "episode": {"r": return, "l": length} of the episodes that ended, where the mask "_episode" is set (the layout of
+      gymnasium's RecordEpisodeStatistics).
+    A new layout is generated at every reset (procedural generation). Only env 0 renders (`render_env0`): `render()`
+    returns (env 0's frame,), and while `record` is set, `frame0` is env 0's frame after the last step, before any reset.
+    """
+
+    metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
+
+    def __init__(self, env_id: str, num_envs: int, render_env0: bool = False):
+        self.envs = [
+            gym.make(env_id, render_mode="rgb_array" if render_env0 and i == 0 else None).unwrapped for i in range(num_envs)
+        ]
+        for env in self.envs:
+            env.gen_obs = _no_partial_view
+        self.env_id = env_id
+        self.num_envs = num_envs
+        self.render_mode = "rgb_array" if render_env0 else None
+        self.width = self.envs[0].width
+        self.height = self.envs[0].height
+        self.max_steps = self.envs[0].max_steps
+        self.n_actions = int(self.envs[0].action_space.n)
+        highest_id = np.broadcast_to(np.array([N_OBJECTS, N_COLORS, N_STATES]) - 1, (self.width, self.height, 3))
+        grid_space = gym.spaces.Box(0, highest_id.astype(np.uint8), dtype=np.uint8)
+        carried_space = gym.spaces.Box(0, np.array([N_OBJECTS - 1, N_COLORS - 1]), dtype=np.int64)
+        self.single_observation_space = gym.spaces.Dict({"grid": grid_space, "carried": carried_space})
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.single_action_space = gym.spaces.Discrete(self.n_actions)
+        self.action_space = gym.spaces.MultiDiscrete(np.full(num_envs, self.n_actions))
+        self.grids = np.zeros((num_envs, self.width, self.height, 3), dtype=np.uint8)  # observation to act on
+        self.after = np.zeros_like(self.grids)  # frame right after the last step, before autoreset
+        self.carried = np.zeros((num_envs, 2), dtype=np.int64)
+        self.episode_return = np.zeros(num_envs)
+        self.episode_length = np.zeros(num_envs, dtype=np.int64)
+        self.record = False  # while set, `frame0` is env 0's render after each step
+        self.frame0 = None
+
+    def _observe(self, i: int, target: np.ndarray) -> None:
+        env = self.envs[i]
+        grid = full_grid(env)
+        if grid.shape != target.shape[1:]:
+            raise RuntimeError(f"{self.env_id}: the grid changed size from {target.shape[1:3]} to {grid.shape[:2]}")
+        target[i] = grid
+        self.carried[i] = carried(env)
+
+    def _observation(self) -> dict[str, np.ndarray]:
+        return {"grid": self.grids.copy(), "carried": self.carried.copy()}
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
+        seeds = seed if isinstance(seed, list) else [None if seed is None else seed + i for i in range(self.num_envs)]
+        for i, env in enumerate(self.envs):
+            env.reset(seed=seeds[i], options=options)
+            self._observe(i, self.grids)
+        self.episode_return[:] = 0
+        self.episode_length[:] = 0
+        return self._observation(), {}
+
+    def step(self, actions: np.ndarray):
+        rewards = np.zeros(self.num_envs)
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        for i, env in enumerate(self.envs):
+            _, rewards[i], terminated[i], truncated[i], _ = env.step(int(actions[i]))
+            self._observe(i, self.after)
+        if self.record:
+            self.frame0 = self.envs[0].render()
+        self.grids[:] = self.after
+        self.episode_return += rewards
+        self.episode_length += 1
+        done = terminated | truncated
+        info = {
+            "final_grid": self.after.copy(),
+            "episode": {"r": np.where(done, self.episode_return, 0.0), "l": np.where(done, self.episode_length, 0)},
+            "_episode": done,
+        }
+        for i in np.flatnonzero(done):
+            self.envs[i].reset()
+            self._observe(i, self.grids)
+        self.episode_return[done] = 0
+        self.episode_length[done] = 0
+        return self._observation(), rewards, terminated, truncated, info
+
+    def render(self) -> tuple[np.ndarray]:
+        return (self.envs[0].render(),)
+
+    def close_extras(self, **kwargs) -> None:
+        for env in self.envs:
+            env.close()
+
+    def get_state(self) -> dict:
+        """A copy of everything the next steps and resets depend on, for --resume: each env's attributes but the renderer's
+        and its spec (the grid with its objects, agent position and direction, what it carries, step count, mission,
+        np_random, and what an env class adds, e.g. KeyCorridor's target object, kept identical to the object carried),
+        and the current observation and episode statistics. Copied as a whole, so objects shared between envs' attributes
+        stay shared (pickling a gymnasium env instead would rebuild it from its constructor arguments)."""
+        envs = [{key: value for key, value in env.__dict__.items() if key not in NOT_ENV_STATE} for env in self.envs]
+        arrays = {key: getattr(self, key) for key in ("grids", "carried", "episode_return", "episode_length")}
+        return copy.deepcopy({"envs": envs, **arrays})
+
+    def set_state(self, state: dict) -> None:
+        """Continue from `get_state()`'s copy (which stays the caller's): the episodes in progress go on."""
+        state = copy.deepcopy(state)
+        for env, attributes in zip(self.envs, state.pop("envs"), strict=True):
+            env.__dict__.update(attributes)
+        for key, value in state.items():
+            getattr(self, key)[:] = value
+
+
+NOT_ENV_STATE = ("window", "clock", "render_mode", "spec", "gen_obs")  # renderer, free --capture-video, spec, our patch
+
+
+class GoalBook:
+    """Per-env goal bookkeeping in numpy: the goal cell (flat index x * H + y), the frame it was issued on, the
+    teacher's log-probability of it and the steps taken since."""
+
+    def __init__(self, num_envs: int, width: int, height: int):
+        self.height = height
+        self.goal = np.zeros(num_envs, dtype=np.int64)
+        self.frame = np.zeros((num_envs, width, height, 3), dtype=np.uint8)
+        self.logp = np.zeros(num_envs, dtype=np.float32)
+        self.steps = np.zeros(num_envs, dtype=np.int64)
+
+    def reached(self, frames: np.ndarray) -> np.ndarray:
+        """The goal test of AMIGo's published runs: the goal cell's [object, colour, state] differs from the same cell
+        in the goal frame (the agent stepped on it or turned there, a door there opened, an object there was moved)."""
+        rows = np.arange(len(self.goal))
+        x, y = np.divmod(self.goal, self.height)
+        return (frames[rows, x, y] != self.frame[rows, x, y]).any(-1)
+
+    def advance(self, after: np.ndarray) -> np.ndarray:
+        """Count the step just taken and test every env's goal on the frame right after it (before any autoreset)."""
+        self.steps += 1
+        return self.reached(after)
+
+    def issue(self, mask: np.ndarray, frames: np.ndarray, goals: np.ndarray, logps: np.ndarray) -> None:
+        self.goal[mask] = goals
+        self.frame[mask] = frames
+        self.logp[mask] = logps
+        self.steps[mask] = 0
+
+
+def intrinsic_reward(reached: np.ndarray, steps: np.ndarray, max_steps: int, coef: float) -> np.ndarray:
+    """AMIGo's goal reward: 1 - 0.9 * (steps since the goal was issued) / (episode step limit), on reaching it."""
+    return coef * reached * (1.0 - 0.9 * steps / max_steps)
+
+
+def student_reward(extrinsic: np.ndarray, intrinsic: np.ndarray) -> np.ndarray:
+    """AMIGo's student reward: extrinsic + intrinsic clipped to [-1, 1], plus 1 more on extrinsic success."""
+    return np.clip(extrinsic + intrinsic, -1.0, 1.0) + (extrinsic > 0)
+
+
+def teacher_reward(reached, steps, extrinsic_success, t_star: int, negative: float = -0.3, positive: float = 1.0):
+    """AMIGo's teacher reward per goal outcome: `negative`, plus `positive` if the goal was reached after at least t*
+    steps, clipped to [-1, 1]; 1 whenever the episode's extrinsic reward came in the outcome's step."""
+    rewards = np.clip(negative + positive * (reached & (steps >= t_star)), -1.0, 1.0)
+    return np.where(extrinsic_success, 1.0, rewards)
+
+
+class TStar:
+    """AMIGo's difficulty schedule: after each teacher update, a mean teacher reward >= threshold extends a streak
+    (anything lower ends it); a streak of `patience` raises t* by one (up to `maximum`) and starts a new streak."""
+
+    def __init__(self, start: int, threshold: float, patience: int, maximum: int):
+        self.value = start
+        self.threshold = threshold
+        self.patience = patience
+        self.maximum = maximum
+        self.streak = 0
+
+    def update(self, mean_teacher_reward: float) -> int:
+        self.streak = self.streak + 1 if mean_teacher_reward >= self.threshold else 0
+        if self.streak >= self.patience:
+            self.value = min(self.value + 1, self.maximum)
+            self.streak = 0
+        return self.value
+
+
+class OutcomeBuffer:
+    """Goal outcomes waiting for a teacher update: one per reached goal and one per episode end (goal not reached)."""
+
+    def __init__(self):
+        self.parts: list[dict[str, np.ndarray]] = []
+        self.size = 0
+
+    def add(self, **columns: np.ndarray) -> None:
+        n = len(next(iter(columns.values())))
+        if n:
+            self.parts.append(columns)
+            self.size += n
+
+    def pop(self, n: int) -> dict[str, np.ndarray]:
+        """The oldest n outcomes; the rest stay for the next update."""
+        merged = {key: np.concatenate([part[key] for part in self.parts]) for key in self.parts[0]}
+        self.parts = [{key: value[n:] for key, value in merged.items()}] if self.size > n else []
+        self.size = max(self.size - n, 0)
+        return {key: value[:n] for key, value in merged.items()}
+
+
+# --- Resuming ---------------------------------------------------------------------------------------------------------
+
+
 def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes: OutcomeBuffer, loop: dict):
     """Everything a stopped run needs to continue exactly, for runs/{run_name}/resume.pt (save_resume adds the global
     random states, which acting and goal proposals draw from): the networks with the codebook and its EMA buffers, both
@@ -848,6 +1098,8 @@ def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book
     outcomes.parts, outcomes.size = saved["outcomes"]["parts"], saved["outcomes"]["size"]
     return saved["loop"]
 
+
+# --- The run's constants ----------------------------------------------------------------------------------------------
 
 MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # a checkpoint's networks and what it is run on
 LOSS_LOG_UPDATES = 10  # student updates between two writes of the student's losses
@@ -1338,242 +1590,4 @@ def validate(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    args.goal_channel = resolve_goal_channel(args.goal_channel, args.groups)  # saved, matched and resumed as on or off
-    saved = load_resume(args) if args.resume is not None else None
-    dgrl = args.groups > 0  # DGRL
-    if saved is None:
-        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    else:
-        run_name = os.path.basename(os.path.normpath(args.resume))
-    device = seed_and_device(args)
-    envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
-    width = envs.width
-    height = envs.height
-    n_envs = args.num_envs
-    T = args.num_steps
-    agent = make_agent(
-        width,
-        height,
-        envs.n_actions,
-        device,
-        goal_channel=args.goal_channel,
-        embed_dim=args.embed_dim,
-        learning_rate=args.learning_rate,
-        teacher_learning_rate=args.teacher_learning_rate,
-        rmsprop_alpha=args.rmsprop_alpha,
-        rmsprop_eps=args.rmsprop_eps,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-    )
-    stop = stop_on_signals()
-
-    if args.checkpoint is not None:
-        evaluated = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-        agent.load_state_dicts(evaluated)
-        result = evaluate(agent, envs, args.eval_episodes, args.seed + 10_000, device, stop)
-        print(
-            f"{result['episodes']} episodes (t* {evaluated['t_star']} at save): return {result['return']:.3f}, "
-            f"success {result['success']:.0%}, goals reached per episode {result['goals_per_episode']:.1f}"
-        )
-        envs.close()
-        raise SystemExit(0)
-
-    # A resumed run's TensorBoard drops what the stopped run logged after its resume.pt: it logged up to that step.
-    writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
-    print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
-    t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
-    outcomes = OutcomeBuffer()
-
-    # Rollout storage: raw observations and goals (never code indices), the behaviour policy's log-probabilities.
-    rollout = {
-        "grids": np.zeros((T, n_envs, width, height, 3), dtype=np.uint8),
-        "carried": np.zeros((T, n_envs, 2), dtype=np.int64),
-        "goal_frames": np.zeros((T, n_envs, width, height, 3), dtype=np.uint8),
-        "goals": np.zeros((T, n_envs), dtype=np.int64),
-        "actions": np.zeros((T, n_envs), dtype=np.int64),
-        "logps": np.zeros((T, n_envs), dtype=np.float32),
-        "rewards": np.zeros((T, n_envs), dtype=np.float32),
-        "dones": np.zeros((T, n_envs), dtype=np.float32),
-    }
-    obs, _ = envs.reset(seed=args.seed)
-    book = GoalBook(n_envs, width, height)
-    goal_embedding = torch.zeros(n_envs, args.embed_dim, device=device)
-    renew_goals(agent, book, np.ones(n_envs, dtype=bool), obs["grid"], goal_embedding, device)
-    envs.record = args.capture_video  # record env 0's first episode, then every --video-frequency-th
-    video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
-    episodes_env0 = 0
-    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    step = 0  # frames: env steps x --num-envs
-    student_updates = 0
-    teacher_updates = 0
-    next_progress = args.progress_frequency
-    next_loss_log = LOSS_LOG_UPDATES
-    window = new_window()
-    metrics = {}
-    if saved is not None:  # continue where the stopped run left off: its envs mid-episode, its goals, its counters
-        loop = restore_training_state(saved, agent, envs, book, t_star, outcomes)
-        obs, step, window = loop["obs"], loop["step"], loop["window"]
-        student_updates, teacher_updates = loop["student_updates"], loop["teacher_updates"]
-        next_progress, next_loss_log, episodes_env0 = loop["next_progress"], loop["next_loss_log"], loop["episodes_env0"]
-        envs.record = args.capture_video and loop["record"]  # --capture-video may change on resume
-        video = loop["video"] if envs.record else []
-        print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {step}")
-        set_rng_states(saved["rng"])  # last: building the run above drew from them
-    optimizers = [agent.student_optimizer, agent.teacher_optimizer]
-    learning_rates_as_tensors(optimizers, as_tensors=args.fast != "eager")  # compiled: no recompile for a new LR
-    update_student = fast_update(student_update, args.fast, [agent.student_optimizer])
-    update_teacher = fast_update(teacher_update, args.fast, [agent.teacher_optimizer])
-    progress = Progress(args.total_timesteps, unit="frame", start_step=step)
-    while step < args.total_timesteps and not stop:
-        # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
-        goal_embedding = embed_goals(agent.goal_encoder, book.frame, book.goal, device)  # the encoder changed since
-        for t in range(T):
-            goal0 = book.goal[0]
-            actions, logps = act(agent.student, obs, book.goal, goal_embedding, device)
-            rollout["grids"][t] = obs["grid"]
-            rollout["carried"][t] = obs["carried"]
-            rollout["goal_frames"][t] = book.frame
-            rollout["goals"][t] = book.goal
-            rollout["actions"][t] = actions
-            rollout["logps"][t] = logps
-            obs, extrinsic, terminated, truncated, info = envs.step(actions)
-            reached = book.advance(info["final_grid"])
-            done = terminated | truncated
-            intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
-            rollout["rewards"][t] = student_reward(extrinsic, intrinsic)
-            rollout["dones"][t] = done
-            # One teacher outcome per reached goal, and one per episode end for a goal still pending.
-            renew = reached | done
-            outcomes.add(
-                frame=book.frame[renew],
-                goal=book.goal[renew],
-                logp=book.logp[renew],
-                reached=reached[renew],
-                steps=book.steps[renew],
-                extrinsic_success=extrinsic[renew] > 0,
-            )
-            window["reached"] += int(reached.sum())
-            window["outcomes"] += int(renew.sum())
-            window["goal_steps"] += book.steps[reached].tolist()
-            if renew.any():  # a new goal on the frame the student is in now (the reset frame after an episode end)
-                renew_goals(agent, book, renew, obs["grid"], goal_embedding, device)
-            ended = info["_episode"]
-            for ret, length in zip(info["episode"]["r"][ended], info["episode"]["l"][ended], strict=True):
-                window["return"].append(ret)
-                window["success"].append(float(ret > 0))
-                writer.add_scalar("charts/episodic_return", ret, step)
-                writer.add_scalar("charts/episodic_length", length, step)
-                writer.add_scalar("charts/success_rate", float(ret > 0), step)
-            step += n_envs
-            # Video of env 0: its frame before any reset, its goal as it was when acting.
-            if envs.record:
-                video.append(goal_frame(envs.frame0, goal0, height))
-            if done[0]:
-                if envs.record:
-                    write_video(f"videos/{run_name}/episode_{episodes_env0}.mp4", video, VIDEO_FPS)
-                episodes_env0 += 1
-                envs.record = args.capture_video and episodes_env0 % args.video_frequency == 0
-                video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
-
-        # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
-        student_lr = args.learning_rate * linear_decay(step - n_envs * T, args.total_timesteps)  # from the collection's start
-        set_learning_rate(agent.student_optimizer, student_lr)
-        last = {"grids": obs["grid"], "carried": obs["carried"], "goal_frames": book.frame, "goals": book.goal}
-        for first in range(0, n_envs, args.batch_envs):
-            envs_slice = slice(first, first + args.batch_envs)
-            learner_batch = student_batch(
-                {key: value[:, envs_slice] for key, value in rollout.items()},
-                {key: value[envs_slice] for key, value in last.items()},
-                device,
-            )
-            metrics = update_student(
-                agent,
-                learner_batch,
-                gamma=args.gamma,
-                baseline_coef=args.baseline_coef,
-                entropy_coef=args.entropy_coef,
-                max_grad_norm=args.max_grad_norm,
-            )
-            student_updates += 1
-
-        # Teacher: one update per --teacher-batch-size outcomes, rewards under the current t*; then the t* schedule.
-        while outcomes.size >= args.teacher_batch_size:
-            batch = outcomes.pop(args.teacher_batch_size)
-            rewards = teacher_reward(
-                batch["reached"],
-                batch["steps"],
-                batch["extrinsic_success"],
-                t_star.value,
-                args.teacher_reward_negative,
-                args.teacher_reward_positive,
-            )
-            set_learning_rate(agent.teacher_optimizer, args.teacher_learning_rate * linear_decay(step, args.total_timesteps))
-            losses = update_teacher(
-                agent,
-                teacher_tensors(batch, rewards, device),
-                baseline_coef=args.teacher_baseline_coef,
-                entropy_coef=args.teacher_entropy_coef,
-                max_grad_norm=args.max_grad_norm,
-            )
-            teacher_updates += 1
-            t_star.update(float(rewards.mean()))
-            window["teacher_reward"].append(float(rewards.mean()))
-            writer.add_scalar("teacher/reward", rewards.mean(), step)
-            writer.add_scalar("teacher/t_star", t_star.value, step)
-            writer.add_scalar("teacher/policy_loss", losses["policy_loss"].item(), step)
-            writer.add_scalar("teacher/baseline_loss", losses["baseline_loss"].item(), step)
-            writer.add_scalar("teacher/entropy", losses["entropy"].item(), step)
-            writer.add_scalar("teacher/reached_rate", batch["reached"].mean(), step)
-
-        # The student's losses (of the collection's last update), every LOSS_LOG_UPDATES student updates.
-        if student_updates >= next_loss_log:
-            next_loss_log += LOSS_LOG_UPDATES
-            for name in ("policy_loss", "baseline_loss", "entropy"):
-                writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
-            writer.add_scalar("charts/learning_rate", student_lr, step)
-            if dgrl:  # DGRL
-                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
-                writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
-
-        # Progress line (and checkpoint), every --progress-frequency frames and at the end.
-        if step >= next_progress or step >= args.total_timesteps:
-            next_progress += args.progress_frequency
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            if window["outcomes"]:
-                writer.add_scalar("charts/goal_reach_rate", window["reached"] / window["outcomes"], step)
-            if window["goal_steps"]:
-                writer.add_scalar("charts/steps_per_goal", np.mean(window["goal_steps"]), step)
-            progress.line(
-                step,
-                f"return {mean_text(window['return'])}  success {mean_text(window['success'])}  t* {t_star.value}  "
-                f"teacher reward {mean_text(window['teacher_reward'])}  "
-                f"goals reached {window['reached'] / max(window['outcomes'], 1):.0%}",
-            )
-            window = new_window()
-            if args.save_model:
-                save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
-        progress.heartbeat(step, f"{student_updates} student updates  t* {t_star.value}")
-        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
-            writer.flush()  # a run killed outright after this save still has every scalar up to it on disk
-            loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
-            loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
-            loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
-            save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)
-
-    loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
-    loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
-    loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
-    save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)  # stopped or done
-    if args.save_model:
-        save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
-        print(f"checkpoint: {checkpoint_path}")
-    updates = f"{student_updates} student and {teacher_updates} teacher updates"
-    progress.finish(bool(stop), run_name, f"{step} frames, {updates}, t* {t_star.value}")
-    envs.close()
-    writer.close()
+    main(tyro.cli(Args))

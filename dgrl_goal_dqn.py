@@ -152,173 +152,6 @@ class Args:
     """restart a code unused for this many pre-training updates at a random segment (0 = off, as in the paper; see docs)"""
 
 
-# A checkpoint is evaluated only with the flags it was saved with that fix the architecture, the maze, the goal split and
-# what evaluation measures (the noise on the images and the episode step limit).
-MUST_MATCH = (
-    "env_id", "n_train_goals", "goal_seed", "noise", "max_episode_steps",
-    "rep", "embed_dim", "hidden_dim", "groups", "n_embed",
-)  # fmt: skip
-
-
-# --- Environment ------------------------------------------------------------------------------------------------------
-
-# 6x6 mazes as (2*6+1) x (2*6+1) characters: odd/odd positions are cells, '#' a wall, anything else an opening.
-LAYOUTS = {
-    "SpiralWorld": (
-        "#############",
-        "#.#. . . . .#",
-        "# # ####### #",
-        "#.#.#. . .#.#",
-        "# # # ### # #",
-        "#.#.#.#.#.#.#",
-        "# # # # # # #",
-        "#.#.#. .#.#.#",
-        "# # ##### # #",
-        "#.#. . . .#.#",
-        "# ######### #",
-        "#. . . . . .#",
-        "#############",
-    ),
-    "LoopWorld": (
-        "#############",
-        "#.#. . . . .#",
-        "# # ####### #",
-        "#.#.#. . .#.#",
-        "# # # ### # #",
-        "#.#.#.#.#.#.#",
-        "# # # # # # #",
-        "#.#.#. .#.#.#",
-        "# # ##### # #",
-        "#.#. . . .#.#",
-        "# ####### # #",
-        "#. . . . . .#",
-        "#############",
-    ),
-    "EmptyWorld": ("#############",) + ("#. . . . . .#", "#           #") * 5 + ("#. . . . . .#", "#############"),
-}
-MOVES = ((0, -1), (0, 1), (-1, 0), (1, 0))  # left, right, up, down as (row, column) steps
-PIXELS_PER_CHAR = 6  # 13 characters x 6 px + 2 px of border = 80 px
-BORDER = 1
-WALL_RGB = (128, 128, 128)
-FLOOR_RGB = (0, 0, 0)
-AGENT_RGB = (255, 0, 0)
-START_CELL = 0  # the top-left corner: one end of the spiral, a corner of the loop
-N_NOVEL_GOALS = 4  # the paper's test set: 4 goals never trained on
-
-
-class MazeLayout:
-    """A maze's static structure: its transition table, its clean images, the shortest-path distances."""
-
-    def __init__(self, name: str):
-        rows = LAYOUTS[name]
-        self.name = name
-        self.size = (len(rows) - 1) // 2
-        self.n_cells = self.size * self.size
-        self.next_cell = np.empty((self.n_cells, len(MOVES)), dtype=np.int64)
-        for row in range(self.size):
-            for col in range(self.size):
-                for action, (d_row, d_col) in enumerate(MOVES):
-                    blocked = rows[2 * row + 1 + d_row][2 * col + 1 + d_col] == "#"
-                    target = row * self.size + col if blocked else (row + d_row) * self.size + col + d_col
-                    self.next_cell[row * self.size + col, action] = target
-        wall_chars = np.array([[char == "#" for char in line] for line in rows])
-        side = len(rows) * PIXELS_PER_CHAR + 2 * BORDER
-        self.floor = np.zeros((side, side), dtype=bool)
-        self.floor[BORDER:-BORDER, BORDER:-BORDER] = ~wall_chars.repeat(PIXELS_PER_CHAR, 0).repeat(PIXELS_PER_CHAR, 1)
-        background = np.where(self.floor[..., None], np.array(FLOOR_RGB, np.uint8), np.array(WALL_RGB, np.uint8))
-        self.images = np.repeat(background[None], self.n_cells, axis=0)
-        for cell in range(self.n_cells):
-            top = BORDER + (2 * (cell // self.size) + 1) * PIXELS_PER_CHAR
-            left = BORDER + (2 * (cell % self.size) + 1) * PIXELS_PER_CHAR
-            self.images[cell, top : top + PIXELS_PER_CHAR, left : left + PIXELS_PER_CHAR] = AGENT_RGB
-        self.agent_mask = (self.images != background[None]).any(-1)
-        self.distances = self._all_pairs_distances()
-
-    def _all_pairs_distances(self) -> np.ndarray:
-        """Shortest-path lengths between all pairs of cells, by breadth-first search from every cell."""
-        distances = np.full((self.n_cells, self.n_cells), -1, dtype=np.int64)
-        for source in range(self.n_cells):
-            distances[source, source] = 0
-            frontier = [source]
-            while frontier:
-                following = []
-                for cell in frontier:
-                    for neighbour in self.next_cell[cell]:
-                        if distances[source, neighbour] < 0:
-                            distances[source, neighbour] = distances[source, cell] + 1
-                            following.append(neighbour)
-                frontier = following
-        return distances
-
-    def render(self, cells: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
-        """uint8 images (len(cells), 80, 80, 3) of the agent in `cells`; with noise, fresh random floor pixels."""
-        images = self.images[cells]
-        if noise > 0:
-            floor = self.floor[None] & ~self.agent_mask[cells]
-            speckle = rng.integers(0, int(noise * 255) + 1, size=images.shape, dtype=np.uint8)
-            images = np.where(floor[..., None], images + speckle, images)
-        return images
-
-
-def goal_split(
-    layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS
-) -> tuple[np.ndarray, np.ndarray]:
-    """Disjoint (train, novel) goal cells, never the start cell. The novel cells depend only on goal_seed, and the train
-    cells are the first n_train of one seeded order, so K=4 goals are a subset of K=8, which are a subset of K=16."""
-    candidates = np.array([cell for cell in range(layout.n_cells) if cell != START_CELL])
-    order = np.random.default_rng(goal_seed).permutation(candidates)
-    return np.sort(order[n_novel : n_novel + n_train]), np.sort(order[:n_novel])
-
-
-class VisualMazeEnv(gym.Env):
-    """Reach the goal cell of a 6x6 maze from pixels. Observation: {"observation", "desired_goal"}, both 80x80x3 uint8
-    (the goal is the maze with the agent drawn at the goal). Reward -1 per step, +5 on the step that reaches the goal,
-    which terminates. info carries the agent's "cell" and the "goal_cell"."""
-
-    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 8}
-
-    def __init__(self, layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, render_mode=None):
-        self.layout = layout
-        self.goal_cells = np.asarray(goal_cells)
-        self.random_start = random_start
-        self.noise = noise
-        self.render_mode = render_mode
-        image_space = gym.spaces.Box(0, 255, layout.images.shape[1:], np.uint8)
-        self.observation_space = gym.spaces.Dict({"observation": image_space, "desired_goal": image_space})
-        self.action_space = gym.spaces.Discrete(len(MOVES))
-
-    def _observe(self):
-        images = self.layout.render(np.array([self.cell, self.goal_cell]), self.noise, self.np_random)
-        self._frame = images[0]
-        return {"observation": images[0], "desired_goal": images[1]}, {"cell": self.cell, "goal_cell": self.goal_cell}
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.goal_cell = int(self.np_random.choice(self.goal_cells))
-        self.cell = START_CELL
-        if self.random_start:
-            self.cell = int(self.np_random.choice([c for c in range(self.layout.n_cells) if c != self.goal_cell]))
-        return self._observe()
-
-    def step(self, action):
-        self.cell = int(self.layout.next_cell[self.cell, int(action)])
-        reached = self.cell == self.goal_cell
-        observation, info = self._observe()
-        return observation, 5.0 if reached else -1.0, reached, False, info
-
-    def render(self):
-        return self._frame.repeat(4, 0).repeat(4, 1)
-
-
-def make_env(layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, max_episode_steps: int):
-    def thunk():
-        env = VisualMazeEnv(layout, goal_cells, random_start, noise)
-        env = gym.wrappers.TimeLimit(env, max_episode_steps)
-        return gym.wrappers.RecordEpisodeStatistics(env)
-
-    return thunk
-
-
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 
@@ -422,7 +255,63 @@ def make_agent(
     )
 
 
-# --- Losses, data, updates, evaluation --------------------------------------------------------------------------------
+# --- Losses, data, updates --------------------------------------------------------------------------------------------
+
+
+# The maze's static structure, here rather than with the environment (appendix, below): the annotations of the
+# functions that follow name it, and Python evaluates those when it defines the functions.
+class MazeLayout:
+    """A maze's static structure: its transition table, its clean images, the shortest-path distances."""
+
+    def __init__(self, name: str):
+        rows = LAYOUTS[name]
+        self.name = name
+        self.size = (len(rows) - 1) // 2
+        self.n_cells = self.size * self.size
+        self.next_cell = np.empty((self.n_cells, len(MOVES)), dtype=np.int64)
+        for row in range(self.size):
+            for col in range(self.size):
+                for action, (d_row, d_col) in enumerate(MOVES):
+                    blocked = rows[2 * row + 1 + d_row][2 * col + 1 + d_col] == "#"
+                    target = row * self.size + col if blocked else (row + d_row) * self.size + col + d_col
+                    self.next_cell[row * self.size + col, action] = target
+        wall_chars = np.array([[char == "#" for char in line] for line in rows])
+        side = len(rows) * PIXELS_PER_CHAR + 2 * BORDER
+        self.floor = np.zeros((side, side), dtype=bool)
+        self.floor[BORDER:-BORDER, BORDER:-BORDER] = ~wall_chars.repeat(PIXELS_PER_CHAR, 0).repeat(PIXELS_PER_CHAR, 1)
+        background = np.where(self.floor[..., None], np.array(FLOOR_RGB, np.uint8), np.array(WALL_RGB, np.uint8))
+        self.images = np.repeat(background[None], self.n_cells, axis=0)
+        for cell in range(self.n_cells):
+            top = BORDER + (2 * (cell // self.size) + 1) * PIXELS_PER_CHAR
+            left = BORDER + (2 * (cell % self.size) + 1) * PIXELS_PER_CHAR
+            self.images[cell, top : top + PIXELS_PER_CHAR, left : left + PIXELS_PER_CHAR] = AGENT_RGB
+        self.agent_mask = (self.images != background[None]).any(-1)
+        self.distances = self._all_pairs_distances()
+
+    def _all_pairs_distances(self) -> np.ndarray:
+        """Shortest-path lengths between all pairs of cells, by breadth-first search from every cell."""
+        distances = np.full((self.n_cells, self.n_cells), -1, dtype=np.int64)
+        for source in range(self.n_cells):
+            distances[source, source] = 0
+            frontier = [source]
+            while frontier:
+                following = []
+                for cell in frontier:
+                    for neighbour in self.next_cell[cell]:
+                        if distances[source, neighbour] < 0:
+                            distances[source, neighbour] = distances[source, cell] + 1
+                            following.append(neighbour)
+                frontier = following
+        return distances
+
+    def render(self, cells: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+        """uint8 images (len(cells), 80, 80, 3) of the agent in `cells`; with noise, fresh random floor pixels."""
+        images = self.images[cells]
+        if noise > 0:
+            floor = self.floor[None] & ~self.agent_mask[cells]
+            speckle = rng.integers(0, int(noise * 255) + 1, size=images.shape, dtype=np.uint8)
+            images = np.where(floor[..., None], images + speckle, images)
+        return images
 
 
 def infonce_loss(anchors: torch.Tensor, positives: torch.Tensor, clip: float = 20.0) -> torch.Tensor:
@@ -621,19 +510,6 @@ def pretrain_step(
     return metrics
 
 
-@torch.no_grad()
-def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, infos: dict) -> np.ndarray:
-    """The Q-network's actions on the features of the actual observations and goals (the codebook never updates here)."""
-    if table is not None:
-        state_features = table.features[infos["cell"]]
-        goal_features = table.features[infos["goal_cell"]]
-    else:
-        images = np.concatenate([observations["observation"], observations["desired_goal"]])
-        z = agent.rep.embed(torch.as_tensor(images, device=next(agent.q_network.parameters()).device))
-        state_features, goal_features = agent.rep(z, update=False)[0].chunk(2)
-    return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()
-
-
 def td_inputs(embedder: CellEmbedder, batch: Batch, table: CellTable | None, finetune: bool, double_dqn: bool):
     """td_update's observations when it has no table, as CellEmbedder.inputs' (images, rows), in the order it encodes
     them: (next state, goal) for the targets, the same again for the online network's Double DQN choice with --finetune
@@ -696,6 +572,274 @@ def td_update(
     }
 
 
+def main(args: Args) -> None:
+    """Pre-train phi, then train the goal-conditioned DQN (DGRL, or --groups 0 the baseline); or evaluate a --checkpoint."""
+    validate(args)
+    saved = load_resume(args) if args.resume is not None else None  # another script's file or changed flags: exit 2 here
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    device = seed_and_device(args)
+    rng = np.random.default_rng(args.seed)  # random walks, replay batches and image noise
+
+    layout = MazeLayout(args.env_id)
+    train_goals, novel_goals = goal_split(layout, args.n_train_goals, args.goal_seed)
+    optimal_steps = {
+        "train": layout.distances[START_CELL, train_goals].sum(),
+        "novel": layout.distances[START_CELL, novel_goals].sum(),
+    }
+    embedder = CellEmbedder(layout, args.noise, device, rng)
+    agent = make_agent(
+        embed_dim=args.embed_dim,
+        hidden_dim=args.hidden_dim,
+        objective=args.rep,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        learning_rate=args.learning_rate,
+        rep_learning_rate=args.rep_learning_rate,
+        finetune=args.finetune,
+        device=device,
+    )
+
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
+
+    if args.checkpoint is not None:
+        evaluate_checkpoint(args, agent, embedder, layout, train_goals, novel_goals, optimal_steps, device)
+        return
+
+    # A resumed run's TensorBoard drops what the stopped run logged from the first step its resume file has not logged
+    # (of the phase it stopped in). Step 0 always stays: a file saved at step 0 follows everything logged at step 0.
+    first_unlogged = None
+    resumed = ""
+    if saved is not None:
+        phase, step_key = ("DQN", "global_step") if saved["loop"]["dqn_phase"] else ("pre-training", "rep_step")
+        first_unlogged = max(saved["loop"][step_key], 1)
+        resumed = f", resumed at {phase} step {saved['loop'][step_key]}"
+    writer = make_writer(args, run_name, purge_step=first_unlogged)
+    print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}{resumed}")
+
+    # The data of both phases: random-walk transitions to pre-train on; the maze env and the replay memory of the DQN.
+    walks = tuple(
+        torch.as_tensor(column, device=device)
+        for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
+    )
+    envs = gym.vector.SyncVectorEnv(
+        [make_env(layout, train_goals, args.random_start, args.noise, args.max_episode_steps)],
+        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+    )
+    envs.action_space.seed(args.seed)
+    observations, infos = envs.reset(seed=args.seed)
+    replay = ReplayBuffer(args.buffer_size, device)
+    recent_success = deque(maxlen=100)
+    exploration_steps = args.exploration_fraction * args.total_timesteps
+    rep_step, next_rep_log, rep_loss = 0, 0, None
+    pretraining_log = []  # every scalar logged before the DQN phase, as (tag, value, step): see add_kept_scalar
+    dqn_phase = False  # True once pre-training's results are logged and the DQN phase has written its first resume file
+    global_step, train_steps, next_train_log, next_eval = 0, 0, 100, args.eval_frequency
+    last_evaluation = "no evaluation"
+
+    def write_resume() -> None:
+        """runs/{run_name}/resume.pt with the whole training state as it is now (the loop's variables are read when this
+        is called). TensorBoard is flushed first: after a kill -9, every point up to the file's step is on disk."""
+        writer.flush()
+        loop = {
+            "rep_step": rep_step,
+            "next_rep_log": next_rep_log,
+            "rep_loss": rep_loss,
+            "pretraining_log": pretraining_log,
+            "dqn_phase": dqn_phase,
+            "global_step": global_step,
+            "train_steps": train_steps,
+            "next_train_log": next_train_log,
+            "next_eval": next_eval,
+            "last_evaluation": last_evaluation,
+            "observations": observations,
+            "infos": infos,
+            "recent_success": recent_success,
+        }
+        save_resume(run_name, training_state(agent, rng, envs, replay, loop), args)
+
+    if saved is not None:
+        loop = restore_training_state(saved, agent, rng, envs, replay)
+        rep_step, next_rep_log, rep_loss = loop["rep_step"], loop["next_rep_log"], loop["rep_loss"]
+        pretraining_log, dqn_phase = loop["pretraining_log"], loop["dqn_phase"]
+        global_step, train_steps, next_train_log = loop["global_step"], loop["train_steps"], loop["next_train_log"]
+        next_eval, last_evaluation = loop["next_eval"], loop["last_evaluation"]
+        observations, infos, recent_success = loop["observations"], loop["infos"], loop["recent_success"]
+        for tag, value, step in pretraining_log:  # the purge dropped them too: the two phases share TensorBoard's steps
+            if step >= first_unlogged:
+                writer.add_scalar(tag, value, step)
+        set_rng_states(saved["rng"])  # last: building the agent drew from the global generators (nothing below does until
+        # the loops, and nothing between the two loops draws, so this also holds for a run resumed in the DQN phase)
+
+    # The two updates as --fast asks (eagerly, compiled, or replayed as CUDA graphs), each made once.
+    pretrain = fast_update(pretrain_step, args.fast, [agent.rep_optimizer])
+    td = fast_update(td_update, args.fast, [agent.q_optimizer])
+
+    # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
+    pretraining = Progress(args.rep_steps, unit="pre-training step", start_step=rep_step)
+    while rep_step < args.rep_steps and not stop:
+        rows = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
+        rep_metrics = pretrain(agent, *pretrain_inputs(embedder, walks, rows, args.rep))
+        rep_loss = rep_metrics["rep_loss"]
+        if rep_step >= next_rep_log or rep_step == args.rep_steps - 1:
+            next_rep_log += 100
+            add_kept_scalar(writer, pretraining_log, "losses/rep_loss", rep_loss.item(), rep_step)
+            if dgrl:  # DGRL
+                code_perplexity = rep_metrics["perplexity"].item()  # DGRL
+                add_kept_scalar(writer, pretraining_log, "vq/commit_loss", rep_metrics["vq_loss"].item(), rep_step)  # DGRL
+                add_kept_scalar(writer, pretraining_log, "vq/perplexity", code_perplexity, rep_step)  # DGRL
+            pretraining.line(rep_step + 1, f"{args.rep} loss {rep_loss.item():.3f}")
+        rep_step += 1
+        pretraining.heartbeat(rep_step)
+        if pretraining.resume_due(rep_step, args.checkpoint_every, args.checkpoint_every_steps):
+            write_resume()
+
+    # Freeze phi (unless --finetune) and encode the maze's cells once.
+    agent.rep.eval()
+    agent.rep.requires_grad_(args.finetune)
+    pretrained = cell_table(agent.rep, embedder)
+    if rep_step == args.rep_steps and not dqn_phase:  # pre-training has just ended (a stop skips this; a resume is past it)
+        # The codebook's health and how well the bonus tracks maze distance.
+        if dgrl:  # DGRL
+            distinct = len(torch.unique(pretrained.codes, dim=0))  # DGRL
+            add_kept_scalar(writer, pretraining_log, "vq/distinct_cells", distinct, 0)  # DGRL
+            n_active = active_codes(pretrained.codes, args.n_embed).item()  # DGRL
+            add_kept_scalar(writer, pretraining_log, "vq/active_codes", n_active, 0)  # DGRL
+            print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
+        pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
+        pair_codes = (None, None)  # DGRL
+        if dgrl:  # DGRL
+            pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]])  # DGRL
+        all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes)
+        correlation, step_closer = bonus_quality(all_bonus.view(layout.n_cells, -1).cpu().numpy(), layout)
+        add_kept_scalar(writer, pretraining_log, "charts/bonus_distance_corr", correlation, 0)
+        add_kept_scalar(writer, pretraining_log, "charts/bonus_step_closer", step_closer, 0)
+        loss_text = "not trained" if rep_loss is None else f"loss {rep_loss.item():.3f}"
+        print(
+            f"pre-training: {rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
+            f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
+        )
+        if args.finetune:
+            update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
+        dqn_phase = True
+        write_resume()  # the phases share TensorBoard's steps: a pre-training file must not stay
+    if args.finetune:
+        agent.rep.train()
+    lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
+
+    # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
+    progress = Progress(args.total_timesteps, start_step=global_step)
+    while global_step < args.total_timesteps and not stop:
+        # Act: epsilon-greedy on the features of the actual observation and goal.
+        epsilon = max(args.end_e, args.start_e - (args.start_e - args.end_e) * global_step / exploration_steps)
+        if random.random() < epsilon:
+            actions = envs.action_space.sample()
+        else:
+            actions = greedy_actions(agent, lookup, observations, infos)
+        next_observations, rewards, terminations, truncations, next_infos = envs.step(actions)
+
+        # Store: the true final cell of a finished episode comes from final_info (same-step autoreset).
+        done = terminations | truncations
+        next_cells = next_infos["cell"]
+        if done.any():
+            next_cells = np.where(done, next_infos["final_info"]["cell"], next_cells)
+        replay.add(infos["cell"][0], next_cells[0], infos["goal_cell"][0], actions[0], rewards[0], terminations[0])
+        if done[0]:
+            episode = next_infos["final_info"]["episode"]
+            recent_success.append(float(terminations[0]))
+            writer.add_scalar("charts/episodic_return", episode["r"][0], global_step)
+            writer.add_scalar("charts/episodic_length", episode["l"][0], global_step)
+            writer.add_scalar("charts/success_rate", np.mean(recent_success), global_step)
+        observations = next_observations
+        infos = next_infos
+
+        # Learn
+        if global_step >= args.learning_starts and global_step % args.train_frequency == 0:
+            batch = replay.sample(args.batch_size, rng)
+            observed = td_inputs(embedder, batch, lookup, args.finetune, args.double_dqn)
+            settings = {"gamma": args.gamma, "bonus_coef": args.bonus_coef, "double_dqn": args.double_dqn}
+            metrics = td(agent, batch, lookup, observed, **settings)
+            train_steps += 1
+            if train_steps % args.target_network_frequency == 0:
+                update_target(agent.target_q_network, agent.q_network)
+                if agent.target_rep is not None:
+                    update_target(agent.target_rep, agent.rep)  # the codebook buffers are copied too
+            if train_steps >= next_train_log:
+                next_train_log += 100
+                writer.add_scalar("losses/td_loss", metrics["td_loss"].item(), global_step)
+                writer.add_scalar("losses/q_values", metrics["q_values"].item(), global_step)
+                writer.add_scalar("charts/intrinsic_bonus", metrics["bonus"].item(), global_step)
+                writer.add_scalar("charts/epsilon", epsilon, global_step)
+                if dgrl:  # DGRL
+                    writer.add_scalar("vq/factor_match", metrics["bonus"].item(), global_step)  # DGRL
+                    if args.finetune:  # DGRL
+                        writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), global_step)  # DGRL
+
+        # Evaluate greedily on every train goal and every novel goal; log, print progress, record the episodes.
+        steps_done = global_step + 1
+        if steps_done >= next_eval or steps_done == args.total_timesteps:
+            next_eval += args.eval_frequency
+            agent.rep.eval()
+            texts = []
+            frames = []
+            for split, goals in (("train", train_goals), ("novel", novel_goals)):
+                reached, steps, visited = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
+                texts.append(evaluation_text(split, reached, steps, optimal_steps[split]))
+                writer.add_scalar(f"eval/{split}_success_rate", reached.mean(), global_step)
+                writer.add_scalar(f"eval/{split}_mean_steps", steps.mean(), global_step)
+                writer.add_scalar(f"eval/{split}_total_steps", steps.sum(), global_step)
+                if args.capture_video:
+                    frames += episode_frames(layout, visited, steps, goals)
+            agent.rep.train(args.finetune)
+            last_evaluation = "  ".join(texts)
+            writer.add_scalar("charts/SPS", progress.sps(steps_done), global_step)
+            progress.line(steps_done, last_evaluation)
+            if args.capture_video:
+                write_video(f"videos/{run_name}/eval_step{steps_done}.mp4", frames, fps=VisualMazeEnv.metadata["render_fps"])
+        global_step = steps_done
+        progress.heartbeat(global_step)
+        if progress.resume_due(global_step, args.checkpoint_every, args.checkpoint_every_steps):
+            write_resume()
+
+    write_resume()  # stopped or done: --resume runs/{run_name} goes on from here
+    if args.save_model:
+        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+        entries = {
+            "representation": agent.rep.state_dict(),  # phi, its heads and (DGRL) the codebook with its EMA buffers
+            "q_network": agent.q_network.state_dict(),
+            "train_goals": train_goals.tolist(),
+            "novel_goals": novel_goals.tolist(),
+            "pretraining_steps": rep_step,
+            "steps": global_step,
+        }
+        save_checkpoint(path, entries, args)
+        print(f"checkpoint: {path}")
+    progress.finish(bool(stop), run_name, f"{rep_step} pre-training steps, {global_step} DQN steps; {last_evaluation}")
+    envs.close()
+    writer.close()
+
+
+# --- Acting and evaluation --------------------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, infos: dict) -> np.ndarray:
+    """The Q-network's actions on the features of the actual observations and goals (the codebook never updates here)."""
+    if table is not None:
+        state_features = table.features[infos["cell"]]
+        goal_features = table.features[infos["goal_cell"]]
+    else:
+        images = np.concatenate([observations["observation"], observations["desired_goal"]])
+        z = agent.rep.embed(torch.as_tensor(images, device=next(agent.q_network.parameters()).device))
+        state_features, goal_features = agent.rep(z, update=False)[0].chunk(2)
+    return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()
+
+
 @torch.no_grad()
 def evaluate(rep, q_network, embedder, layout: MazeLayout, goal_cells: np.ndarray, max_steps: int):
     """Greedy episodes from the start cell to every goal at once. Returns (reached, steps, path) per goal: steps is
@@ -744,6 +888,140 @@ def episode_frames(layout: MazeLayout, path: np.ndarray, steps: np.ndarray, goal
             frame = np.concatenate([layout.images[cell], gap, layout.images[goal]], axis=1)
             frames.append(frame.repeat(2, 0).repeat(2, 1))
     return frames
+
+
+def evaluate_checkpoint(
+    args: Args,
+    agent: Agent,
+    embedder: CellEmbedder,
+    layout: MazeLayout,
+    train_goals: np.ndarray,
+    novel_goals: np.ndarray,
+    optimal_steps: dict,
+    device: torch.device,
+) -> None:
+    """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the train and novel goals, print."""
+    saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+    split = {"train_goals": train_goals.tolist(), "novel_goals": novel_goals.tolist()}
+    if any(saved.get(key) != cells for key, cells in split.items()):
+        saved_split = {key: saved.get(key) for key in split}
+        print(
+            f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} was trained on the goal split {saved_split}, "
+            f"but these flags give {split}",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
+    agent.rep.load_state_dict(saved["representation"])
+    agent.q_network.load_state_dict(saved["q_network"])
+    agent.rep.eval()
+    for tag, goals in (("train", train_goals), ("novel", novel_goals)):
+        reached, steps, _ = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
+        print(evaluation_text(f"{tag} goals", reached, steps, optimal_steps[tag]))
+
+
+# --- Environment ------------------------------------------------------------------------------------------------------
+
+# 6x6 mazes as (2*6+1) x (2*6+1) characters: odd/odd positions are cells, '#' a wall, anything else an opening.
+LAYOUTS = {
+    "SpiralWorld": (
+        "#############",
+        "#.#. . . . .#",
+        "# # ####### #",
+        "#.#.#. . .#.#",
+        "# # # ### # #",
+        "#.#.#.#.#.#.#",
+        "# # # # # # #",
+        "#.#.#. .#.#.#",
+        "# # ##### # #",
+        "#.#. . . .#.#",
+        "# ######### #",
+        "#. . . . . .#",
+        "#############",
+    ),
+    "LoopWorld": (
+        "#############",
+        "#.#. . . . .#",
+        "# # ####### #",
+        "#.#.#. . .#.#",
+        "# # # ### # #",
+        "#.#.#.#.#.#.#",
+        "# # # # # # #",
+        "#.#.#. .#.#.#",
+        "# # ##### # #",
+        "#.#. . . .#.#",
+        "# ####### # #",
+        "#. . . . . .#",
+        "#############",
+    ),
+    "EmptyWorld": ("#############",) + ("#. . . . . .#", "#           #") * 5 + ("#. . . . . .#", "#############"),
+}
+MOVES = ((0, -1), (0, 1), (-1, 0), (1, 0))  # left, right, up, down as (row, column) steps
+PIXELS_PER_CHAR = 6  # 13 characters x 6 px + 2 px of border = 80 px
+BORDER = 1
+WALL_RGB = (128, 128, 128)
+FLOOR_RGB = (0, 0, 0)
+AGENT_RGB = (255, 0, 0)
+START_CELL = 0  # the top-left corner: one end of the spiral, a corner of the loop
+N_NOVEL_GOALS = 4  # the paper's test set: 4 goals never trained on
+
+
+def goal_split(
+    layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Disjoint (train, novel) goal cells, never the start cell. The novel cells depend only on goal_seed, and the train
+    cells are the first n_train of one seeded order, so K=4 goals are a subset of K=8, which are a subset of K=16."""
+    candidates = np.array([cell for cell in range(layout.n_cells) if cell != START_CELL])
+    order = np.random.default_rng(goal_seed).permutation(candidates)
+    return np.sort(order[n_novel : n_novel + n_train]), np.sort(order[:n_novel])
+
+
+class VisualMazeEnv(gym.Env):
+    """Reach the goal cell of a 6x6 maze from pixels. Observation: {"observation", "desired_goal"}, both 80x80x3 uint8
+    (the goal is the maze with the agent drawn at the goal). Reward -1 per step, +5 on the step that reaches the goal,
+    which terminates. info carries the agent's "cell" and the "goal_cell"."""
+
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 8}
+
+    def __init__(self, layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, render_mode=None):
+        self.layout = layout
+        self.goal_cells = np.asarray(goal_cells)
+        self.random_start = random_start
+        self.noise = noise
+        self.render_mode = render_mode
+        image_space = gym.spaces.Box(0, 255, layout.images.shape[1:], np.uint8)
+        self.observation_space = gym.spaces.Dict({"observation": image_space, "desired_goal": image_space})
+        self.action_space = gym.spaces.Discrete(len(MOVES))
+
+    def _observe(self):
+        images = self.layout.render(np.array([self.cell, self.goal_cell]), self.noise, self.np_random)
+        self._frame = images[0]
+        return {"observation": images[0], "desired_goal": images[1]}, {"cell": self.cell, "goal_cell": self.goal_cell}
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.goal_cell = int(self.np_random.choice(self.goal_cells))
+        self.cell = START_CELL
+        if self.random_start:
+            self.cell = int(self.np_random.choice([c for c in range(self.layout.n_cells) if c != self.goal_cell]))
+        return self._observe()
+
+    def step(self, action):
+        self.cell = int(self.layout.next_cell[self.cell, int(action)])
+        reached = self.cell == self.goal_cell
+        observation, info = self._observe()
+        return observation, 5.0 if reached else -1.0, reached, False, info
+
+    def render(self):
+        return self._frame.repeat(4, 0).repeat(4, 1)
+
+
+def make_env(layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, max_episode_steps: int):
+    def thunk():
+        env = VisualMazeEnv(layout, goal_cells, random_start, noise)
+        env = gym.wrappers.TimeLimit(env, max_episode_steps)
+        return gym.wrappers.RecordEpisodeStatistics(env)
+
+    return thunk
 
 
 # --- Stopping and resuming: the whole training state ------------------------------------------------------------------
@@ -831,6 +1109,16 @@ def restore_training_state(
     restore_env_state(envs, saved["env"])
     replay.load_state_dict(saved["replay"])
     return saved["loop"]
+
+
+# --- Flags a checkpoint must match ------------------------------------------------------------------------------------
+
+# A checkpoint is evaluated only with the flags it was saved with that fix the architecture, the maze, the goal split and
+# what evaluation measures (the noise on the images and the episode step limit).
+MUST_MATCH = (
+    "env_id", "n_train_goals", "goal_seed", "noise", "max_episode_steps",
+    "rep", "embed_dim", "hidden_dim", "groups", "n_embed",
+)  # fmt: skip
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1278,267 +1566,4 @@ def validate(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    saved = load_resume(args) if args.resume is not None else None  # another script's file or changed flags: exit 2 here
-    dgrl = args.groups > 0  # DGRL
-    run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
-    device = seed_and_device(args)
-    rng = np.random.default_rng(args.seed)  # random walks, replay batches and image noise
-
-    layout = MazeLayout(args.env_id)
-    train_goals, novel_goals = goal_split(layout, args.n_train_goals, args.goal_seed)
-    optimal_steps = {
-        "train": layout.distances[START_CELL, train_goals].sum(),
-        "novel": layout.distances[START_CELL, novel_goals].sum(),
-    }
-    embedder = CellEmbedder(layout, args.noise, device, rng)
-    agent = make_agent(
-        embed_dim=args.embed_dim,
-        hidden_dim=args.hidden_dim,
-        objective=args.rep,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        learning_rate=args.learning_rate,
-        rep_learning_rate=args.rep_learning_rate,
-        finetune=args.finetune,
-        device=device,
-    )
-
-    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
-
-    if args.checkpoint is not None:
-        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-        split = {"train_goals": train_goals.tolist(), "novel_goals": novel_goals.tolist()}
-        if any(saved.get(key) != cells for key, cells in split.items()):
-            saved_split = {key: saved.get(key) for key in split}
-            print(
-                f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} was trained on the goal split {saved_split}, "
-                f"but these flags give {split}",
-                file=sys.stderr,
-            )
-            raise SystemExit(2)
-        agent.rep.load_state_dict(saved["representation"])
-        agent.q_network.load_state_dict(saved["q_network"])
-        agent.rep.eval()
-        for tag, goals in (("train", train_goals), ("novel", novel_goals)):
-            reached, steps, _ = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
-            print(evaluation_text(f"{tag} goals", reached, steps, optimal_steps[tag]))
-        raise SystemExit(0)
-
-    # A resumed run's TensorBoard drops what the stopped run logged from the first step its resume file has not logged
-    # (of the phase it stopped in). Step 0 always stays: a file saved at step 0 follows everything logged at step 0.
-    first_unlogged = None
-    resumed = ""
-    if saved is not None:
-        phase, step_key = ("DQN", "global_step") if saved["loop"]["dqn_phase"] else ("pre-training", "rep_step")
-        first_unlogged = max(saved["loop"][step_key], 1)
-        resumed = f", resumed at {phase} step {saved['loop'][step_key]}"
-    writer = make_writer(args, run_name, purge_step=first_unlogged)
-    print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}{resumed}")
-
-    # The data of both phases: random-walk transitions to pre-train on; the maze env and the replay memory of the DQN.
-    walks = tuple(
-        torch.as_tensor(column, device=device)
-        for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
-    )
-    envs = gym.vector.SyncVectorEnv(
-        [make_env(layout, train_goals, args.random_start, args.noise, args.max_episode_steps)],
-        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
-    )
-    envs.action_space.seed(args.seed)
-    observations, infos = envs.reset(seed=args.seed)
-    replay = ReplayBuffer(args.buffer_size, device)
-    recent_success = deque(maxlen=100)
-    exploration_steps = args.exploration_fraction * args.total_timesteps
-    rep_step, next_rep_log, rep_loss = 0, 0, None
-    pretraining_log = []  # every scalar logged before the DQN phase, as (tag, value, step): see add_kept_scalar
-    dqn_phase = False  # True once pre-training's results are logged and the DQN phase has written its first resume file
-    global_step, train_steps, next_train_log, next_eval = 0, 0, 100, args.eval_frequency
-    last_evaluation = "no evaluation"
-
-    def write_resume() -> None:
-        """runs/{run_name}/resume.pt with the whole training state as it is now (the loop's variables are read when this
-        is called). TensorBoard is flushed first: after a kill -9, every point up to the file's step is on disk."""
-        writer.flush()
-        loop = {
-            "rep_step": rep_step,
-            "next_rep_log": next_rep_log,
-            "rep_loss": rep_loss,
-            "pretraining_log": pretraining_log,
-            "dqn_phase": dqn_phase,
-            "global_step": global_step,
-            "train_steps": train_steps,
-            "next_train_log": next_train_log,
-            "next_eval": next_eval,
-            "last_evaluation": last_evaluation,
-            "observations": observations,
-            "infos": infos,
-            "recent_success": recent_success,
-        }
-        save_resume(run_name, training_state(agent, rng, envs, replay, loop), args)
-
-    if saved is not None:
-        loop = restore_training_state(saved, agent, rng, envs, replay)
-        rep_step, next_rep_log, rep_loss = loop["rep_step"], loop["next_rep_log"], loop["rep_loss"]
-        pretraining_log, dqn_phase = loop["pretraining_log"], loop["dqn_phase"]
-        global_step, train_steps, next_train_log = loop["global_step"], loop["train_steps"], loop["next_train_log"]
-        next_eval, last_evaluation = loop["next_eval"], loop["last_evaluation"]
-        observations, infos, recent_success = loop["observations"], loop["infos"], loop["recent_success"]
-        for tag, value, step in pretraining_log:  # the purge dropped them too: the two phases share TensorBoard's steps
-            if step >= first_unlogged:
-                writer.add_scalar(tag, value, step)
-        set_rng_states(saved["rng"])  # last: building the agent drew from the global generators (nothing below does until
-        # the loops, and nothing between the two loops draws, so this also holds for a run resumed in the DQN phase)
-
-    # The two updates as --fast asks (eagerly, compiled, or replayed as CUDA graphs), each made once.
-    pretrain = fast_update(pretrain_step, args.fast, [agent.rep_optimizer])
-    td = fast_update(td_update, args.fast, [agent.q_optimizer])
-
-    # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
-    pretraining = Progress(args.rep_steps, unit="pre-training step", start_step=rep_step)
-    while rep_step < args.rep_steps and not stop:
-        rows = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
-        rep_metrics = pretrain(agent, *pretrain_inputs(embedder, walks, rows, args.rep))
-        rep_loss = rep_metrics["rep_loss"]
-        if rep_step >= next_rep_log or rep_step == args.rep_steps - 1:
-            next_rep_log += 100
-            add_kept_scalar(writer, pretraining_log, "losses/rep_loss", rep_loss.item(), rep_step)
-            if dgrl:  # DGRL
-                code_perplexity = rep_metrics["perplexity"].item()  # DGRL
-                add_kept_scalar(writer, pretraining_log, "vq/commit_loss", rep_metrics["vq_loss"].item(), rep_step)  # DGRL
-                add_kept_scalar(writer, pretraining_log, "vq/perplexity", code_perplexity, rep_step)  # DGRL
-            pretraining.line(rep_step + 1, f"{args.rep} loss {rep_loss.item():.3f}")
-        rep_step += 1
-        pretraining.heartbeat(rep_step)
-        if pretraining.resume_due(rep_step, args.checkpoint_every, args.checkpoint_every_steps):
-            write_resume()
-
-    # Freeze phi (unless --finetune) and encode the maze's cells once.
-    agent.rep.eval()
-    agent.rep.requires_grad_(args.finetune)
-    pretrained = cell_table(agent.rep, embedder)
-    if rep_step == args.rep_steps and not dqn_phase:  # pre-training has just ended (a stop skips this; a resume is past it)
-        # The codebook's health and how well the bonus tracks maze distance.
-        if dgrl:  # DGRL
-            distinct = len(torch.unique(pretrained.codes, dim=0))  # DGRL
-            add_kept_scalar(writer, pretraining_log, "vq/distinct_cells", distinct, 0)  # DGRL
-            n_active = active_codes(pretrained.codes, args.n_embed).item()  # DGRL
-            add_kept_scalar(writer, pretraining_log, "vq/active_codes", n_active, 0)  # DGRL
-            print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
-        pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
-        pair_codes = (None, None)  # DGRL
-        if dgrl:  # DGRL
-            pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]])  # DGRL
-        all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes)
-        correlation, step_closer = bonus_quality(all_bonus.view(layout.n_cells, -1).cpu().numpy(), layout)
-        add_kept_scalar(writer, pretraining_log, "charts/bonus_distance_corr", correlation, 0)
-        add_kept_scalar(writer, pretraining_log, "charts/bonus_step_closer", step_closer, 0)
-        loss_text = "not trained" if rep_loss is None else f"loss {rep_loss.item():.3f}"
-        print(
-            f"pre-training: {rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
-            f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
-        )
-        if args.finetune:
-            update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
-        dqn_phase = True
-        write_resume()  # the phases share TensorBoard's steps: a pre-training file must not stay
-    if args.finetune:
-        agent.rep.train()
-    lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
-
-    # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
-    progress = Progress(args.total_timesteps, start_step=global_step)
-    while global_step < args.total_timesteps and not stop:
-        # Act: epsilon-greedy on the features of the actual observation and goal.
-        epsilon = max(args.end_e, args.start_e - (args.start_e - args.end_e) * global_step / exploration_steps)
-        if random.random() < epsilon:
-            actions = envs.action_space.sample()
-        else:
-            actions = greedy_actions(agent, lookup, observations, infos)
-        next_observations, rewards, terminations, truncations, next_infos = envs.step(actions)
-
-        # Store: the true final cell of a finished episode comes from final_info (same-step autoreset).
-        done = terminations | truncations
-        next_cells = next_infos["cell"]
-        if done.any():
-            next_cells = np.where(done, next_infos["final_info"]["cell"], next_cells)
-        replay.add(infos["cell"][0], next_cells[0], infos["goal_cell"][0], actions[0], rewards[0], terminations[0])
-        if done[0]:
-            episode = next_infos["final_info"]["episode"]
-            recent_success.append(float(terminations[0]))
-            writer.add_scalar("charts/episodic_return", episode["r"][0], global_step)
-            writer.add_scalar("charts/episodic_length", episode["l"][0], global_step)
-            writer.add_scalar("charts/success_rate", np.mean(recent_success), global_step)
-        observations = next_observations
-        infos = next_infos
-
-        # Learn
-        if global_step >= args.learning_starts and global_step % args.train_frequency == 0:
-            batch = replay.sample(args.batch_size, rng)
-            observed = td_inputs(embedder, batch, lookup, args.finetune, args.double_dqn)
-            settings = {"gamma": args.gamma, "bonus_coef": args.bonus_coef, "double_dqn": args.double_dqn}
-            metrics = td(agent, batch, lookup, observed, **settings)
-            train_steps += 1
-            if train_steps % args.target_network_frequency == 0:
-                update_target(agent.target_q_network, agent.q_network)
-                if agent.target_rep is not None:
-                    update_target(agent.target_rep, agent.rep)  # the codebook buffers are copied too
-            if train_steps >= next_train_log:
-                next_train_log += 100
-                writer.add_scalar("losses/td_loss", metrics["td_loss"].item(), global_step)
-                writer.add_scalar("losses/q_values", metrics["q_values"].item(), global_step)
-                writer.add_scalar("charts/intrinsic_bonus", metrics["bonus"].item(), global_step)
-                writer.add_scalar("charts/epsilon", epsilon, global_step)
-                if dgrl:  # DGRL
-                    writer.add_scalar("vq/factor_match", metrics["bonus"].item(), global_step)  # DGRL
-                    if args.finetune:  # DGRL
-                        writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), global_step)  # DGRL
-
-        # Evaluate greedily on every train goal and every novel goal; log, print progress, record the episodes.
-        steps_done = global_step + 1
-        if steps_done >= next_eval or steps_done == args.total_timesteps:
-            next_eval += args.eval_frequency
-            agent.rep.eval()
-            texts = []
-            frames = []
-            for split, goals in (("train", train_goals), ("novel", novel_goals)):
-                reached, steps, visited = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
-                texts.append(evaluation_text(split, reached, steps, optimal_steps[split]))
-                writer.add_scalar(f"eval/{split}_success_rate", reached.mean(), global_step)
-                writer.add_scalar(f"eval/{split}_mean_steps", steps.mean(), global_step)
-                writer.add_scalar(f"eval/{split}_total_steps", steps.sum(), global_step)
-                if args.capture_video:
-                    frames += episode_frames(layout, visited, steps, goals)
-            agent.rep.train(args.finetune)
-            last_evaluation = "  ".join(texts)
-            writer.add_scalar("charts/SPS", progress.sps(steps_done), global_step)
-            progress.line(steps_done, last_evaluation)
-            if args.capture_video:
-                write_video(f"videos/{run_name}/eval_step{steps_done}.mp4", frames, fps=VisualMazeEnv.metadata["render_fps"])
-        global_step = steps_done
-        progress.heartbeat(global_step)
-        if progress.resume_due(global_step, args.checkpoint_every, args.checkpoint_every_steps):
-            write_resume()
-
-    write_resume()  # stopped or done: --resume runs/{run_name} goes on from here
-    if args.save_model:
-        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        entries = {
-            "representation": agent.rep.state_dict(),  # phi, its heads and (DGRL) the codebook with its EMA buffers
-            "q_network": agent.q_network.state_dict(),
-            "train_goals": train_goals.tolist(),
-            "novel_goals": novel_goals.tolist(),
-            "pretraining_steps": rep_step,
-            "steps": global_step,
-        }
-        save_checkpoint(path, entries, args)
-        print(f"checkpoint: {path}")
-    progress.finish(bool(stop), run_name, f"{rep_step} pre-training steps, {global_step} DQN steps; {last_evaluation}")
-    envs.close()
-    writer.close()
+    main(tyro.cli(Args))

@@ -169,314 +169,6 @@ class Args:
     """Adam learning rate of the subgoal encoder and decoder (a parameter group of the controller's critic Adam)"""  # DGRL
 
 
-# --- Environments -----------------------------------------------------------------------------------------------------
-
-# HIRO's structures, rows top to bottom: 1 fixed block, 0 free, r robot start (the first one is the origin; AntMazeSparse
-# starts uniformly over all of them), XY a block sliding in x and y, YZ a block sliding in y and z, -1 a chasm.
-SPARSE_ROWS = (
-    "1 1 1 1 1 1 1 1 1 1", "1 r r r r r r r r 1", "1 r r r r r r r r 1", "1 1 1 1 1 1 1 r r 1", "1 0 r r r r r r r 1",
-    "1 0 r r r r r r r 1", "1 1 1 1 1 1 1 r r 1", "1 r r r r r r r r 1", "1 r r r r r r r r 1", "1 1 1 1 1 1 1 1 1 1",
-)  # fmt: skip
-STRUCTURES = {
-    "AntMaze": (8.0, ((1, 1, 1, 1, 1), (1, "r", 0, 0, 1), (1, 1, 1, 0, 1), (1, 0, 0, 0, 1), (1, 1, 1, 1, 1))),
-    "AntPush": (8.0, ((1, 1, 1, 1, 1), (1, 0, "r", 1, 1), (1, 0, "XY", 0, 1), (1, 1, 0, 1, 1), (1, 1, 1, 1, 1))),
-    "AntFall": (8.0, ((1, 1, 1, 1), (1, "r", 0, 1), (1, 0, "YZ", 1), (1, -1, -1, 1), (1, 0, 0, 1), (1, 1, 1, 1))),
-    "AntMazeSparse": (2.0, tuple(tuple(int(c) if c in "01" else c for c in row.split()) for row in SPARSE_ROWS)),
-}
-MAZE_HEIGHT = 0.5  # walls are MAZE_HEIGHT * scaling tall
-EVAL_GOALS = {"AntMaze": (0.0, 16.0), "AntMazeSparse": (2.0, 9.0), "AntPush": (0.0, 19.0), "AntFall": (0.0, 27.0, 4.5)}
-SUCCESS_DISTANCE = {"AntMaze": 5.0, "AntMazeSparse": 1.0, "AntPush": 5.0, "AntFall": 5.0}
-EPISODE_STEPS = 500
-GATHER = {"apples": 8, "bombs": 8, "half_width": 10, "wall": 11.0, "catch": 1.0, "bins": 10, "range": 6.0, "span": 2 * np.pi}
-
-
-def structure_origin(structure) -> tuple[int, int]:
-    """(row, column) of the first robot cell: the world origin, where the ant starts."""
-    for i, row in enumerate(structure):
-        for j, cell in enumerate(row):
-            if cell == "r":
-                return i, j
-    raise ValueError("structure without a robot cell")
-
-
-def cell_centre(i: int, j: int, scaling: float, origin: tuple[int, int]) -> tuple[float, float]:
-    """World xy of cell (row i, column j): x grows with the column, y with the row (HIRO's convention)."""
-    return j * scaling - origin[1] * scaling, i * scaling - origin[0] * scaling
-
-
-def structure_blocks(env_id: str) -> list[dict]:
-    """The blocks of an env's structure as MuJoCo boxes: name, centre (x, y, z), half-sizes, the axes it slides along
-    ("" for a fixed block) and its mass (movable blocks only). An elevated structure (one with a chasm) adds a platform
-    under every non-chasm cell, and everything else sits on it."""
-    scaling, structure = STRUCTURES[env_id]
-    origin = structure_origin(structure)
-    elevated = any(cell == -1 for row in structure for cell in row)
-    offset = MAZE_HEIGHT * scaling if elevated else 0.0
-    half = 0.5 * scaling
-    wall_half_height = 0.5 * MAZE_HEIGHT * scaling
-    blocks = []
-    for i, row in enumerate(structure):
-        for j, cell in enumerate(row):
-            x, y = cell_centre(i, j, scaling, origin)
-            if elevated and cell != -1:
-                blocks.append(dict(name=f"platform_{i}_{j}", pos=(x, y, offset / 2), size=(half, half, offset / 2), axes=""))
-            if cell == 1:
-                pos, size = (x, y, offset + wall_half_height), (half, half, wall_half_height)
-                blocks.append(dict(name=f"block_{i}_{j}", pos=pos, size=size, axes=""))
-            elif cell in ("XY", "YZ"):
-                shrink = 0.99 if "Z" in cell else 1.0  # the falling block fits through the chasm's gap
-                mass = 0.001 if "Z" in cell else 0.0002
-                blocks.append(
-                    dict(
-                        name=f"movable_{i}_{j}",
-                        pos=(x, y, offset + wall_half_height),
-                        size=(half * shrink, half * shrink, wall_half_height),
-                        axes=cell.lower(),
-                        mass=mass,
-                    )
-                )
-    return blocks
-
-
-def hiro_ant_xml(env_id: str) -> str:
-    """Gymnasium's Ant model edited as HIRO's (ctrl +-30 with gear 1, timestep 0.02, RK4) with the env's blocks; the
-    ant keeps the first 15 qpos and 14 qvel entries (the blocks' slide joints come after it)."""
-    root = ET.parse(os.path.join(os.path.dirname(gym.__file__), "envs/mujoco/assets/ant.xml")).getroot()
-    root.find("option").set("timestep", "0.02")
-    for motor in root.iter("motor"):
-        motor.set("gear", "1")
-        motor.set("ctrlrange", "-30 30")
-    world = root.find("worldbody")
-    world.find("geom[@name='floor']").set("size", "60 60 40")
-    blocks = [] if env_id == "AntGather" else structure_blocks(env_id)
-    scaling = STRUCTURES[env_id][0] if blocks else 0.0
-    if any(block["name"].startswith("platform") for block in blocks):  # the ant starts on the platform
-        world.find("body[@name='torso']").set("pos", f"0 0 {0.75 + MAZE_HEIGHT * scaling}")
-    for block in blocks:
-        pos, size = " ".join(map(str, block["pos"])), " ".join(map(str, block["size"]))
-        if not block["axes"]:
-            ET.SubElement(
-                world,
-                "geom",
-                name=block["name"],
-                type="box",
-                pos=pos,
-                size=size,
-                conaffinity="1",
-                contype="1",
-                rgba="0.4 0.4 0.4 1",
-            )
-            continue
-        body = ET.SubElement(world, "body", name=block["name"], pos=pos)
-        ET.SubElement(
-            body,
-            "geom",
-            name=block["name"] + "_geom",
-            type="box",
-            size=size,
-            mass=str(block["mass"]),
-            conaffinity="1",
-            contype="1",
-            rgba="0.9 0.1 0.1 1",
-            solimp="0.995 0.995 0.01",
-        )
-        for axis in block["axes"]:
-            direction = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}[axis]
-            joint = dict(
-                name=f"{block['name']}_{axis}", type="slide", axis=direction, pos="0 0 0", armature="0", damping="0.0"
-            )
-            if axis == "z":  # the falling block drops at most the platform's height
-                joint.update(limited="true", range=f"{-MAZE_HEIGHT * scaling} 0")
-            elif "z" in block["axes"]:
-                joint.update(limited="true", range=f"{-scaling} {scaling}")
-            else:
-                joint.update(limited="false")
-            ET.SubElement(body, "joint", **joint)
-    if blocks:  # a camera over the middle of the structure that sees all of it (45-degree field of view)
-        xs = [b["pos"][0] for b in blocks]
-        ys = [b["pos"][1] for b in blocks]
-        centre_x, centre_y = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
-        extent = max(max(xs) - min(xs), max(ys) - min(ys)) + scaling
-    else:
-        centre_x, centre_y, extent = 0.0, 0.0, 2 * GATHER["wall"] + 1
-    ET.SubElement(world, "camera", name="top", pos=f"{centre_x} {centre_y} {1.25 * extent}", xyaxes="1 0 0 0 1 0")
-    if env_id == "AntGather":
-        w = GATHER["wall"]
-        walls = {"north": (0, w, w, 0.5), "south": (0, -w, w, 0.5), "east": (w, 0, 0.5, w), "west": (-w, 0, 0.5, w)}
-        for name, (x, y, hx, hy) in walls.items():
-            ET.SubElement(
-                world,
-                "geom",
-                name=f"wall_{name}",
-                type="box",
-                pos=f"{x} {y} 0.5",
-                size=f"{hx} {hy} 0.5",
-                conaffinity="1",
-                contype="1",
-                rgba="0.4 0.4 0.4 1",
-            )
-    return ET.tostring(root, encoding="unicode")
-
-
-def gather_readings(xy: np.ndarray, yaw: float, objects: np.ndarray) -> np.ndarray:
-    """rllab's range sensor: `bins` bins over a 2*pi span centred on the ant's heading; each bin holds the largest
-    1 - distance / range of the objects within range whose bearing falls in it."""
-    readings = np.zeros(GATHER["bins"])
-    offsets = objects - xy
-    distance = np.linalg.norm(offsets, axis=1)
-    bearing = (np.arctan2(offsets[:, 1], offsets[:, 0]) - yaw + GATHER["span"] / 2) % (2 * np.pi)
-    bins = np.minimum((bearing / (GATHER["span"] / GATHER["bins"])).astype(int), GATHER["bins"] - 1)
-    seen = distance < GATHER["range"]
-    np.maximum.at(readings, bins[seen], 1.0 - distance[seen] / GATHER["range"])
-    return readings
-
-
-class HiroAntEnv(gym.Env):
-    """One env of the HIRO Ant suite on the modern `mujoco` bindings.
-
-    Observation: qpos[:15] + qvel[:14] of the ant and the time feature t * 0.001 (30-d); AntGather adds 10 apple and 10
-    bomb range readings. Action: 8 motor torques in [-30, 30]. Reset: the model's initial state with qpos + U(-0.1,
-    0.1) and qvel + 0.1 N(0, 1); AntMazeSparse starts on a uniformly drawn robot cell. Goals: AntMaze trains on
-    U([-4, -4], [20, 20]) and evaluates on (0, 16); the others use their fixed goal (`goal`, None for AntGather).
-    Reward: -||xy - g|| (AntFall: xyz), AntMazeSparse 1 within 1 of the goal, AntGather apples - bombs caught. Episodes
-    are truncated after 500 steps; `info["success"]` applies the env's success test, `info["distance"]` is the distance
-    to the goal (not for AntGather).
-    """
-
-    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
-    frame_skip = 5
-
-    def __init__(self, env_id: str, evaluate: bool = False, render_mode: str | None = None):
-        self.env_id, self.evaluate, self.render_mode = env_id, evaluate, render_mode
-        self.model = mujoco.MjModel.from_xml_string(hiro_ant_xml(env_id))
-        self.data = mujoco.MjData(self.model)
-        size = 50 if env_id == "AntGather" else 30
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (size,), np.float64)
-        self.action_space = gym.spaces.Box(-30.0, 30.0, (8,), np.float32)
-        self.goal = None if env_id == "AntGather" else np.array(EVAL_GOALS[env_id])
-        self.steps = 0
-        self.objects = np.zeros((0, 2))
-        self.kinds = np.zeros(0)  # +1 apple, -1 bomb
-        self._renderer = None
-        if env_id == "AntMazeSparse":
-            scaling, structure = STRUCTURES[env_id]
-            origin = structure_origin(structure)
-            cells = [(i, j) for i, row in enumerate(structure) for j, c in enumerate(row) if c == "r"]
-            self.starts = np.array([cell_centre(i, j, scaling, origin) for i, j in cells])
-
-    def _observe(self) -> np.ndarray:
-        obs = np.concatenate([self.data.qpos[:15], self.data.qvel[:14], [self.steps * 0.001]])
-        if self.env_id == "AntGather":
-            yaw = np.arctan2(
-                2 * (self.data.qpos[3] * self.data.qpos[6] + self.data.qpos[4] * self.data.qpos[5]),
-                1 - 2 * (self.data.qpos[5] ** 2 + self.data.qpos[6] ** 2),
-            )
-            xy = self.data.qpos[:2]
-            obs = np.concatenate(
-                [
-                    obs[:29],
-                    gather_readings(xy, yaw, self.objects[self.kinds > 0]),
-                    gather_readings(xy, yaw, self.objects[self.kinds < 0]),
-                    [self.steps * 0.01],
-                ]
-            )
-        return obs
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[:] += self.np_random.uniform(-0.1, 0.1, self.model.nq)
-        self.data.qvel[:] += 0.1 * self.np_random.standard_normal(self.model.nv)
-        if self.env_id == "AntMazeSparse":
-            self.data.qpos[:2] += self.starts[self.np_random.integers(len(self.starts))]
-        if self.env_id == "AntMaze" and not self.evaluate:
-            self.goal = self.np_random.uniform((-4.0, -4.0), (20.0, 20.0))
-        elif self.env_id in EVAL_GOALS:
-            self.goal = np.array(EVAL_GOALS[self.env_id])
-        if self.env_id == "AntGather":
-            free = [(x, y) for x in range(-10, 11, 2) for y in range(-10, 11, 2) if x * x + y * y >= 4]
-            picks = self.np_random.choice(len(free), GATHER["apples"] + GATHER["bombs"], replace=False)
-            self.objects = np.array(free, dtype=np.float64)[picks]
-            self.kinds = np.array([1.0] * GATHER["apples"] + [-1.0] * GATHER["bombs"])
-        self.steps = 0
-        mujoco.mj_forward(self.model, self.data)
-        return self._observe(), {}
-
-    def step(self, action):
-        self.data.ctrl[:] = np.clip(action, -30.0, 30.0)
-        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
-        self.steps += 1
-        xy = self.data.qpos[:2].copy()
-        if self.env_id == "AntGather":
-            caught = np.linalg.norm(self.objects - xy, axis=1) < GATHER["catch"]
-            reward = float(self.kinds[caught].sum())
-            self.objects, self.kinds = self.objects[~caught], self.kinds[~caught]
-            success = False
-        else:
-            position = self.data.qpos[:3] if self.env_id == "AntFall" else xy
-            distance = float(np.linalg.norm(position - self.goal))
-            if self.env_id == "AntMazeSparse":
-                reward = float(distance < SUCCESS_DISTANCE[self.env_id])
-            else:
-                reward = -distance
-            success = distance < SUCCESS_DISTANCE[self.env_id]
-        truncated = self.steps >= EPISODE_STEPS
-        info = {"success": success} if self.env_id == "AntGather" else {"success": success, "distance": distance}
-        return self._observe(), reward, False, truncated, info
-
-    def state_dict(self) -> dict:
-        """What a resumed run needs to continue this env exactly: MuJoCo's integration state (time, qpos, qvel, warm
-        start, controls, applied forces), the step counter, the goal, AntGather's objects and the random generator."""
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        physics = np.empty(mujoco.mj_stateSize(self.model, spec))
-        mujoco.mj_getState(self.model, self.data, physics, spec)
-        goal = None if self.goal is None else self.goal.copy()
-        return {"physics": physics, "steps": self.steps, "goal": goal, "objects": self.objects.copy(),
-                "kinds": self.kinds.copy(), "np_random": self.np_random.bit_generator.state}  # fmt: skip
-
-    def load_state_dict(self, state: dict) -> None:
-        mujoco.mj_setState(self.model, self.data, state["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
-        mujoco.mj_forward(self.model, self.data)  # the derived quantities (positions of bodies, contacts) for renders
-        self.steps, self.goal, self.objects, self.kinds = state["steps"], state["goal"], state["objects"], state["kinds"]
-        self.np_random.bit_generator.state = state["np_random"]
-
-    def render(self):
-        if self._renderer is None:  # no shadows or reflections: 3x faster under software EGL on a CPU
-            self.model.vis.quality.shadowsize = 0  # a visual setting only; the physics is unchanged
-            self._renderer = mujoco.Renderer(self.model, 240, 240)
-            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        self._renderer.update_scene(self.data, camera="top")
-        # Markers drawn into the scene only (no bodies, so no physics): AntGather's apples (green) and bombs (red); the
-        # goal of the other envs (a translucent green disc of the success radius, at the goal's height for AntFall).
-        if self.env_id == "AntGather":
-            markers = [
-                ((x, y, 0.5), 0.5, (0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1))
-                for (x, y), kind in zip(self.objects, self.kinds, strict=True)
-            ]
-        else:
-            z = self.goal[2] if len(self.goal) == 3 else 0.05
-            markers = [((*self.goal[:2], z), SUCCESS_DISTANCE[self.env_id], (0.1, 0.8, 0.1, 0.35))]
-        scene = self._renderer.scene
-        for pos, radius, rgba in markers[: scene.maxgeom - scene.ngeom]:
-            shape = mujoco.mjtGeom.mjGEOM_SPHERE if self.env_id == "AntGather" else mujoco.mjtGeom.mjGEOM_CYLINDER
-            size = np.array([radius, radius, radius]) if self.env_id == "AntGather" else np.array([radius, 0.05, 0])
-            mujoco.mjv_initGeom(
-                scene.geoms[scene.ngeom],
-                shape,
-                size,
-                np.array(pos, dtype=np.float64),
-                np.eye(3).ravel(),
-                np.array(rgba, dtype=np.float32),
-            )
-            scene.ngeom += 1
-        return self._renderer.render()
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
-
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 
@@ -888,7 +580,7 @@ def td3_update(
     return metrics | {"target_q": target_q.mean()}
 
 
-# --- The agent: acting, updates, adjacency training, evaluation -------------------------------------------------------
+# --- The agent: updates and adjacency training ------------------------------------------------------------------------
 
 ENV_IDS = ("AntMaze", "AntMazeSparse", "AntPush", "AntFall", "AntGather")
 MANAGER_GOAL_DIMS = {"AntMaze": 2, "AntPush": 2, "AntFall": 3, "AntMazeSparse": 0, "AntGather": 0}
@@ -899,7 +591,7 @@ def subgoal_bounds(env_id: str, scale: float) -> np.ndarray:
     return np.array([scale, scale, 0.5]) if env_id == "AntFall" else np.array([scale, scale])
 
 
-def manager_goal(env: HiroAntEnv) -> np.ndarray:
+def manager_goal(env: "HiroAntEnv") -> np.ndarray:
     """What the manager sees of the task: the goal's xy (AntFall xyz); AntMazeSparse and AntGather give it nothing."""
     return np.zeros(0) if MANAGER_GOAL_DIMS[env.env_id] == 0 else env.goal.astype(np.float32)
 
@@ -913,38 +605,6 @@ def controller_goal_input(goal_encoder: SubgoalEncoder | None, subgoals: torch.T
 def as_tensors(sample: dict[str, np.ndarray], device: torch.device | str) -> dict[str, torch.Tensor]:
     """A replay sample (numpy arrays by field) as tensors on `device`."""
     return {name: torch.as_tensor(value, device=device) for name, value in sample.items()}
-
-
-@torch.no_grad()
-def propose_subgoal(
-    agent: Agent, state: np.ndarray, goal: np.ndarray, *, bounds: np.ndarray, noise: float, rng: np.random.Generator
-) -> np.ndarray:
-    """The manager's relative subgoal, with Gaussian exploration noise (std `noise`, metres) clipped to the bounds."""
-    actor = agent.manager.actor
-    device = actor.max_action.device
-    inputs = [torch.as_tensor(x, dtype=torch.float32, device=device)[None] for x in (state, goal)]
-    subgoal = actor(*inputs)[0].cpu().numpy().astype(np.float64)
-    if noise > 0:
-        subgoal = np.clip(subgoal + rng.normal(0.0, noise, subgoal.shape), -bounds, bounds)
-    return subgoal
-
-
-@torch.no_grad()
-def controller_action(
-    agent: Agent, state: np.ndarray, subgoal: np.ndarray, *, noise: float, rng: np.random.Generator
-) -> np.ndarray:
-    """The controller's torques for the xy-masked state and its subgoal, with Gaussian noise (std `noise`) clipped to
-    +-30."""
-    actor = agent.controller.actor
-    device = actor.max_action.device
-    masked_state = torch.as_tensor(controller_input(state), dtype=torch.float32, device=device)[None]
-    goal_input = torch.as_tensor(subgoal, dtype=torch.float32, device=device)[None]
-    goal_input = controller_goal_input(agent.encoder, goal_input)  # DGRL: z_q of the subgoal
-    action = actor(masked_state, goal_input)[0].cpu().numpy()
-    if noise > 0:
-        limit = actor.max_action_numpy  # on the host: reading the device buffer back every step would be a sync
-        action = np.clip(action + rng.normal(0.0, noise, action.shape), -limit, limit)
-    return action
 
 
 def controller_update(
@@ -1077,9 +737,386 @@ def train_adjacency(
     return epochs, torch.stack(losses).mean().item(), accuracy
 
 
+def main(args: Args) -> None:
+    """Train HRAC (--groups 0) or DGRL on a HIRO Ant task, or evaluate a --checkpoint and exit."""
+    validate(args)
+    saved = load_resume(args) if args.resume is not None else None
+    dgrl = args.groups > 0  # DGRL
+    man_reward_scale = args.man_reward_scale or (1.0 if args.env_id in ("AntMazeSparse", "AntGather") else 0.1)
+    if saved is None:
+        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    else:
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    device = seed_and_device(args)
+    rng = np.random.default_rng(args.seed)
+    # The critics' weight decay drives the weights of dead ReLU units into subnormal floats, which slow a CPU's matrix
+    # multiplies 20x (measured: 27 ms instead of 1.2 ms per batch after 5k steps); flush them to zero.
+    torch.set_flush_denormal(True)
+
+    env = HiroAntEnv(args.env_id)
+    eval_env = HiroAntEnv(args.env_id, evaluate=True, render_mode="rgb_array" if args.capture_video else None)
+    eval_env.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    if args.capture_video:  # a renderer that cannot start fails here, before any work, not at the first evaluation
+        try:
+            eval_env.render()
+        except Exception as error:
+            exit_on_errors(
+                [
+                    f"--capture-video cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')} ({error}); set "
+                    "MUJOCO_GL=egl or osmesa, or run without --capture-video"
+                ]
+            )
+    state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
+    goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
+    agent = make_agent(
+        state_dim,
+        action_dim,
+        bounds,
+        man_goal_dim,
+        hidden_dim=args.hidden_dim,
+        actor_lr=args.actor_lr,
+        critic_lr=args.critic_lr,
+        critic_weight_decay=args.critic_weight_decay,
+        adj_lr=args.adj_lr,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        embed_dim=args.embed_dim,  # DGRL
+        encoder_hidden_dim=args.encoder_hidden_dim,  # DGRL
+        encoder_lr=args.encoder_lr,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        device=device,
+    )
+    stop = stop_on_signals()
+
+    if args.checkpoint is not None:
+        evaluate_checkpoint(
+            args, agent, eval_env, bounds=bounds, rng=rng, stop=stop, device=device, run_name=run_name, dgrl=dgrl
+        )
+        return
+
+    # A resumed run logs from the step after its resume file's on (TensorBoard drops what the stopped run logged later).
+    writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
+    print(
+        f"{run_name}: state {state_dim}-d, subgoal {goal_dim}-d (bounds {bounds.tolist()}), manager goal {man_goal_dim}-d, "
+        f"{args.total_timesteps} steps, device {device}"
+    )
+    if args.adj_frequency > args.total_timesteps:
+        print(f"note: the adjacency network is never trained (--adj-frequency {args.adj_frequency} > --total-timesteps)")
+    ctrl_replay = Replay(
+        args.buffer_size, states=(state_dim,), goals=(goal_dim,), actions=(action_dim,), rewards=(), next_states=(state_dim,),
+        next_goals=(goal_dim,), dones=(),
+    )  # fmt: skip
+    man_replay = Replay(
+        args.buffer_size, states=(state_dim,), goals=(man_goal_dim,), actions=(goal_dim,), rewards=(),
+        next_states=(state_dim,), dones=(), state_seq=(args.k + 1, state_dim), action_seq=(args.k, action_dim),
+    )  # fmt: skip
+    memory = AdjacencyMemory(args.k)
+    adj_threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    step = 0
+    episodes = 0
+    evaluations = 0
+    next_eval = args.eval_frequency
+    next_adjacency = args.adj_frequency
+    adjacency_due, adjacency_epochs, eval_due = False, 0, False  # the work an episode end calls for; epochs done of it
+    result = {"success": float("nan"), "distance": float("nan"), "return": float("nan")}
+    recent = {"final_distance": [], "subgoal_distance": [], "return": []}  # training episodes since the last progress line
+    seg_states = np.zeros((args.k + 1, state_dim))
+    seg_actions = np.zeros((args.k, action_dim))
+    state, _ = env.reset(seed=args.seed)
+    episode_steps = 0
+
+    def training_state() -> dict:
+        """Everything the loop carries from one step to the next, for --resume (save_resume adds the global random
+        states): the agent with its targets and optimizers, both replays, the adjacency memory, both envs, the numpy
+        generator, the counters and cadences, and the bookkeeping of the episode and the segment in progress."""
+        loop = {"step": step, "episodes": episodes, "evaluations": evaluations, "next_eval": next_eval,
+                "next_adjacency": next_adjacency, "adjacency_due": adjacency_due, "adjacency_epochs": adjacency_epochs,
+                "eval_due": eval_due, "result": result, "recent": recent, "state": state,
+                "episode_steps": episode_steps}  # fmt: skip
+        episode = {}  # at an episode's step 0 the loop starts a new one
+        if episode_steps:
+            episode = {"goal": goal, "positions": positions, "remaining": remaining, "proposals": proposals,
+                       "episode_return": episode_return, "ctrl_rewards": ctrl_rewards, "subgoal": subgoal,
+                       "proposed": proposed, "seg_reward": seg_reward, "seg_states": seg_states,
+                       "seg_actions": seg_actions}  # fmt: skip
+        return {
+            "agent": agent.training_state_dicts(),
+            "ctrl_replay": ctrl_replay.state_dict(),
+            "man_replay": man_replay.state_dict(),
+            "memory": memory.state_dict(),
+            "env": env.state_dict(),
+            "eval_env": eval_env.state_dict(),
+            "numpy_rng": rng.bit_generator.state,
+            "loop": loop,
+            "episode": episode,
+        }
+
+    if saved is not None:  # continue where the stopped run left off, mid-episode and mid-segment included
+        agent.load_training_state_dicts(saved["agent"])
+        ctrl_replay.load_state_dict(saved["ctrl_replay"])
+        man_replay.load_state_dict(saved["man_replay"])
+        memory.load_state_dict(saved["memory"])
+        env.load_state_dict(saved["env"])
+        eval_env.load_state_dict(saved["eval_env"])
+        rng.bit_generator.state = saved["numpy_rng"]
+        loop, episode = saved["loop"], saved["episode"]
+        step, episodes, evaluations = loop["step"], loop["episodes"], loop["evaluations"]
+        next_eval, next_adjacency = loop["next_eval"], loop["next_adjacency"]
+        adjacency_due, adjacency_epochs, eval_due = loop["adjacency_due"], loop["adjacency_epochs"], loop["eval_due"]
+        result, recent, state, episode_steps = loop["result"], loop["recent"], loop["state"], loop["episode_steps"]
+        if episode_steps:
+            goal, positions, remaining = episode["goal"], episode["positions"], episode["remaining"]
+            proposals, episode_return, ctrl_rewards = episode["proposals"], episode["episode_return"], episode["ctrl_rewards"]
+            subgoal, proposed, seg_reward = episode["subgoal"], episode["proposed"], episode["seg_reward"]
+            seg_states, seg_actions = episode["seg_states"], episode["seg_actions"]
+        print(f"resuming at step {step}: {episodes} episodes done, {episode_steps} steps into the current one")
+        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
+    # --fast: each level's TD3 update (the manager's with its off-policy correction) compiled into one graph, after a
+    # resumed run's optimizer states are loaded (a fresh run's are created here). The adjacency training stays eager.
+    level_optimizers = lambda level: [level.critic_optimizer, level.actor_optimizer]  # noqa: E731
+    update_controller = fast_update(controller_update, args.fast, level_optimizers(agent.controller))
+    update_manager = fast_update(manager_update, args.fast, level_optimizers(agent.manager))
+    bounds_tensor = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
+    progress = Progress(args.total_timesteps, start_step=step)
+    # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps (an
+    # episode end's updates finish first), or between two epochs of an adjacency training.
+    while not stop:
+        # Adjacency network: retrained every adj_frequency steps (after an episode end) on the labels gathered so far. A
+        # stop request ends the training between epochs; the loop then ends, and --resume runs the epochs left.
+        if adjacency_due:
+            began = time.time()
+            epochs_run, adj_loss, adj_accuracy = train_adjacency(
+                agent.adjacency,
+                agent.adjacency_optimizer,
+                memory,
+                rng,
+                epochs=args.adj_epochs - adjacency_epochs,
+                batch_size=args.adj_batch_size,
+                margin_pos=args.adj_margin_pos,
+                margin_neg=args.adj_margin_neg,
+                device=device,
+                stop=stop,
+            )
+            adjacency_epochs += epochs_run
+            if adjacency_epochs < args.adj_epochs:
+                continue  # stopped between two epochs: the loop ends, the training still due
+            adjacency_due, adjacency_epochs = False, 0
+            writer.add_scalar("adjacency/loss", adj_loss, step)
+            writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
+            writer.add_scalar("adjacency/cells", len(memory.index), step)
+            writer.add_scalar("adjacency/edges", len(memory.edges), step)
+            print(
+                f"step {step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
+                f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)",
+                flush=True,
+            )
+
+        # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
+        if eval_due:
+            eval_due = False
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video)
+            evaluations += 1
+            for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
+                writer.add_scalar(f"eval/{tag}", result[name], step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
+            summary = {name: float(np.mean(values)) if values else float("nan") for name, values in recent.items()}
+            recent = {name: [] for name in recent}
+            if args.env_id == "AntGather":
+                task = f"return {result['return']:6.2f}"
+            else:
+                task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
+            progress.line(
+                step,
+                f"eval {task}  train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}  "
+                f"subgoal distance {summary['subgoal_distance']:5.2f}",
+            )
+            if video:
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, HiroAntEnv.metadata["render_fps"])
+            if args.save_model:
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+
+        if step >= args.total_timesteps:
+            break
+
+        # Act: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted every step.
+        if episode_steps == 0:
+            goal = manager_goal(env)
+            positions = [state[:2]]
+            remaining = []  # per segment: the distance left to the subgoal's target after k steps
+            proposals = []  # per segment: the length of the proposed subgoal
+            episode_return = 0.0
+            ctrl_rewards = 0.0
+        t = episode_steps % args.k
+        if t == 0:
+            subgoal = propose_subgoal(agent, state, goal, bounds=bounds, noise=args.man_noise, rng=rng)
+            proposed = subgoal
+            seg_states[0] = state
+            seg_reward = 0.0
+        action = controller_action(agent, state, subgoal, noise=args.ctrl_noise, rng=rng)
+        next_state, reward, terminated, truncated, info = env.step(action)
+        step += 1
+        episode_steps += 1
+        episode_return += reward
+        seg_reward += man_reward_scale * reward
+
+        # Store the controller's step and, when a segment is whole, the manager's transition (the envs never terminate).
+        next_subgoal = subgoal_transition(state, subgoal, next_state)
+        ctrl_reward = controller_reward(state, subgoal, next_state)
+        ctrl_rewards += ctrl_reward
+        ctrl_replay.add(
+            states=controller_input(state),
+            goals=subgoal,
+            actions=action,
+            rewards=ctrl_reward,
+            next_states=controller_input(next_state),
+            next_goals=next_subgoal,
+            dones=0.0,
+        )
+        seg_states[t + 1] = next_state
+        seg_actions[t] = action
+        positions.append(next_state[:2])
+        state = next_state
+        subgoal = next_subgoal
+        if t == args.k - 1:
+            man_replay.add(
+                states=seg_states[0],
+                goals=goal,
+                actions=proposed,
+                rewards=seg_reward,
+                next_states=state,
+                dones=0.0,
+                state_seq=seg_states,
+                action_seq=seg_actions,
+            )
+            remaining.append(np.linalg.norm(subgoal[:2]))
+            proposals.append(np.linalg.norm(proposed[:2]))
+        progress.heartbeat(step, f"{episodes} episodes")
+        episode_over = terminated or truncated or step >= args.total_timesteps
+
+        # Episode end: log it, then train both levels (HRAC: 500 controller and 50 manager updates, no warm-up).
+        if episode_over:
+            episodes += 1
+            memory.add_trajectory(np.array(positions))
+            recent["return"].append(episode_return)
+            recent["subgoal_distance"].extend(remaining)
+            writer.add_scalar("charts/episodic_return", episode_return, step)
+            writer.add_scalar("charts/episodic_length", episode_steps, step)
+            writer.add_scalar("charts/controller_reward", ctrl_rewards / episode_steps, step)
+            if remaining:
+                writer.add_scalar("charts/subgoal_distance", float(np.mean(remaining)), step)
+                writer.add_scalar("charts/subgoal_norm", float(np.mean(proposals)), step)
+            if "distance" in info:
+                recent["final_distance"].append(info["distance"])
+                writer.add_scalar("charts/final_distance", info["distance"], step)
+                writer.add_scalar("charts/success_rate", float(info["success"]), step)
+            ctrl_metrics = {}
+            for _ in range(args.ctrl_updates or episode_steps):
+                ctrl_metrics = update_controller(
+                    agent,
+                    as_tensors(ctrl_replay.sample(args.batch_size, rng), device),
+                    gamma=args.ctrl_gamma,
+                    tau=args.tau,
+                    policy_noise=args.policy_noise,
+                    noise_clip=args.noise_clip,
+                )
+            man_metrics = {}
+            for _ in range((args.man_updates or -(-episode_steps // args.k)) if man_replay.size else 0):
+                sample = man_replay.sample(args.batch_size, rng)  # then the correction's noise, from the same generator
+                man_metrics = update_manager(
+                    agent,
+                    manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device),
+                    bounds=bounds_tensor,
+                    gamma=args.man_gamma,
+                    tau=args.tau,
+                    policy_noise=args.policy_noise,
+                    noise_clip=args.noise_clip,
+                    adj_weight=args.adj_weight,
+                    adj_threshold=adj_threshold,
+                )
+            for name in ("critic_loss", "actor_loss", "q"):
+                if ctrl_metrics:
+                    writer.add_scalar(f"losses/controller_{name}", ctrl_metrics[name].item(), step)
+                if man_metrics:
+                    writer.add_scalar(f"losses/manager_{name}", man_metrics[name].item(), step)
+            if man_metrics:
+                writer.add_scalar("losses/manager_adjacency_loss", man_metrics["adjacency_loss"].item(), step)
+            if dgrl and ctrl_metrics:  # DGRL
+                writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), step)  # DGRL
+                writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), step)  # DGRL
+                writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
+                writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
+
+            # What the episode end calls for; both come first in the next iteration, where a stop can end the training.
+            adjacency_due, eval_due = step >= next_adjacency, step >= next_eval or step >= args.total_timesteps
+            next_adjacency += args.adj_frequency if adjacency_due else 0
+            next_eval += args.eval_frequency if eval_due else 0
+            state, _ = env.reset()
+            episode_steps = 0
+        # The periodic resume write, never with work pending: its logs at this step would follow the file, and a run killed
+        # after them would log them twice (TensorBoard's purge on --resume drops the later steps only).
+        if not (adjacency_due or eval_due) and progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
+            writer.flush()  # the logs up to this step on disk before the state that continues after them (a kill -9)
+            save_resume(run_name, training_state(), args)
+
+    writer.flush()
+    save_resume(run_name, training_state(), args)  # stopped or done: a stopped run continues with --resume from here
+    if args.save_model:
+        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+        print(f"checkpoint: {checkpoint_path}")
+    progress.finish(
+        step < args.total_timesteps or adjacency_due or eval_due,
+        run_name,
+        f"{step} steps, {episodes} episodes, last eval success {result['success']:.0%} distance {result['distance']:.2f} "
+        f"return {result['return']:.2f}",
+    )
+    env.close()
+    eval_env.close()
+    writer.close()
+
+
+# --- Acting and evaluation --------------------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def propose_subgoal(
+    agent: Agent, state: np.ndarray, goal: np.ndarray, *, bounds: np.ndarray, noise: float, rng: np.random.Generator
+) -> np.ndarray:
+    """The manager's relative subgoal, with Gaussian exploration noise (std `noise`, metres) clipped to the bounds."""
+    actor = agent.manager.actor
+    device = actor.max_action.device
+    inputs = [torch.as_tensor(x, dtype=torch.float32, device=device)[None] for x in (state, goal)]
+    subgoal = actor(*inputs)[0].cpu().numpy().astype(np.float64)
+    if noise > 0:
+        subgoal = np.clip(subgoal + rng.normal(0.0, noise, subgoal.shape), -bounds, bounds)
+    return subgoal
+
+
+@torch.no_grad()
+def controller_action(
+    agent: Agent, state: np.ndarray, subgoal: np.ndarray, *, noise: float, rng: np.random.Generator
+) -> np.ndarray:
+    """The controller's torques for the xy-masked state and its subgoal, with Gaussian noise (std `noise`) clipped to
+    +-30."""
+    actor = agent.controller.actor
+    device = actor.max_action.device
+    masked_state = torch.as_tensor(controller_input(state), dtype=torch.float32, device=device)[None]
+    goal_input = torch.as_tensor(subgoal, dtype=torch.float32, device=device)[None]
+    goal_input = controller_goal_input(agent.encoder, goal_input)  # DGRL: z_q of the subgoal
+    action = actor(masked_state, goal_input)[0].cpu().numpy()
+    if noise > 0:
+        limit = actor.max_action_numpy  # on the host: reading the device buffer back every step would be a sync
+        action = np.clip(action + rng.normal(0.0, noise, action.shape), -limit, limit)
+    return action
+
+
 @torch.no_grad()
 def evaluate(
-    env: HiroAntEnv,
+    env: "HiroAntEnv",
     agent: Agent,
     *,
     k: int,
@@ -1122,6 +1159,353 @@ def evaluate(
         "return": float(np.mean(returns)),
         "episodes": len(successes),
     }
+
+
+def evaluate_checkpoint(
+    args: Args,
+    agent: Agent,
+    eval_env: "HiroAntEnv",
+    *,
+    bounds: np.ndarray,
+    rng: np.random.Generator,
+    stop: list[int],
+    device: torch.device,
+    run_name: str,
+    dgrl: bool,
+) -> None:
+    """--checkpoint: load the saved agent, evaluate it over --eval-episodes episodes, print the result (and write a
+    video with --capture-video)."""
+    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: HRAC has no codebook to match
+    agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
+    print(
+        f"evaluating {args.checkpoint} over {args.eval_episodes} episodes (Ctrl-C ends it after the current one)",
+        flush=True,
+    )
+    video = [] if args.capture_video else None
+    result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop)
+    print(
+        f"{result['episodes']} evaluation episodes: success {result['success']:.0%}, distance {result['distance']:.2f}, "
+        f"return {result['return']:.2f}"
+    )
+    if video:
+        write_video(f"videos/{run_name}/checkpoint.mp4", video, HiroAntEnv.metadata["render_fps"])
+        print(f"video: videos/{run_name}/checkpoint.mp4")
+
+
+# --- Environments -----------------------------------------------------------------------------------------------------
+
+# HIRO's structures, rows top to bottom: 1 fixed block, 0 free, r robot start (the first one is the origin; AntMazeSparse
+# starts uniformly over all of them), XY a block sliding in x and y, YZ a block sliding in y and z, -1 a chasm.
+SPARSE_ROWS = (
+    "1 1 1 1 1 1 1 1 1 1", "1 r r r r r r r r 1", "1 r r r r r r r r 1", "1 1 1 1 1 1 1 r r 1", "1 0 r r r r r r r 1",
+    "1 0 r r r r r r r 1", "1 1 1 1 1 1 1 r r 1", "1 r r r r r r r r 1", "1 r r r r r r r r 1", "1 1 1 1 1 1 1 1 1 1",
+)  # fmt: skip
+STRUCTURES = {
+    "AntMaze": (8.0, ((1, 1, 1, 1, 1), (1, "r", 0, 0, 1), (1, 1, 1, 0, 1), (1, 0, 0, 0, 1), (1, 1, 1, 1, 1))),
+    "AntPush": (8.0, ((1, 1, 1, 1, 1), (1, 0, "r", 1, 1), (1, 0, "XY", 0, 1), (1, 1, 0, 1, 1), (1, 1, 1, 1, 1))),
+    "AntFall": (8.0, ((1, 1, 1, 1), (1, "r", 0, 1), (1, 0, "YZ", 1), (1, -1, -1, 1), (1, 0, 0, 1), (1, 1, 1, 1))),
+    "AntMazeSparse": (2.0, tuple(tuple(int(c) if c in "01" else c for c in row.split()) for row in SPARSE_ROWS)),
+}
+MAZE_HEIGHT = 0.5  # walls are MAZE_HEIGHT * scaling tall
+EVAL_GOALS = {"AntMaze": (0.0, 16.0), "AntMazeSparse": (2.0, 9.0), "AntPush": (0.0, 19.0), "AntFall": (0.0, 27.0, 4.5)}
+SUCCESS_DISTANCE = {"AntMaze": 5.0, "AntMazeSparse": 1.0, "AntPush": 5.0, "AntFall": 5.0}
+EPISODE_STEPS = 500
+GATHER = {"apples": 8, "bombs": 8, "half_width": 10, "wall": 11.0, "catch": 1.0, "bins": 10, "range": 6.0, "span": 2 * np.pi}
+
+
+def structure_origin(structure) -> tuple[int, int]:
+    """(row, column) of the first robot cell: the world origin, where the ant starts."""
+    for i, row in enumerate(structure):
+        for j, cell in enumerate(row):
+            if cell == "r":
+                return i, j
+    raise ValueError("structure without a robot cell")
+
+
+def cell_centre(i: int, j: int, scaling: float, origin: tuple[int, int]) -> tuple[float, float]:
+    """World xy of cell (row i, column j): x grows with the column, y with the row (HIRO's convention)."""
+    return j * scaling - origin[1] * scaling, i * scaling - origin[0] * scaling
+
+
+def structure_blocks(env_id: str) -> list[dict]:
+    """The blocks of an env's structure as MuJoCo boxes: name, centre (x, y, z), half-sizes, the axes it slides along
+    ("" for a fixed block) and its mass (movable blocks only). An elevated structure (one with a chasm) adds a platform
+    under every non-chasm cell, and everything else sits on it."""
+    scaling, structure = STRUCTURES[env_id]
+    origin = structure_origin(structure)
+    elevated = any(cell == -1 for row in structure for cell in row)
+    offset = MAZE_HEIGHT * scaling if elevated else 0.0
+    half = 0.5 * scaling
+    wall_half_height = 0.5 * MAZE_HEIGHT * scaling
+    blocks = []
+    for i, row in enumerate(structure):
+        for j, cell in enumerate(row):
+            x, y = cell_centre(i, j, scaling, origin)
+            if elevated and cell != -1:
+                blocks.append(dict(name=f"platform_{i}_{j}", pos=(x, y, offset / 2), size=(half, half, offset / 2), axes=""))
+            if cell == 1:
+                pos, size = (x, y, offset + wall_half_height), (half, half, wall_half_height)
+                blocks.append(dict(name=f"block_{i}_{j}", pos=pos, size=size, axes=""))
+            elif cell in ("XY", "YZ"):
+                shrink = 0.99 if "Z" in cell else 1.0  # the falling block fits through the chasm's gap
+                mass = 0.001 if "Z" in cell else 0.0002
+                blocks.append(
+                    dict(
+                        name=f"movable_{i}_{j}",
+                        pos=(x, y, offset + wall_half_height),
+                        size=(half * shrink, half * shrink, wall_half_height),
+                        axes=cell.lower(),
+                        mass=mass,
+                    )
+                )
+    return blocks
+
+
+def hiro_ant_xml(env_id: str) -> str:
+    """Gymnasium's Ant model edited as HIRO's (ctrl +-30 with gear 1, timestep 0.02, RK4) with the env's blocks; the
+    ant keeps the first 15 qpos and 14 qvel entries (the blocks' slide joints come after it)."""
+    root = ET.parse(os.path.join(os.path.dirname(gym.__file__), "envs/mujoco/assets/ant.xml")).getroot()
+    root.find("option").set("timestep", "0.02")
+    for motor in root.iter("motor"):
+        motor.set("gear", "1")
+        motor.set("ctrlrange", "-30 30")
+    world = root.find("worldbody")
+    world.find("geom[@name='floor']").set("size", "60 60 40")
+    blocks = [] if env_id == "AntGather" else structure_blocks(env_id)
+    scaling = STRUCTURES[env_id][0] if blocks else 0.0
+    if any(block["name"].startswith("platform") for block in blocks):  # the ant starts on the platform
+        world.find("body[@name='torso']").set("pos", f"0 0 {0.75 + MAZE_HEIGHT * scaling}")
+    for block in blocks:
+        pos, size = " ".join(map(str, block["pos"])), " ".join(map(str, block["size"]))
+        if not block["axes"]:
+            ET.SubElement(
+                world,
+                "geom",
+                name=block["name"],
+                type="box",
+                pos=pos,
+                size=size,
+                conaffinity="1",
+                contype="1",
+                rgba="0.4 0.4 0.4 1",
+            )
+            continue
+        body = ET.SubElement(world, "body", name=block["name"], pos=pos)
+        ET.SubElement(
+            body,
+            "geom",
+            name=block["name"] + "_geom",
+            type="box",
+            size=size,
+            mass=str(block["mass"]),
+            conaffinity="1",
+            contype="1",
+            rgba="0.9 0.1 0.1 1",
+            solimp="0.995 0.995 0.01",
+        )
+        for axis in block["axes"]:
+            direction = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}[axis]
+            joint = dict(
+                name=f"{block['name']}_{axis}", type="slide", axis=direction, pos="0 0 0", armature="0", damping="0.0"
+            )
+            if axis == "z":  # the falling block drops at most the platform's height
+                joint.update(limited="true", range=f"{-MAZE_HEIGHT * scaling} 0")
+            elif "z" in block["axes"]:
+                joint.update(limited="true", range=f"{-scaling} {scaling}")
+            else:
+                joint.update(limited="false")
+            ET.SubElement(body, "joint", **joint)
+    if blocks:  # a camera over the middle of the structure that sees all of it (45-degree field of view)
+        xs = [b["pos"][0] for b in blocks]
+        ys = [b["pos"][1] for b in blocks]
+        centre_x, centre_y = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
+        extent = max(max(xs) - min(xs), max(ys) - min(ys)) + scaling
+    else:
+        centre_x, centre_y, extent = 0.0, 0.0, 2 * GATHER["wall"] + 1
+    ET.SubElement(world, "camera", name="top", pos=f"{centre_x} {centre_y} {1.25 * extent}", xyaxes="1 0 0 0 1 0")
+    if env_id == "AntGather":
+        w = GATHER["wall"]
+        walls = {"north": (0, w, w, 0.5), "south": (0, -w, w, 0.5), "east": (w, 0, 0.5, w), "west": (-w, 0, 0.5, w)}
+        for name, (x, y, hx, hy) in walls.items():
+            ET.SubElement(
+                world,
+                "geom",
+                name=f"wall_{name}",
+                type="box",
+                pos=f"{x} {y} 0.5",
+                size=f"{hx} {hy} 0.5",
+                conaffinity="1",
+                contype="1",
+                rgba="0.4 0.4 0.4 1",
+            )
+    return ET.tostring(root, encoding="unicode")
+
+
+def gather_readings(xy: np.ndarray, yaw: float, objects: np.ndarray) -> np.ndarray:
+    """rllab's range sensor: `bins` bins over a 2*pi span centred on the ant's heading; each bin holds the largest
+    1 - distance / range of the objects within range whose bearing falls in it."""
+    readings = np.zeros(GATHER["bins"])
+    offsets = objects - xy
+    distance = np.linalg.norm(offsets, axis=1)
+    bearing = (np.arctan2(offsets[:, 1], offsets[:, 0]) - yaw + GATHER["span"] / 2) % (2 * np.pi)
+    bins = np.minimum((bearing / (GATHER["span"] / GATHER["bins"])).astype(int), GATHER["bins"] - 1)
+    seen = distance < GATHER["range"]
+    np.maximum.at(readings, bins[seen], 1.0 - distance[seen] / GATHER["range"])
+    return readings
+
+
+class HiroAntEnv(gym.Env):
+    """One env of the HIRO Ant suite on the modern `mujoco` bindings.
+
+    Observation: qpos[:15] + qvel[:14] of the ant and the time feature t * 0.001 (30-d); AntGather adds 10 apple and 10
+    bomb range readings. Action: 8 motor torques in [-30, 30]. Reset: the model's initial state with qpos + U(-0.1,
+    0.1) and qvel + 0.1 N(0, 1); AntMazeSparse starts on a uniformly drawn robot cell. Goals: AntMaze trains on
+    U([-4, -4], [20, 20]) and evaluates on (0, 16); the others use their fixed goal (`goal`, None for AntGather).
+    Reward: -||xy - g|| (AntFall: xyz), AntMazeSparse 1 within 1 of the goal, AntGather apples - bombs caught. Episodes
+    are truncated after 500 steps; `info["success"]` applies the env's success test, `info["distance"]` is the distance
+    to the goal (not for AntGather).
+    """
+
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
+    frame_skip = 5
+
+    def __init__(self, env_id: str, evaluate: bool = False, render_mode: str | None = None):
+        self.env_id, self.evaluate, self.render_mode = env_id, evaluate, render_mode
+        self.model = mujoco.MjModel.from_xml_string(hiro_ant_xml(env_id))
+        self.data = mujoco.MjData(self.model)
+        size = 50 if env_id == "AntGather" else 30
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (size,), np.float64)
+        self.action_space = gym.spaces.Box(-30.0, 30.0, (8,), np.float32)
+        self.goal = None if env_id == "AntGather" else np.array(EVAL_GOALS[env_id])
+        self.steps = 0
+        self.objects = np.zeros((0, 2))
+        self.kinds = np.zeros(0)  # +1 apple, -1 bomb
+        self._renderer = None
+        if env_id == "AntMazeSparse":
+            scaling, structure = STRUCTURES[env_id]
+            origin = structure_origin(structure)
+            cells = [(i, j) for i, row in enumerate(structure) for j, c in enumerate(row) if c == "r"]
+            self.starts = np.array([cell_centre(i, j, scaling, origin) for i, j in cells])
+
+    def _observe(self) -> np.ndarray:
+        obs = np.concatenate([self.data.qpos[:15], self.data.qvel[:14], [self.steps * 0.001]])
+        if self.env_id == "AntGather":
+            yaw = np.arctan2(
+                2 * (self.data.qpos[3] * self.data.qpos[6] + self.data.qpos[4] * self.data.qpos[5]),
+                1 - 2 * (self.data.qpos[5] ** 2 + self.data.qpos[6] ** 2),
+            )
+            xy = self.data.qpos[:2]
+            obs = np.concatenate(
+                [
+                    obs[:29],
+                    gather_readings(xy, yaw, self.objects[self.kinds > 0]),
+                    gather_readings(xy, yaw, self.objects[self.kinds < 0]),
+                    [self.steps * 0.01],
+                ]
+            )
+        return obs
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] += self.np_random.uniform(-0.1, 0.1, self.model.nq)
+        self.data.qvel[:] += 0.1 * self.np_random.standard_normal(self.model.nv)
+        if self.env_id == "AntMazeSparse":
+            self.data.qpos[:2] += self.starts[self.np_random.integers(len(self.starts))]
+        if self.env_id == "AntMaze" and not self.evaluate:
+            self.goal = self.np_random.uniform((-4.0, -4.0), (20.0, 20.0))
+        elif self.env_id in EVAL_GOALS:
+            self.goal = np.array(EVAL_GOALS[self.env_id])
+        if self.env_id == "AntGather":
+            free = [(x, y) for x in range(-10, 11, 2) for y in range(-10, 11, 2) if x * x + y * y >= 4]
+            picks = self.np_random.choice(len(free), GATHER["apples"] + GATHER["bombs"], replace=False)
+            self.objects = np.array(free, dtype=np.float64)[picks]
+            self.kinds = np.array([1.0] * GATHER["apples"] + [-1.0] * GATHER["bombs"])
+        self.steps = 0
+        mujoco.mj_forward(self.model, self.data)
+        return self._observe(), {}
+
+    def step(self, action):
+        self.data.ctrl[:] = np.clip(action, -30.0, 30.0)
+        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
+        self.steps += 1
+        xy = self.data.qpos[:2].copy()
+        if self.env_id == "AntGather":
+            caught = np.linalg.norm(self.objects - xy, axis=1) < GATHER["catch"]
+            reward = float(self.kinds[caught].sum())
+            self.objects, self.kinds = self.objects[~caught], self.kinds[~caught]
+            success = False
+        else:
+            position = self.data.qpos[:3] if self.env_id == "AntFall" else xy
+            distance = float(np.linalg.norm(position - self.goal))
+            if self.env_id == "AntMazeSparse":
+                reward = float(distance < SUCCESS_DISTANCE[self.env_id])
+            else:
+                reward = -distance
+            success = distance < SUCCESS_DISTANCE[self.env_id]
+        truncated = self.steps >= EPISODE_STEPS
+        info = {"success": success} if self.env_id == "AntGather" else {"success": success, "distance": distance}
+        return self._observe(), reward, False, truncated, info
+
+    def state_dict(self) -> dict:
+        """What a resumed run needs to continue this env exactly: MuJoCo's integration state (time, qpos, qvel, warm
+        start, controls, applied forces), the step counter, the goal, AntGather's objects and the random generator."""
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, self.data, physics, spec)
+        goal = None if self.goal is None else self.goal.copy()
+        return {"physics": physics, "steps": self.steps, "goal": goal, "objects": self.objects.copy(),
+                "kinds": self.kinds.copy(), "np_random": self.np_random.bit_generator.state}  # fmt: skip
+
+    def load_state_dict(self, state: dict) -> None:
+        mujoco.mj_setState(self.model, self.data, state["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(self.model, self.data)  # the derived quantities (positions of bodies, contacts) for renders
+        self.steps, self.goal, self.objects, self.kinds = state["steps"], state["goal"], state["objects"], state["kinds"]
+        self.np_random.bit_generator.state = state["np_random"]
+
+    def render(self):
+        if self._renderer is None:  # no shadows or reflections: 3x faster under software EGL on a CPU
+            self.model.vis.quality.shadowsize = 0  # a visual setting only; the physics is unchanged
+            self._renderer = mujoco.Renderer(self.model, 240, 240)
+            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self._renderer.update_scene(self.data, camera="top")
+        # Markers drawn into the scene only (no bodies, so no physics): AntGather's apples (green) and bombs (red); the
+        # goal of the other envs (a translucent green disc of the success radius, at the goal's height for AntFall).
+        if self.env_id == "AntGather":
+            markers = [
+                ((x, y, 0.5), 0.5, (0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1))
+                for (x, y), kind in zip(self.objects, self.kinds, strict=True)
+            ]
+        else:
+            z = self.goal[2] if len(self.goal) == 3 else 0.05
+            markers = [((*self.goal[:2], z), SUCCESS_DISTANCE[self.env_id], (0.1, 0.8, 0.1, 0.35))]
+        scene = self._renderer.scene
+        for pos, radius, rgba in markers[: scene.maxgeom - scene.ngeom]:
+            shape = mujoco.mjtGeom.mjGEOM_SPHERE if self.env_id == "AntGather" else mujoco.mjtGeom.mjGEOM_CYLINDER
+            size = np.array([radius, radius, radius]) if self.env_id == "AntGather" else np.array([radius, 0.05, 0])
+            mujoco.mjv_initGeom(
+                scene.geoms[scene.ngeom],
+                shape,
+                size,
+                np.array(pos, dtype=np.float64),
+                np.eye(3).ravel(),
+                np.array(rgba, dtype=np.float32),
+            )
+            scene.ngeom += 1
+        return self._renderer.render()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+# --- The run's constants ----------------------------------------------------------------------------------------------
+
+# The flags a checkpoint must have been saved with to be evaluated: the networks' shapes, the env, the subgoal range
+# and the manager's period (what evaluation measures); under DGRL also the subgoal encoder's and codebook's shapes.
+MUST_MATCH = ("env_id", "groups", "hidden_dim", "subgoal_scale", "k")
+DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")  # DGRL
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1529,12 +1913,6 @@ class CudaGraphUpdate:
 # --- end of run management ---------------------------------------------------------------------------------------------
 
 
-# The flags a checkpoint must have been saved with to be evaluated: the networks' shapes, the env, the subgoal range
-# and the manager's period (what evaluation measures); under DGRL also the subgoal encoder's and codebook's shapes.
-MUST_MATCH = ("env_id", "groups", "hidden_dim", "subgoal_scale", "k")
-DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")  # DGRL
-
-
 def validate(args: Args) -> None:
     """Reject bad flags before any work (exit status 2), naming the flag and the valid choices."""
     errors = common_errors(args)
@@ -1575,356 +1953,4 @@ def validate(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    saved = load_resume(args) if args.resume is not None else None
-    dgrl = args.groups > 0  # DGRL
-    man_reward_scale = args.man_reward_scale or (1.0 if args.env_id in ("AntMazeSparse", "AntGather") else 0.1)
-    if saved is None:
-        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    else:
-        run_name = os.path.basename(os.path.normpath(args.resume))
-    device = seed_and_device(args)
-    rng = np.random.default_rng(args.seed)
-    # The critics' weight decay drives the weights of dead ReLU units into subnormal floats, which slow a CPU's matrix
-    # multiplies 20x (measured: 27 ms instead of 1.2 ms per batch after 5k steps); flush them to zero.
-    torch.set_flush_denormal(True)
-
-    env = HiroAntEnv(args.env_id)
-    eval_env = HiroAntEnv(args.env_id, evaluate=True, render_mode="rgb_array" if args.capture_video else None)
-    eval_env.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    if args.capture_video:  # a renderer that cannot start fails here, before any work, not at the first evaluation
-        try:
-            eval_env.render()
-        except Exception as error:
-            exit_on_errors(
-                [
-                    f"--capture-video cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')} ({error}); set "
-                    "MUJOCO_GL=egl or osmesa, or run without --capture-video"
-                ]
-            )
-    state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
-    goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
-    agent = make_agent(
-        state_dim,
-        action_dim,
-        bounds,
-        man_goal_dim,
-        hidden_dim=args.hidden_dim,
-        actor_lr=args.actor_lr,
-        critic_lr=args.critic_lr,
-        critic_weight_decay=args.critic_weight_decay,
-        adj_lr=args.adj_lr,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        embed_dim=args.embed_dim,  # DGRL
-        encoder_hidden_dim=args.encoder_hidden_dim,  # DGRL
-        encoder_lr=args.encoder_lr,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        device=device,
-    )
-    stop = stop_on_signals()
-
-    if args.checkpoint is not None:
-        must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: HRAC has no codebook to match
-        agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
-        print(
-            f"evaluating {args.checkpoint} over {args.eval_episodes} episodes (Ctrl-C ends it after the current one)",
-            flush=True,
-        )
-        video = [] if args.capture_video else None
-        result = evaluate(
-            eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop
-        )
-        print(
-            f"{result['episodes']} evaluation episodes: success {result['success']:.0%}, distance {result['distance']:.2f}, "
-            f"return {result['return']:.2f}"
-        )
-        if video:
-            write_video(f"videos/{run_name}/checkpoint.mp4", video, HiroAntEnv.metadata["render_fps"])
-            print(f"video: videos/{run_name}/checkpoint.mp4")
-        raise SystemExit(0)
-
-    # A resumed run logs from the step after its resume file's on (TensorBoard drops what the stopped run logged later).
-    writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
-    print(
-        f"{run_name}: state {state_dim}-d, subgoal {goal_dim}-d (bounds {bounds.tolist()}), manager goal {man_goal_dim}-d, "
-        f"{args.total_timesteps} steps, device {device}"
-    )
-    if args.adj_frequency > args.total_timesteps:
-        print(f"note: the adjacency network is never trained (--adj-frequency {args.adj_frequency} > --total-timesteps)")
-    ctrl_replay = Replay(
-        args.buffer_size, states=(state_dim,), goals=(goal_dim,), actions=(action_dim,), rewards=(), next_states=(state_dim,),
-        next_goals=(goal_dim,), dones=(),
-    )  # fmt: skip
-    man_replay = Replay(
-        args.buffer_size, states=(state_dim,), goals=(man_goal_dim,), actions=(goal_dim,), rewards=(),
-        next_states=(state_dim,), dones=(), state_seq=(args.k + 1, state_dim), action_seq=(args.k, action_dim),
-    )  # fmt: skip
-    memory = AdjacencyMemory(args.k)
-    adj_threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
-    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    step = 0
-    episodes = 0
-    evaluations = 0
-    next_eval = args.eval_frequency
-    next_adjacency = args.adj_frequency
-    adjacency_due, adjacency_epochs, eval_due = False, 0, False  # the work an episode end calls for; epochs done of it
-    result = {"success": float("nan"), "distance": float("nan"), "return": float("nan")}
-    recent = {"final_distance": [], "subgoal_distance": [], "return": []}  # training episodes since the last progress line
-    seg_states = np.zeros((args.k + 1, state_dim))
-    seg_actions = np.zeros((args.k, action_dim))
-    state, _ = env.reset(seed=args.seed)
-    episode_steps = 0
-
-    def training_state() -> dict:
-        """Everything the loop carries from one step to the next, for --resume (save_resume adds the global random
-        states): the agent with its targets and optimizers, both replays, the adjacency memory, both envs, the numpy
-        generator, the counters and cadences, and the bookkeeping of the episode and the segment in progress."""
-        loop = {"step": step, "episodes": episodes, "evaluations": evaluations, "next_eval": next_eval,
-                "next_adjacency": next_adjacency, "adjacency_due": adjacency_due, "adjacency_epochs": adjacency_epochs,
-                "eval_due": eval_due, "result": result, "recent": recent, "state": state,
-                "episode_steps": episode_steps}  # fmt: skip
-        episode = {}  # at an episode's step 0 the loop starts a new one
-        if episode_steps:
-            episode = {"goal": goal, "positions": positions, "remaining": remaining, "proposals": proposals,
-                       "episode_return": episode_return, "ctrl_rewards": ctrl_rewards, "subgoal": subgoal,
-                       "proposed": proposed, "seg_reward": seg_reward, "seg_states": seg_states,
-                       "seg_actions": seg_actions}  # fmt: skip
-        return {
-            "agent": agent.training_state_dicts(),
-            "ctrl_replay": ctrl_replay.state_dict(),
-            "man_replay": man_replay.state_dict(),
-            "memory": memory.state_dict(),
-            "env": env.state_dict(),
-            "eval_env": eval_env.state_dict(),
-            "numpy_rng": rng.bit_generator.state,
-            "loop": loop,
-            "episode": episode,
-        }
-
-    if saved is not None:  # continue where the stopped run left off, mid-episode and mid-segment included
-        agent.load_training_state_dicts(saved["agent"])
-        ctrl_replay.load_state_dict(saved["ctrl_replay"])
-        man_replay.load_state_dict(saved["man_replay"])
-        memory.load_state_dict(saved["memory"])
-        env.load_state_dict(saved["env"])
-        eval_env.load_state_dict(saved["eval_env"])
-        rng.bit_generator.state = saved["numpy_rng"]
-        loop, episode = saved["loop"], saved["episode"]
-        step, episodes, evaluations = loop["step"], loop["episodes"], loop["evaluations"]
-        next_eval, next_adjacency = loop["next_eval"], loop["next_adjacency"]
-        adjacency_due, adjacency_epochs, eval_due = loop["adjacency_due"], loop["adjacency_epochs"], loop["eval_due"]
-        result, recent, state, episode_steps = loop["result"], loop["recent"], loop["state"], loop["episode_steps"]
-        if episode_steps:
-            goal, positions, remaining = episode["goal"], episode["positions"], episode["remaining"]
-            proposals, episode_return, ctrl_rewards = episode["proposals"], episode["episode_return"], episode["ctrl_rewards"]
-            subgoal, proposed, seg_reward = episode["subgoal"], episode["proposed"], episode["seg_reward"]
-            seg_states, seg_actions = episode["seg_states"], episode["seg_actions"]
-        print(f"resuming at step {step}: {episodes} episodes done, {episode_steps} steps into the current one")
-        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
-    # --fast: each level's TD3 update (the manager's with its off-policy correction) compiled into one graph, after a
-    # resumed run's optimizer states are loaded (a fresh run's are created here). The adjacency training stays eager.
-    level_optimizers = lambda level: [level.critic_optimizer, level.actor_optimizer]  # noqa: E731
-    update_controller = fast_update(controller_update, args.fast, level_optimizers(agent.controller))
-    update_manager = fast_update(manager_update, args.fast, level_optimizers(agent.manager))
-    bounds_tensor = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
-    progress = Progress(args.total_timesteps, start_step=step)
-    # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps (an
-    # episode end's updates finish first), or between two epochs of an adjacency training.
-    while not stop:
-        # Adjacency network: retrained every adj_frequency steps (after an episode end) on the labels gathered so far. A
-        # stop request ends the training between epochs; the loop then ends, and --resume runs the epochs left.
-        if adjacency_due:
-            began = time.time()
-            epochs_run, adj_loss, adj_accuracy = train_adjacency(
-                agent.adjacency,
-                agent.adjacency_optimizer,
-                memory,
-                rng,
-                epochs=args.adj_epochs - adjacency_epochs,
-                batch_size=args.adj_batch_size,
-                margin_pos=args.adj_margin_pos,
-                margin_neg=args.adj_margin_neg,
-                device=device,
-                stop=stop,
-            )
-            adjacency_epochs += epochs_run
-            if adjacency_epochs < args.adj_epochs:
-                continue  # stopped between two epochs: the loop ends, the training still due
-            adjacency_due, adjacency_epochs = False, 0
-            writer.add_scalar("adjacency/loss", adj_loss, step)
-            writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
-            writer.add_scalar("adjacency/cells", len(memory.index), step)
-            writer.add_scalar("adjacency/edges", len(memory.edges), step)
-            print(
-                f"step {step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
-                f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)",
-                flush=True,
-            )
-
-        # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
-        if eval_due:
-            eval_due = False
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video)
-            evaluations += 1
-            for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
-                writer.add_scalar(f"eval/{tag}", result[name], step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            summary = {name: float(np.mean(values)) if values else float("nan") for name, values in recent.items()}
-            recent = {name: [] for name in recent}
-            if args.env_id == "AntGather":
-                task = f"return {result['return']:6.2f}"
-            else:
-                task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
-            progress.line(
-                step,
-                f"eval {task}  train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}  "
-                f"subgoal distance {summary['subgoal_distance']:5.2f}",
-            )
-            if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, HiroAntEnv.metadata["render_fps"])
-            if args.save_model:
-                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-
-        if step >= args.total_timesteps:
-            break
-
-        # Act: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted every step.
-        if episode_steps == 0:
-            goal = manager_goal(env)
-            positions = [state[:2]]
-            remaining = []  # per segment: the distance left to the subgoal's target after k steps
-            proposals = []  # per segment: the length of the proposed subgoal
-            episode_return = 0.0
-            ctrl_rewards = 0.0
-        t = episode_steps % args.k
-        if t == 0:
-            subgoal = propose_subgoal(agent, state, goal, bounds=bounds, noise=args.man_noise, rng=rng)
-            proposed = subgoal
-            seg_states[0] = state
-            seg_reward = 0.0
-        action = controller_action(agent, state, subgoal, noise=args.ctrl_noise, rng=rng)
-        next_state, reward, terminated, truncated, info = env.step(action)
-        step += 1
-        episode_steps += 1
-        episode_return += reward
-        seg_reward += man_reward_scale * reward
-
-        # Store the controller's step and, when a segment is whole, the manager's transition (the envs never terminate).
-        next_subgoal = subgoal_transition(state, subgoal, next_state)
-        ctrl_reward = controller_reward(state, subgoal, next_state)
-        ctrl_rewards += ctrl_reward
-        ctrl_replay.add(
-            states=controller_input(state),
-            goals=subgoal,
-            actions=action,
-            rewards=ctrl_reward,
-            next_states=controller_input(next_state),
-            next_goals=next_subgoal,
-            dones=0.0,
-        )
-        seg_states[t + 1] = next_state
-        seg_actions[t] = action
-        positions.append(next_state[:2])
-        state = next_state
-        subgoal = next_subgoal
-        if t == args.k - 1:
-            man_replay.add(
-                states=seg_states[0],
-                goals=goal,
-                actions=proposed,
-                rewards=seg_reward,
-                next_states=state,
-                dones=0.0,
-                state_seq=seg_states,
-                action_seq=seg_actions,
-            )
-            remaining.append(np.linalg.norm(subgoal[:2]))
-            proposals.append(np.linalg.norm(proposed[:2]))
-        progress.heartbeat(step, f"{episodes} episodes")
-        episode_over = terminated or truncated or step >= args.total_timesteps
-
-        # Episode end: log it, then train both levels (HRAC: 500 controller and 50 manager updates, no warm-up).
-        if episode_over:
-            episodes += 1
-            memory.add_trajectory(np.array(positions))
-            recent["return"].append(episode_return)
-            recent["subgoal_distance"].extend(remaining)
-            writer.add_scalar("charts/episodic_return", episode_return, step)
-            writer.add_scalar("charts/episodic_length", episode_steps, step)
-            writer.add_scalar("charts/controller_reward", ctrl_rewards / episode_steps, step)
-            if remaining:
-                writer.add_scalar("charts/subgoal_distance", float(np.mean(remaining)), step)
-                writer.add_scalar("charts/subgoal_norm", float(np.mean(proposals)), step)
-            if "distance" in info:
-                recent["final_distance"].append(info["distance"])
-                writer.add_scalar("charts/final_distance", info["distance"], step)
-                writer.add_scalar("charts/success_rate", float(info["success"]), step)
-            ctrl_metrics = {}
-            for _ in range(args.ctrl_updates or episode_steps):
-                ctrl_metrics = update_controller(
-                    agent,
-                    as_tensors(ctrl_replay.sample(args.batch_size, rng), device),
-                    gamma=args.ctrl_gamma,
-                    tau=args.tau,
-                    policy_noise=args.policy_noise,
-                    noise_clip=args.noise_clip,
-                )
-            man_metrics = {}
-            for _ in range((args.man_updates or -(-episode_steps // args.k)) if man_replay.size else 0):
-                sample = man_replay.sample(args.batch_size, rng)  # then the correction's noise, from the same generator
-                man_metrics = update_manager(
-                    agent,
-                    manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device),
-                    bounds=bounds_tensor,
-                    gamma=args.man_gamma,
-                    tau=args.tau,
-                    policy_noise=args.policy_noise,
-                    noise_clip=args.noise_clip,
-                    adj_weight=args.adj_weight,
-                    adj_threshold=adj_threshold,
-                )
-            for name in ("critic_loss", "actor_loss", "q"):
-                if ctrl_metrics:
-                    writer.add_scalar(f"losses/controller_{name}", ctrl_metrics[name].item(), step)
-                if man_metrics:
-                    writer.add_scalar(f"losses/manager_{name}", man_metrics[name].item(), step)
-            if man_metrics:
-                writer.add_scalar("losses/manager_adjacency_loss", man_metrics["adjacency_loss"].item(), step)
-            if dgrl and ctrl_metrics:  # DGRL
-                writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
-                writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
-
-            # What the episode end calls for; both come first in the next iteration, where a stop can end the training.
-            adjacency_due, eval_due = step >= next_adjacency, step >= next_eval or step >= args.total_timesteps
-            next_adjacency += args.adj_frequency if adjacency_due else 0
-            next_eval += args.eval_frequency if eval_due else 0
-            state, _ = env.reset()
-            episode_steps = 0
-        # The periodic resume write, never with work pending: its logs at this step would follow the file, and a run killed
-        # after them would log them twice (TensorBoard's purge on --resume drops the later steps only).
-        if not (adjacency_due or eval_due) and progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
-            writer.flush()  # the logs up to this step on disk before the state that continues after them (a kill -9)
-            save_resume(run_name, training_state(), args)
-
-    writer.flush()
-    save_resume(run_name, training_state(), args)  # stopped or done: a stopped run continues with --resume from here
-    if args.save_model:
-        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-        print(f"checkpoint: {checkpoint_path}")
-    progress.finish(
-        step < args.total_timesteps or adjacency_due or eval_due,
-        run_name,
-        f"{step} steps, {episodes} episodes, last eval success {result['success']:.0%} distance {result['distance']:.2f} "
-        f"return {result['return']:.2f}",
-    )
-    env.close()
-    eval_env.close()
-    writer.close()
+    main(tyro.cli(Args))

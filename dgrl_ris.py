@@ -157,262 +157,6 @@ class Args:
     """Adam learning rate of the goal encoder and decoder (a parameter group of the critic optimizer)"""
 
 
-# --- Environments -----------------------------------------------------------------------------------------------------
-
-ANT_MAZES = {  # RIS's four mazes (its multiworld code): interior bounds, inner walls as (cx, cy, hx, hy), test boxes
-    "AntU": dict(
-        interior=((-3.75, 3.75), (-9.0, 9.0)),
-        walls=((0.0, 1.5, 0.75, 7.5),),
-        test_start=((-2.5, -2.0), (7.25, 7.75)),
-        test_goal=((2.0, 2.5), (7.25, 7.75)),
-    ),
-    "AntFb": dict(
-        interior=((-6.0, 6.0), (-6.0, 6.0)),
-        walls=((-2.25, 1.5, 0.75, 4.5), (2.25, -1.5, 0.75, 4.5)),
-        test_start=((-4.75, -4.25), (4.25, 4.75)),
-        test_goal=((4.25, 4.75), (-4.75, -4.25)),
-    ),
-    "AntMaze": dict(
-        interior=((-8.0, 8.0), (-8.0, 8.0)),
-        walls=(
-            (-2.375, 3.25, 1.625, 0.75),
-            (2.375, 3.25, 1.625, 0.75),
-            (0.0, 2.0, 0.75, 6.0),
-            (-6.0, -2.25, 2.0, 0.75),
-            (6.0, -2.25, 2.0, 0.75),
-        ),
-        test_start=((-2.5, -2.0), (6.25, 6.75)),
-        test_goal=((2.0, 2.5), (6.25, 6.75)),
-    ),
-    "AntFg": dict(
-        interior=((-8.0, 8.0), (-8.0, 8.0)),
-        walls=((0.0, -3.25, 3.0, 0.75), (-3.75, 0.0, 0.75, 4.0), (3.75, 0.0, 0.75, 4.0), (0.0, -6.0, 0.75, 2.0)),
-        test_start=((-2.5, -2.0), (-6.75, -6.25)),
-        test_goal=((2.0, 2.5), (-6.75, -6.25)),
-    ),
-}
-ANT_JOINT_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))  # hips and ankles at rest (gymnasium's init_qpos)
-ANT_GOAL_Z = 0.565
-ANT_EPISODE_STEPS = 600
-YAWS = np.array((0.0, np.pi, np.pi / 2, -np.pi / 2))
-WALL_CLEARANCE = 0.75  # training starts and goals keep at least this far from every wall
-ANT_THRESHOLD, ROBOTICS_THRESHOLD = 0.5, 0.45  # success radii (RIS; gymnasium-robotics' own)
-ROBOTICS_PREFIXES = ("AntMaze_", "PointMaze_")
-
-
-def maze_boxes(name: str) -> np.ndarray:
-    """Every wall of a maze as (cx, cy, hx, hy) rows: the inner walls, then four outer walls of half-thickness 1."""
-    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
-    cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
-    outer = ((cx, y1 + 1, hx + 2, 1), (cx, y0 - 1, hx + 2, 1), (x0 - 1, cy, 1, hy), (x1 + 1, cy, 1, hy))
-    return np.array(ANT_MAZES[name]["walls"] + outer, dtype=np.float64)
-
-
-def wall_distance(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Distance from each xy point (N, 2) to the nearest wall box (0 inside a wall)."""
-    gap = np.abs(points[:, None, :] - boxes[None, :, :2]) - boxes[None, :, 2:]
-    return np.linalg.norm(np.maximum(gap, 0.0), axis=-1).min(1)
-
-
-def sample_free_xy(name: str, rng: np.random.Generator, clearance: float = WALL_CLEARANCE) -> np.ndarray:
-    """Uniform over the interior, rejecting points closer than `clearance` to any wall."""
-    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
-    boxes = maze_boxes(name)
-    while True:
-        points = rng.uniform((x0, y0), (x1, y1), size=(64, 2))
-        free = points[wall_distance(points, boxes) >= clearance]
-        if len(free):
-            return free[0]
-
-
-def quat_to_euler(quat: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) unit quaternion to (roll, pitch, yaw)."""
-    w, x, y, z = quat
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return np.array((roll, pitch, yaw))
-
-
-def ant_state(qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
-    """RIS's 31-d observation: torso xyz, (cos, sin) of roll, pitch and yaw, 8 joint angles, 14 velocities."""
-    euler = quat_to_euler(qpos[3:7])
-    angles = np.stack((np.cos(euler), np.sin(euler)), 1).ravel()
-    return np.concatenate((qpos[:3], angles, qpos[7:15], qvel[:14])).astype(np.float32)
-
-
-def rest_qpos(xy: np.ndarray, yaw: float) -> np.ndarray:
-    """Positions of the ant at rest at `xy` facing `yaw`: torso at z 0.565, upright, joints at their rest pose."""
-    return np.concatenate((xy, (ANT_GOAL_Z, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
-
-
-def goal_state(xy: np.ndarray, yaw: float) -> np.ndarray:
-    """A full 31-d goal state: the ant at rest (zero velocities) at `xy` facing `yaw`."""
-    return ant_state(rest_qpos(xy, yaw), np.zeros(14))
-
-
-@cache
-def ant_maze_xml(name: str) -> str:
-    """Gymnasium's Ant model edited for RIS: gear 10, timestep 0.03 (RK4), the maze's walls, a goal marker, a top camera."""
-    root = ET.parse(os.path.join(os.path.dirname(gym.__file__), "envs/mujoco/assets/ant.xml")).getroot()
-    root.find("option").set("timestep", "0.03")
-    for motor in root.iter("motor"):
-        motor.set("gear", "10")
-    world = root.find("worldbody")
-    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
-    extent = max(x1 - x0, y1 - y0) + 2
-    world.find("geom[@name='floor']").set("size", f"{extent} {extent} 40")
-    for index, (cx, cy, hx, hy) in enumerate(maze_boxes(name)):
-        ET.SubElement(
-            world, "geom", name=f"wall_{index}", type="box", pos=f"{cx} {cy} 0.75", size=f"{hx} {hy} 0.75",
-            conaffinity="1", contype="1", rgba="0.55 0.55 0.6 1",
-        )  # fmt: skip
-    marker = ET.SubElement(world, "body", name="goal", mocap="true", pos="0 0 0.3")
-    ET.SubElement(marker, "geom", type="sphere", size="0.3", contype="0", conaffinity="0", rgba="0.9 0.2 0.2 0.7")
-    height = 1.25 * extent  # the whole maze in a 45-degree field of view
-    ET.SubElement(world, "camera", name="top", pos=f"{(x0 + x1) / 2} {(y0 + y1) / 2} {height}", xyaxes="1 0 0 0 1 0")
-    return ET.tostring(root, encoding="unicode")
-
-
-class AntMazeEnv(gym.Env):
-    """One of RIS's four Ant mazes (as in its multiworld code) on the modern `mujoco` bindings.
-
-    Observation: Dict(state = the 31-d ant state, goal = a 31-d goal state). Action: 8 motor commands in [-1, 1].
-    Physics: timestep 0.03 with RK4, frame_skip 5 (0.15 s per step), gear 10. The reward is -1 per step (RIS recomputes
-    it after relabelling anyway); the episode terminates when the torso's xy is within `threshold` of the goal's.
-    Training resets (`test=False`) draw the start and the goal uniformly over the free space with 0.75 clearance from
-    every wall; test resets draw them from the maze's fixed start and goal boxes. Yaws come from {0, pi, +-pi/2}.
-    """
-
-    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 7}
-    frame_skip = 5
-
-    def __init__(self, name: str, test: bool = False, threshold: float = ANT_THRESHOLD, render_mode: str | None = None):
-        self.name = name
-        self.test = test
-        self.threshold = threshold
-        self.render_mode = render_mode
-        self.model = mujoco.MjModel.from_xml_string(ant_maze_xml(name))
-        self.data = mujoco.MjData(self.model)
-        box = gym.spaces.Box(-np.inf, np.inf, (31,), np.float32)
-        self.observation_space = gym.spaces.Dict(state=box, goal=box)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (8,), np.float32)
-        self.goal = np.zeros(31, np.float32)
-        self._renderer = None
-
-    def _draw_xy(self, box_key: str) -> np.ndarray:
-        if self.test:
-            (x0, x1), (y0, y1) = ANT_MAZES[self.name][box_key]
-            return self.np_random.uniform((x0, y0), (x1, y1))
-        return sample_free_xy(self.name, self.np_random)
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[:] = rest_qpos(self._draw_xy("test_start"), self.np_random.choice(YAWS))  # zero velocities
-        self.goal = goal_state(self._draw_xy("test_goal"), self.np_random.choice(YAWS))
-        self.data.mocap_pos[0, :2] = self.goal[:2]
-        mujoco.mj_forward(self.model, self.data)
-        return {"state": ant_state(self.data.qpos, self.data.qvel), "goal": self.goal.copy()}, {}
-
-    def step(self, action):
-        self.data.ctrl[:] = np.clip(action, -1.0, 1.0)
-        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
-        state = ant_state(self.data.qpos, self.data.qvel)
-        success = bool(np.linalg.norm(state[:2] - self.goal[:2]) < self.threshold)
-        return {"state": state, "goal": self.goal.copy()}, -1.0, success, False, {"success": success}
-
-    def render(self):
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, 240, 240)
-        self._renderer.update_scene(self.data, camera="top")
-        return self._renderer.render()
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
-
-class RoboticsMaze(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """A gymnasium-robotics maze env seen as Dict(state, goal): state = (achieved xy, observation), goal = desired xy.
-
-    Episodes end on success (`continuing_task=False`). Test resets of the U mazes put the start and the goal at the two
-    ends of the U, the analogue of RIS's test configuration; other maps keep their own reset distribution. Recording its
-    constructor arguments (as gymnasium's own wrappers do) lets gymnasium re-create the wrapped env from its spec.
-    """
-
-    def __init__(self, env: gym.Env, test: bool):
-        gym.utils.RecordConstructorArgs.__init__(self, test=test)
-        gym.Wrapper.__init__(self, env)
-        spaces = env.observation_space
-        state_dim = spaces["achieved_goal"].shape[0] + spaces["observation"].shape[0]
-        self.observation_space = gym.spaces.Dict(
-            state=gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32),
-            goal=gym.spaces.Box(-np.inf, np.inf, spaces["desired_goal"].shape, np.float32),
-        )
-        u_maze = test and "UMaze" in str(env.spec.id)
-        self.options = {"reset_cell": np.array((1, 1)), "goal_cell": np.array((3, 1))} if u_maze else None
-
-    @staticmethod
-    def _convert(observation: dict) -> dict:
-        state = np.concatenate((observation["achieved_goal"], observation["observation"])).astype(np.float32)
-        return {"state": state, "goal": observation["desired_goal"].astype(np.float32)}
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        observation, info = self.env.reset(seed=seed, options=options or self.options)
-        return self._convert(observation), info
-
-    def step(self, action):
-        observation, reward, terminated, truncated, info = self.env.step(action)
-        return self._convert(observation), reward, terminated, truncated, info
-
-
-def robotics_ids() -> list[str]:
-    import gymnasium_robotics
-
-    gym.register_envs(gymnasium_robotics)
-    return sorted(env_id for env_id in gym.registry if env_id.startswith(ROBOTICS_PREFIXES))
-
-
-def episode_limit(env_id: str, max_episode_steps: int) -> int:
-    """The episode step limit a run uses: --max-episode-steps, else 600 (Ant mazes) or the id's registered limit."""
-    if max_episode_steps:
-        return max_episode_steps
-    if env_id in ANT_MAZES:
-        return ANT_EPISODE_STEPS
-    robotics_ids()
-    return gym.spec(env_id).max_episode_steps
-
-
-def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False):
-    def thunk():
-        render_mode = "rgb_array" if render else None
-        if env_id in ANT_MAZES:
-            env = gym.wrappers.TimeLimit(
-                AntMazeEnv(env_id, test, threshold, render_mode), max_episode_steps or ANT_EPISODE_STEPS
-            )
-        else:
-            robotics_ids()
-            kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
-            if max_episode_steps:
-                kwargs["max_episode_steps"] = max_episode_steps
-            env = RoboticsMaze(gym.make(env_id, continuing_task=False, render_mode=render_mode, **kwargs), test)
-        env = gym.wrappers.RecordEpisodeStatistics(env)
-        env.action_space.seed(seed)
-        return env
-
-    return thunk
-
-
-def make_vector_env(
-    env_id: str, n: int, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False
-) -> gym.vector.SyncVectorEnv:
-    """n envs seeded seed, seed + 1, ...; with `render`, env 0 renders frames (videos)."""
-    thunks = [make_env(env_id, seed + i, test, max_episode_steps, threshold, render and i == 0) for i in range(n)]
-    return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
-
-
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
@@ -775,6 +519,206 @@ def ris_update(
     return {name: value.detach() for name, value in metrics.items()}
 
 
+def main(args: Args) -> None:
+    """Train RIS (--groups 0) or DGRL in a maze, or evaluate a --checkpoint and exit."""
+    validate(args)
+    dgrl = args.groups > 0  # DGRL
+    args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
+    saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:  # the stopped run's name, folder and videos
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    device = seed_and_device(args)
+
+    # Environments: training (random starts and goals) and evaluation (the test configuration, one seeded stream)
+    envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, args.max_episode_steps, args.goal_threshold)
+    eval_envs = make_vector_env(
+        args.env_id,
+        args.eval_episodes,
+        args.seed + 10_000,
+        True,
+        args.max_episode_steps,
+        args.goal_threshold,
+        render=args.capture_video,
+    )
+    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    state_dim = envs.single_observation_space["state"].shape[0]
+    goal_dim = envs.single_observation_space["goal"].shape[0]
+    action_dim = envs.single_action_space.shape[0]
+    if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
+        exit_on_errors([f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]"])
+    agent = make_agent(
+        state_dim,
+        goal_dim,
+        action_dim,
+        hidden_dim=args.hidden_dim,
+        q_lr=args.q_lr,
+        actor_lr=args.actor_lr,
+        h_lr=args.h_lr,
+        groups=args.groups,  # DGRL
+        embed_dim=args.embed_dim,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        encoder_lr=args.encoder_lr,  # DGRL
+        device=device,
+    )
+
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
+
+    if args.checkpoint is not None:
+        evaluate_checkpoint(args, agent, eval_envs, device, stop)
+        return
+
+    try:
+        replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
+    except RuntimeError as error:  # out of memory (torch.OutOfMemoryError on a GPU is a RuntimeError too)
+        exit_on_errors(
+            [f"--buffer-size {args.buffer_size}: the replay does not fit in {device.type} memory ({type(error).__name__})"]
+        )
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    n_envs = args.num_envs
+    episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
+    observations, _ = envs.reset(seed=args.seed)
+    step = 0
+    updates = 0
+    evaluations = 0
+    next_eval = args.eval_frequency
+    next_loss_log = LOSS_LOG_UPDATES
+    recent_success = []
+    eval_success = eval_distance = float("nan")
+    diverged = False
+    if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
+        loop = restore_training_state(saved, agent, replay, envs, eval_envs)
+        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
+        next_eval, next_loss_log, recent_success = loop["next_eval"], loop["next_loss_log"], loop["recent_success"]
+        eval_success, eval_distance = loop["eval_success"], loop["eval_distance"]
+        observations, episode = loop["observations"], loop["episode"]
+
+    def resume_state() -> dict:
+        """training_state with every variable the loop below carries from one step to the next."""
+        return training_state(
+            agent, replay, envs, eval_envs, step=step, updates=updates, evaluations=evaluations, next_eval=next_eval,
+            next_loss_log=next_loss_log, recent_success=recent_success, eval_success=eval_success,
+            eval_distance=eval_distance, observations=observations, episode=episode,
+        )  # fmt: skip
+
+    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)  # logs so far: steps <= step
+    print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
+    if saved is not None:
+        print(f"resumed at step {step} ({updates} updates) from {args.resume}/{RESUME_FILE}")
+    if device.type == "cpu" and args.batch_size >= 1024:
+        print(
+            f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
+        )
+    update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
+    progress = Progress(args.total_timesteps, start_step=step)
+    if saved is not None:
+        set_rng_states(saved["rng"])  # last: building the envs and networks above drew from them
+    while step < args.total_timesteps and not stop:
+        # Act: uniform random actions during the warm-up, then the actor's samples.
+        if step < args.start_timesteps:
+            actions = envs.action_space.sample()
+        else:
+            actions = act(agent.actor, agent.goal_encoder, observations, device, deterministic=False)
+        next_observations, _, terminations, truncations, infos = envs.step(actions)
+        step += n_envs
+
+        # Stage each env's transitions; a finished episode goes to the replay whole (the true last state: final_obs).
+        for env in range(n_envs):
+            ended = terminations[env] or truncations[env]
+            last = infos["final_obs"][env] if ended else None
+            episode["states"][env].append(observations["state"][env])
+            episode["actions"][env].append(actions[env])
+            episode["next_states"][env].append(last["state"] if ended else next_observations["state"][env])
+            episode["goals"][env].append(observations["goal"][env])
+            if ended:
+                replay.add_episode(*(np.stack(episode[key][env]) for key in ("states", "actions", "next_states", "goals")))
+                for key in episode:
+                    episode[key][env] = []
+                recent_success.append(float(terminations[env]))
+                writer.add_scalar("charts/episodic_return", infos["final_info"]["episode"]["r"][env], step)
+                writer.add_scalar("charts/episodic_length", infos["final_info"]["episode"]["l"][env], step)
+                writer.add_scalar("charts/success_rate", float(terminations[env]), step)
+        observations = next_observations
+
+        # Train: one update per environment step once the random phase is over and the replay holds a batch.
+        if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
+            for _ in range(n_envs):
+                batch = replay.sample(args.batch_size, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
+                metrics = update(
+                    agent,
+                    batch,
+                    goal_dim=goal_dim,
+                    gamma=args.gamma,
+                    tau=args.tau,
+                    alpha=args.alpha,
+                    h_lambda=args.h_lambda,
+                    n_subgoals=args.n_subgoals,
+                    prior_epsilon=args.prior_epsilon,
+                    vq_loss_reduction=args.vq_loss_reduction,  # DGRL
+                )
+                updates += 1
+            if updates >= next_loss_log:
+                next_loss_log += LOSS_LOG_UPDATES
+                losses = {name: metrics[name].item() for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values")}
+                for name, value in losses.items():
+                    writer.add_scalar(f"losses/{name}", value, step)
+                writer.add_scalar("losses/high_weight_max", metrics["high_weight_max"].item(), step)
+                writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), step)
+                if dgrl:  # DGRL
+                    writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), step)  # DGRL
+                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
+                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                diverged = not all(map(math.isfinite, losses.values()))
+                if diverged:  # every later update would be NaN too: stop rather than train garbage
+                    message = (
+                        f"training diverged: non-finite losses {losses} at step {step}; lower the learning rates or --alpha"
+                    )
+                    print(message, file=sys.stderr)
+                    break
+        progress.heartbeat(step, f"{updates} updates")
+
+        # Evaluate on the test configuration, log, print progress, checkpoint. A stop signal lets the evaluation finish
+        # (seconds), so that the resume file holds whole steps.
+        if step >= next_eval or step >= args.total_timesteps:
+            next_eval += args.eval_frequency
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            eval_success, eval_distance = evaluate(
+                eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, video
+            )
+            evaluations += 1
+            writer.add_scalar("eval/success_rate", eval_success, step)
+            writer.add_scalar("eval/final_distance", eval_distance, step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
+            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
+            recent_success = []
+            progress.line(
+                step, f"eval success {eval_success:4.0%} distance {eval_distance:5.2f}  train success {train_success}"
+            )
+            if video:
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=15)
+            if args.save_model:
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
+            save_resume(run_name, resume_state(), args)
+
+    if not diverged:  # a diverged run broke off mid-step, with NaN networks: its last periodic resume file stays
+        save_resume(run_name, resume_state(), args)
+    if args.save_model:
+        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+        print(f"checkpoint: {checkpoint_path}")
+    stopped = bool(stop) and step < args.total_timesteps
+    progress.finish(stopped or diverged, run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
+    envs.close()
+    eval_envs.close()
+    writer.close()
+    if diverged:
+        raise SystemExit(1)
+
+
 # --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
@@ -816,6 +760,275 @@ def evaluate(
             success[env] = terminations[env]
         finished |= ended
     return success.mean(), distance.mean()
+
+
+def evaluate_checkpoint(
+    args: Args, agent: Agent, eval_envs: gym.vector.SyncVectorEnv, device: torch.device, stop: list[int]
+) -> None:
+    """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the test configuration, print."""
+    saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
+    agent.load_state_dicts(saved)
+    result = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, stop=stop)
+    if result is None:
+        print("stopped: the evaluation was interrupted")
+    else:
+        print(f"{args.eval_episodes} test episodes: success {result[0]:.0%}, final distance {result[1]:.2f}")
+
+
+# --- Environments -----------------------------------------------------------------------------------------------------
+
+ANT_MAZES = {  # RIS's four mazes (its multiworld code): interior bounds, inner walls as (cx, cy, hx, hy), test boxes
+    "AntU": dict(
+        interior=((-3.75, 3.75), (-9.0, 9.0)),
+        walls=((0.0, 1.5, 0.75, 7.5),),
+        test_start=((-2.5, -2.0), (7.25, 7.75)),
+        test_goal=((2.0, 2.5), (7.25, 7.75)),
+    ),
+    "AntFb": dict(
+        interior=((-6.0, 6.0), (-6.0, 6.0)),
+        walls=((-2.25, 1.5, 0.75, 4.5), (2.25, -1.5, 0.75, 4.5)),
+        test_start=((-4.75, -4.25), (4.25, 4.75)),
+        test_goal=((4.25, 4.75), (-4.75, -4.25)),
+    ),
+    "AntMaze": dict(
+        interior=((-8.0, 8.0), (-8.0, 8.0)),
+        walls=(
+            (-2.375, 3.25, 1.625, 0.75),
+            (2.375, 3.25, 1.625, 0.75),
+            (0.0, 2.0, 0.75, 6.0),
+            (-6.0, -2.25, 2.0, 0.75),
+            (6.0, -2.25, 2.0, 0.75),
+        ),
+        test_start=((-2.5, -2.0), (6.25, 6.75)),
+        test_goal=((2.0, 2.5), (6.25, 6.75)),
+    ),
+    "AntFg": dict(
+        interior=((-8.0, 8.0), (-8.0, 8.0)),
+        walls=((0.0, -3.25, 3.0, 0.75), (-3.75, 0.0, 0.75, 4.0), (3.75, 0.0, 0.75, 4.0), (0.0, -6.0, 0.75, 2.0)),
+        test_start=((-2.5, -2.0), (-6.75, -6.25)),
+        test_goal=((2.0, 2.5), (-6.75, -6.25)),
+    ),
+}
+ANT_JOINT_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))  # hips and ankles at rest (gymnasium's init_qpos)
+ANT_GOAL_Z = 0.565
+ANT_EPISODE_STEPS = 600
+YAWS = np.array((0.0, np.pi, np.pi / 2, -np.pi / 2))
+WALL_CLEARANCE = 0.75  # training starts and goals keep at least this far from every wall
+ANT_THRESHOLD, ROBOTICS_THRESHOLD = 0.5, 0.45  # success radii (RIS; gymnasium-robotics' own)
+ROBOTICS_PREFIXES = ("AntMaze_", "PointMaze_")
+
+
+def maze_boxes(name: str) -> np.ndarray:
+    """Every wall of a maze as (cx, cy, hx, hy) rows: the inner walls, then four outer walls of half-thickness 1."""
+    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
+    cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+    outer = ((cx, y1 + 1, hx + 2, 1), (cx, y0 - 1, hx + 2, 1), (x0 - 1, cy, 1, hy), (x1 + 1, cy, 1, hy))
+    return np.array(ANT_MAZES[name]["walls"] + outer, dtype=np.float64)
+
+
+def wall_distance(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Distance from each xy point (N, 2) to the nearest wall box (0 inside a wall)."""
+    gap = np.abs(points[:, None, :] - boxes[None, :, :2]) - boxes[None, :, 2:]
+    return np.linalg.norm(np.maximum(gap, 0.0), axis=-1).min(1)
+
+
+def sample_free_xy(name: str, rng: np.random.Generator, clearance: float = WALL_CLEARANCE) -> np.ndarray:
+    """Uniform over the interior, rejecting points closer than `clearance` to any wall."""
+    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
+    boxes = maze_boxes(name)
+    while True:
+        points = rng.uniform((x0, y0), (x1, y1), size=(64, 2))
+        free = points[wall_distance(points, boxes) >= clearance]
+        if len(free):
+            return free[0]
+
+
+def quat_to_euler(quat: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) unit quaternion to (roll, pitch, yaw)."""
+    w, x, y, z = quat
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.array((roll, pitch, yaw))
+
+
+def ant_state(qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """RIS's 31-d observation: torso xyz, (cos, sin) of roll, pitch and yaw, 8 joint angles, 14 velocities."""
+    euler = quat_to_euler(qpos[3:7])
+    angles = np.stack((np.cos(euler), np.sin(euler)), 1).ravel()
+    return np.concatenate((qpos[:3], angles, qpos[7:15], qvel[:14])).astype(np.float32)
+
+
+def rest_qpos(xy: np.ndarray, yaw: float) -> np.ndarray:
+    """Positions of the ant at rest at `xy` facing `yaw`: torso at z 0.565, upright, joints at their rest pose."""
+    return np.concatenate((xy, (ANT_GOAL_Z, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
+
+
+def goal_state(xy: np.ndarray, yaw: float) -> np.ndarray:
+    """A full 31-d goal state: the ant at rest (zero velocities) at `xy` facing `yaw`."""
+    return ant_state(rest_qpos(xy, yaw), np.zeros(14))
+
+
+@cache
+def ant_maze_xml(name: str) -> str:
+    """Gymnasium's Ant model edited for RIS: gear 10, timestep 0.03 (RK4), the maze's walls, a goal marker, a top camera."""
+    root = ET.parse(os.path.join(os.path.dirname(gym.__file__), "envs/mujoco/assets/ant.xml")).getroot()
+    root.find("option").set("timestep", "0.03")
+    for motor in root.iter("motor"):
+        motor.set("gear", "10")
+    world = root.find("worldbody")
+    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
+    extent = max(x1 - x0, y1 - y0) + 2
+    world.find("geom[@name='floor']").set("size", f"{extent} {extent} 40")
+    for index, (cx, cy, hx, hy) in enumerate(maze_boxes(name)):
+        ET.SubElement(
+            world, "geom", name=f"wall_{index}", type="box", pos=f"{cx} {cy} 0.75", size=f"{hx} {hy} 0.75",
+            conaffinity="1", contype="1", rgba="0.55 0.55 0.6 1",
+        )  # fmt: skip
+    marker = ET.SubElement(world, "body", name="goal", mocap="true", pos="0 0 0.3")
+    ET.SubElement(marker, "geom", type="sphere", size="0.3", contype="0", conaffinity="0", rgba="0.9 0.2 0.2 0.7")
+    height = 1.25 * extent  # the whole maze in a 45-degree field of view
+    ET.SubElement(world, "camera", name="top", pos=f"{(x0 + x1) / 2} {(y0 + y1) / 2} {height}", xyaxes="1 0 0 0 1 0")
+    return ET.tostring(root, encoding="unicode")
+
+
+class AntMazeEnv(gym.Env):
+    """One of RIS's four Ant mazes (as in its multiworld code) on the modern `mujoco` bindings.
+
+    Observation: Dict(state = the 31-d ant state, goal = a 31-d goal state). Action: 8 motor commands in [-1, 1].
+    Physics: timestep 0.03 with RK4, frame_skip 5 (0.15 s per step), gear 10. The reward is -1 per step (RIS recomputes
+    it after relabelling anyway); the episode terminates when the torso's xy is within `threshold` of the goal's.
+    Training resets (`test=False`) draw the start and the goal uniformly over the free space with 0.75 clearance from
+    every wall; test resets draw them from the maze's fixed start and goal boxes. Yaws come from {0, pi, +-pi/2}.
+    """
+
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 7}
+    frame_skip = 5
+
+    def __init__(self, name: str, test: bool = False, threshold: float = ANT_THRESHOLD, render_mode: str | None = None):
+        self.name = name
+        self.test = test
+        self.threshold = threshold
+        self.render_mode = render_mode
+        self.model = mujoco.MjModel.from_xml_string(ant_maze_xml(name))
+        self.data = mujoco.MjData(self.model)
+        box = gym.spaces.Box(-np.inf, np.inf, (31,), np.float32)
+        self.observation_space = gym.spaces.Dict(state=box, goal=box)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (8,), np.float32)
+        self.goal = np.zeros(31, np.float32)
+        self._renderer = None
+
+    def _draw_xy(self, box_key: str) -> np.ndarray:
+        if self.test:
+            (x0, x1), (y0, y1) = ANT_MAZES[self.name][box_key]
+            return self.np_random.uniform((x0, y0), (x1, y1))
+        return sample_free_xy(self.name, self.np_random)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = rest_qpos(self._draw_xy("test_start"), self.np_random.choice(YAWS))  # zero velocities
+        self.goal = goal_state(self._draw_xy("test_goal"), self.np_random.choice(YAWS))
+        self.data.mocap_pos[0, :2] = self.goal[:2]
+        mujoco.mj_forward(self.model, self.data)
+        return {"state": ant_state(self.data.qpos, self.data.qvel), "goal": self.goal.copy()}, {}
+
+    def step(self, action):
+        self.data.ctrl[:] = np.clip(action, -1.0, 1.0)
+        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
+        state = ant_state(self.data.qpos, self.data.qvel)
+        success = bool(np.linalg.norm(state[:2] - self.goal[:2]) < self.threshold)
+        return {"state": state, "goal": self.goal.copy()}, -1.0, success, False, {"success": success}
+
+    def render(self):
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, 240, 240)
+        self._renderer.update_scene(self.data, camera="top")
+        return self._renderer.render()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+class RoboticsMaze(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """A gymnasium-robotics maze env seen as Dict(state, goal): state = (achieved xy, observation), goal = desired xy.
+
+    Episodes end on success (`continuing_task=False`). Test resets of the U mazes put the start and the goal at the two
+    ends of the U, the analogue of RIS's test configuration; other maps keep their own reset distribution. Recording its
+    constructor arguments (as gymnasium's own wrappers do) lets gymnasium re-create the wrapped env from its spec.
+    """
+
+    def __init__(self, env: gym.Env, test: bool):
+        gym.utils.RecordConstructorArgs.__init__(self, test=test)
+        gym.Wrapper.__init__(self, env)
+        spaces = env.observation_space
+        state_dim = spaces["achieved_goal"].shape[0] + spaces["observation"].shape[0]
+        self.observation_space = gym.spaces.Dict(
+            state=gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32),
+            goal=gym.spaces.Box(-np.inf, np.inf, spaces["desired_goal"].shape, np.float32),
+        )
+        u_maze = test and "UMaze" in str(env.spec.id)
+        self.options = {"reset_cell": np.array((1, 1)), "goal_cell": np.array((3, 1))} if u_maze else None
+
+    @staticmethod
+    def _convert(observation: dict) -> dict:
+        state = np.concatenate((observation["achieved_goal"], observation["observation"])).astype(np.float32)
+        return {"state": state, "goal": observation["desired_goal"].astype(np.float32)}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        observation, info = self.env.reset(seed=seed, options=options or self.options)
+        return self._convert(observation), info
+
+    def step(self, action):
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        return self._convert(observation), reward, terminated, truncated, info
+
+
+def robotics_ids() -> list[str]:
+    import gymnasium_robotics
+
+    gym.register_envs(gymnasium_robotics)
+    return sorted(env_id for env_id in gym.registry if env_id.startswith(ROBOTICS_PREFIXES))
+
+
+def episode_limit(env_id: str, max_episode_steps: int) -> int:
+    """The episode step limit a run uses: --max-episode-steps, else 600 (Ant mazes) or the id's registered limit."""
+    if max_episode_steps:
+        return max_episode_steps
+    if env_id in ANT_MAZES:
+        return ANT_EPISODE_STEPS
+    robotics_ids()
+    return gym.spec(env_id).max_episode_steps
+
+
+def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False):
+    def thunk():
+        render_mode = "rgb_array" if render else None
+        if env_id in ANT_MAZES:
+            env = gym.wrappers.TimeLimit(
+                AntMazeEnv(env_id, test, threshold, render_mode), max_episode_steps or ANT_EPISODE_STEPS
+            )
+        else:
+            robotics_ids()
+            kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
+            if max_episode_steps:
+                kwargs["max_episode_steps"] = max_episode_steps
+            env = RoboticsMaze(gym.make(env_id, continuing_task=False, render_mode=render_mode, **kwargs), test)
+        env = gym.wrappers.RecordEpisodeStatistics(env)
+        env.action_space.seed(seed)
+        return env
+
+    return thunk
+
+
+def make_vector_env(
+    env_id: str, n: int, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False
+) -> gym.vector.SyncVectorEnv:
+    """n envs seeded seed, seed + 1, ...; with `render`, env 0 renders frames (videos)."""
+    thunks = [make_env(env_id, seed + i, test, max_episode_steps, threshold, render and i == 0) for i in range(n)]
+    return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
 
 # --- Resume: the whole training state (--resume) ---------------------------------------------------------------------
@@ -1358,206 +1571,4 @@ def validate(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    dgrl = args.groups > 0  # DGRL
-    args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
-    saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:  # the stopped run's name, folder and videos
-        run_name = os.path.basename(os.path.normpath(args.resume))
-    device = seed_and_device(args)
-
-    # Environments: training (random starts and goals) and evaluation (the test configuration, one seeded stream)
-    envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, args.max_episode_steps, args.goal_threshold)
-    eval_envs = make_vector_env(
-        args.env_id,
-        args.eval_episodes,
-        args.seed + 10_000,
-        True,
-        args.max_episode_steps,
-        args.goal_threshold,
-        render=args.capture_video,
-    )
-    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    state_dim = envs.single_observation_space["state"].shape[0]
-    goal_dim = envs.single_observation_space["goal"].shape[0]
-    action_dim = envs.single_action_space.shape[0]
-    if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
-        exit_on_errors([f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]"])
-    agent = make_agent(
-        state_dim,
-        goal_dim,
-        action_dim,
-        hidden_dim=args.hidden_dim,
-        q_lr=args.q_lr,
-        actor_lr=args.actor_lr,
-        h_lr=args.h_lr,
-        groups=args.groups,  # DGRL
-        embed_dim=args.embed_dim,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        encoder_lr=args.encoder_lr,  # DGRL
-        device=device,
-    )
-
-    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
-
-    if args.checkpoint is not None:
-        saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-        agent.load_state_dicts(saved)
-        result = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, stop=stop)
-        if result is None:
-            print("stopped: the evaluation was interrupted")
-        else:
-            print(f"{args.eval_episodes} test episodes: success {result[0]:.0%}, final distance {result[1]:.2f}")
-        raise SystemExit(0)
-
-    try:
-        replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
-    except RuntimeError as error:  # out of memory (torch.OutOfMemoryError on a GPU is a RuntimeError too)
-        exit_on_errors(
-            [f"--buffer-size {args.buffer_size}: the replay does not fit in {device.type} memory ({type(error).__name__})"]
-        )
-    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    n_envs = args.num_envs
-    episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
-    observations, _ = envs.reset(seed=args.seed)
-    step = 0
-    updates = 0
-    evaluations = 0
-    next_eval = args.eval_frequency
-    next_loss_log = LOSS_LOG_UPDATES
-    recent_success = []
-    eval_success = eval_distance = float("nan")
-    diverged = False
-    if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
-        loop = restore_training_state(saved, agent, replay, envs, eval_envs)
-        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
-        next_eval, next_loss_log, recent_success = loop["next_eval"], loop["next_loss_log"], loop["recent_success"]
-        eval_success, eval_distance = loop["eval_success"], loop["eval_distance"]
-        observations, episode = loop["observations"], loop["episode"]
-
-    def resume_state() -> dict:
-        """training_state with every variable the loop below carries from one step to the next."""
-        return training_state(
-            agent, replay, envs, eval_envs, step=step, updates=updates, evaluations=evaluations, next_eval=next_eval,
-            next_loss_log=next_loss_log, recent_success=recent_success, eval_success=eval_success,
-            eval_distance=eval_distance, observations=observations, episode=episode,
-        )  # fmt: skip
-
-    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)  # logs so far: steps <= step
-    print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
-    if saved is not None:
-        print(f"resumed at step {step} ({updates} updates) from {args.resume}/{RESUME_FILE}")
-    if device.type == "cpu" and args.batch_size >= 1024:
-        print(
-            f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
-        )
-    update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
-    progress = Progress(args.total_timesteps, start_step=step)
-    if saved is not None:
-        set_rng_states(saved["rng"])  # last: building the envs and networks above drew from them
-    while step < args.total_timesteps and not stop:
-        # Act: uniform random actions during the warm-up, then the actor's samples.
-        if step < args.start_timesteps:
-            actions = envs.action_space.sample()
-        else:
-            actions = act(agent.actor, agent.goal_encoder, observations, device, deterministic=False)
-        next_observations, _, terminations, truncations, infos = envs.step(actions)
-        step += n_envs
-
-        # Stage each env's transitions; a finished episode goes to the replay whole (the true last state: final_obs).
-        for env in range(n_envs):
-            ended = terminations[env] or truncations[env]
-            last = infos["final_obs"][env] if ended else None
-            episode["states"][env].append(observations["state"][env])
-            episode["actions"][env].append(actions[env])
-            episode["next_states"][env].append(last["state"] if ended else next_observations["state"][env])
-            episode["goals"][env].append(observations["goal"][env])
-            if ended:
-                replay.add_episode(*(np.stack(episode[key][env]) for key in ("states", "actions", "next_states", "goals")))
-                for key in episode:
-                    episode[key][env] = []
-                recent_success.append(float(terminations[env]))
-                writer.add_scalar("charts/episodic_return", infos["final_info"]["episode"]["r"][env], step)
-                writer.add_scalar("charts/episodic_length", infos["final_info"]["episode"]["l"][env], step)
-                writer.add_scalar("charts/success_rate", float(terminations[env]), step)
-        observations = next_observations
-
-        # Train: one update per environment step once the random phase is over and the replay holds a batch.
-        if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
-            for _ in range(n_envs):
-                batch = replay.sample(args.batch_size, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
-                metrics = update(
-                    agent,
-                    batch,
-                    goal_dim=goal_dim,
-                    gamma=args.gamma,
-                    tau=args.tau,
-                    alpha=args.alpha,
-                    h_lambda=args.h_lambda,
-                    n_subgoals=args.n_subgoals,
-                    prior_epsilon=args.prior_epsilon,
-                    vq_loss_reduction=args.vq_loss_reduction,  # DGRL
-                )
-                updates += 1
-            if updates >= next_loss_log:
-                next_loss_log += LOSS_LOG_UPDATES
-                losses = {name: metrics[name].item() for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values")}
-                for name, value in losses.items():
-                    writer.add_scalar(f"losses/{name}", value, step)
-                writer.add_scalar("losses/high_weight_max", metrics["high_weight_max"].item(), step)
-                writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), step)
-                if dgrl:  # DGRL
-                    writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), step)  # DGRL
-                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
-                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
-                diverged = not all(map(math.isfinite, losses.values()))
-                if diverged:  # every later update would be NaN too: stop rather than train garbage
-                    message = (
-                        f"training diverged: non-finite losses {losses} at step {step}; lower the learning rates or --alpha"
-                    )
-                    print(message, file=sys.stderr)
-                    break
-        progress.heartbeat(step, f"{updates} updates")
-
-        # Evaluate on the test configuration, log, print progress, checkpoint. A stop signal lets the evaluation finish
-        # (seconds), so that the resume file holds whole steps.
-        if step >= next_eval or step >= args.total_timesteps:
-            next_eval += args.eval_frequency
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            eval_success, eval_distance = evaluate(
-                eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, video
-            )
-            evaluations += 1
-            writer.add_scalar("eval/success_rate", eval_success, step)
-            writer.add_scalar("eval/final_distance", eval_distance, step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
-            recent_success = []
-            progress.line(
-                step, f"eval success {eval_success:4.0%} distance {eval_distance:5.2f}  train success {train_success}"
-            )
-            if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=15)
-            if args.save_model:
-                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
-            save_resume(run_name, resume_state(), args)
-
-    if not diverged:  # a diverged run broke off mid-step, with NaN networks: its last periodic resume file stays
-        save_resume(run_name, resume_state(), args)
-    if args.save_model:
-        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-        print(f"checkpoint: {checkpoint_path}")
-    stopped = bool(stop) and step < args.total_timesteps
-    progress.finish(stopped or diverged, run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
-    envs.close()
-    eval_envs.close()
-    writer.close()
-    if diverged:
-        raise SystemExit(1)
+    main(tyro.cli(Args))

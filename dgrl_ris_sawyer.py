@@ -167,277 +167,6 @@ class Args:
     """whose commitment losses train the encoder: all (s, s', g, s_g: the paper's snippet) or state (s only: RIS's no-grad)"""
 
 
-# --- Environments -----------------------------------------------------------------------------------------------------
-
-ARENA_LOW, ARENA_HIGH = np.array((-0.2, 0.5)), np.array((0.2, 0.7))  # bounds of the hand's and the puck's centres (xy)
-HAND_Z, HAND_RADIUS = 0.06, 0.015  # the end effector moves at this fixed height
-PUCK_RADIUS, PUCK_HALF_HEIGHT = 0.04, 0.015
-WALL_HALF_THICKNESS, WALL_HALF_HEIGHT = 0.01, 0.02
-PUCK_RING = (0.055, 0.075)  # training resets put the puck at this distance from the hand
-GOAL_CLEARANCE = PUCK_RADIUS + HAND_RADIUS  # training goals keep the hand and the puck this far apart (0.055)
-TEST_BOXES = {  # (low xy, high xy) of the test configuration's uniform draws
-    "hand_start": ((0.15, 0.65), (0.20, 0.70)),
-    "puck_start": ((-0.15, 0.55), (-0.10, 0.60)),
-    "hand_goal": ((-0.20, 0.50), (-0.15, 0.55)),
-    "puck_goal": ((0.15, 0.65), (0.20, 0.70)),
-}
-SUCCESS_DISTANCE = 0.05
-EPISODE_STEPS = 100
-IMAGE_SIZE = 84  # observation images are IMAGE_SIZE x IMAGE_SIZE RGB
-TIMESTEP, FRAME_SKIP = 0.002, 50  # 0.1 s per env step
-CAMERA_HEIGHT = 0.65  # the top camera's height: its 45-degree field of view spans 0.54 m, the arena and its walls
-
-
-def sawyer_xml() -> str:
-    """The scene: a table plane at z = 0, walls whose inner faces stop the puck's centre at the arena's bounds, a puck
-    with two slide joints, an end effector with two slide joints welded to a mocap body, and a camera over the arena.
-
-    qpos is (hand x, hand y, puck x, puck y): both bodies sit at the world origin in xy, so a slide joint's position is
-    the world coordinate. The puck has no z or tilt freedom (it cannot tip over or fly) and does not touch the table;
-    dry friction on its slide joints (`frictionloss`) stands in for table friction, so it stops when no longer pushed.
-    The end effector is a vertical capsule whose top is at the hand height and whose shaft reaches down to the puck."""
-    root = ET.Element("mujoco", model="sawyer_push_and_reach")
-    ET.SubElement(root, "option", timestep=str(TIMESTEP))
-    visual = ET.SubElement(root, "visual")
-    ET.SubElement(visual, "quality", shadowsize="0")  # no shadows: 3x faster software rendering
-    ET.SubElement(visual, "headlight", ambient="0.5 0.5 0.5", diffuse="0.5 0.5 0.5", specular="0 0 0")
-    # Contacts and the hand's joint limits much stiffer than the hand's weld: the puck yields to the hand, the walls hold
-    # the puck (the default softness let a hand pressing the puck into a wall push its centre 1 cm past the arena), and
-    # the limits hold a hand shoved by a puck that is pressed against a wall.
-    default = ET.SubElement(root, "default")
-    ET.SubElement(default, "geom", solref="0.004 1", solimp="0.99 0.999 0.001")
-    ET.SubElement(default, "joint", solreflimit="0.004 1", solimplimit="0.99 0.999 0.001")
-    world = ET.SubElement(root, "worldbody")
-    (x0, y0), (x1, y1) = ARENA_LOW, ARENA_HIGH
-    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-    inner_x, inner_y = (x1 - x0) / 2 + PUCK_RADIUS, (y1 - y0) / 2 + PUCK_RADIUS  # half-extents inside the walls
-    ET.SubElement(world, "geom", name="table", type="plane", pos=f"{cx} {cy} 0", size=f"{inner_x + 0.2} {inner_y + 0.2} 0.01",
-                  rgba="0.9 0.88 0.82 1", contype="0", conaffinity="0")  # fmt: skip
-    t, h = WALL_HALF_THICKNESS, WALL_HALF_HEIGHT
-    walls = {
-        "left": (cx - inner_x - t, cy, t, inner_y + 2 * t), "right": (cx + inner_x + t, cy, t, inner_y + 2 * t),
-        "near": (cx, cy - inner_y - t, inner_x, t), "far": (cx, cy + inner_y + t, inner_x, t),
-    }  # fmt: skip
-    for name, (x, y, hx, hy) in walls.items():
-        ET.SubElement(world, "geom", name=f"wall_{name}", type="box", pos=f"{x} {y} {h}", size=f"{hx} {hy} {h}",
-                      rgba="0.45 0.45 0.5 1")  # fmt: skip
-    ET.SubElement(world, "camera", name="top", pos=f"{cx} {cy} {CAMERA_HEIGHT}", xyaxes="1 0 0 0 1 0")
-    ET.SubElement(world, "body", name="hand_target", mocap="true", pos=f"{cx} {cy} {HAND_Z}")
-    hand = ET.SubElement(world, "body", name="hand", pos=f"0 0 {HAND_Z}")
-    for axis, name in enumerate(("hand_x", "hand_y")):
-        ET.SubElement(hand, "joint", name=name, type="slide", axis=("1 0 0", "0 1 0")[axis], limited="true",
-                      range=f"{ARENA_LOW[axis]} {ARENA_HIGH[axis]}")  # fmt: skip
-    ET.SubElement(hand, "geom", name="hand", type="capsule", fromto=f"0 0 {PUCK_HALF_HEIGHT - HAND_Z} 0 0 0",
-                  size=str(HAND_RADIUS), mass="0.1", rgba="0.85 0.1 0.1 1")  # fmt: skip
-    puck = ET.SubElement(world, "body", name="puck", pos=f"0 0 {PUCK_HALF_HEIGHT}")
-    for axis, name in enumerate(("puck_x", "puck_y")):
-        ET.SubElement(puck, "joint", name=name, type="slide", axis=("1 0 0", "0 1 0")[axis], frictionloss="0.3",
-                      damping="0.5")  # fmt: skip
-    ET.SubElement(puck, "geom", name="puck", type="cylinder", size=f"{PUCK_RADIUS} {PUCK_HALF_HEIGHT}", mass="0.1",
-                  rgba="0.1 0.35 0.9 1")  # fmt: skip
-    # relpose is given (identity), so the compiler does not take it from where the two bodies sit in the file
-    ET.SubElement(ET.SubElement(root, "equality"), "weld", name="hand_to_target", body1="hand_target", body2="hand",
-                  relpose="0 0 0 1 0 0 0", solref="0.02 1")  # fmt: skip
-    return ET.tostring(root, encoding="unicode")
-
-
-class SawyerPushAndReachEnv(gym.Env):
-    """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings.
-
-    The Sawyer arm is replaced by its end effector: a capsule of radius 0.015 at the fixed height z = 0.06, on two slide
-    joints, welded to a mocap body; as in the original, an action in [-1, 1]^2 moves the mocap target by
-    action * action_scale (clipped to the arena) and 50 physics steps of 0.002 s follow, so the hand tracks the target
-    and pushes the puck by contact. The puck (radius 0.04, half-height 0.015) slides in x and y inside four walls that
-    keep its centre in the arena x in [-0.2, 0.2], y in [0.5, 0.7]; the clipping and two joint limits keep the hand's
-    centre there too. Camera: the original one (distance 0.26, look-at (0, 0.88, 0.30), elevation -55, azimuth 270, tuned
-    for the Sawyer scene) sees the arena at a slant and, at 84 x 84, cuts off its side walls and corners, so images come
-    from a fixed camera `top` straight above the arena's centre that shows all of it (x to the right, y up).
-
-    Observation: Dict(image = the current state rendered at image_size x image_size (uint8 RGB), state = (hand xy, puck
-    xy), goal_image = the goal configuration rendered the same way (once per reset), goal = the 4-d goal state).
-    Reward -1 per step (RIS); terminated on success, max(||hand - hand goal||, ||puck - puck goal||) < 0.05; truncated
-    after 100 steps. `info` holds `success`, `hand_distance` and `puck_distance`.
-    Training resets (`test=False`): the hand uniform in the arena, the puck at U(0.055, 0.075) from it in a uniform
-    direction (redrawn until its centre lies in the arena); the goal's hand and puck uniform in the arena, redrawn until
-    they are more than 0.055 (puck radius + hand radius) apart. Test resets draw from the fixed boxes of TEST_BOXES.
-    """
-
-    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
-
-    def __init__(
-        self, test: bool = False, image_size: int = IMAGE_SIZE, action_scale: float = 0.02, render_mode: str | None = None
-    ):
-        self.test = test
-        self.image_size = image_size
-        self.action_scale = action_scale
-        self.render_mode = render_mode
-        self.model = mujoco.MjModel.from_xml_string(sawyer_xml())
-        self.data = mujoco.MjData(self.model)
-        image = gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
-        walls = np.tile(ARENA_LOW - PUCK_RADIUS, 2), np.tile(ARENA_HIGH + PUCK_RADIUS, 2)  # no centre gets past them
-        state = gym.spaces.Box(walls[0].astype(np.float32), walls[1].astype(np.float32), (4,), np.float32)
-        self.observation_space = gym.spaces.Dict(image=image, state=state, goal_image=image, goal=state)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
-        self._saved = np.empty(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION))
-        self.goal = np.zeros(4, np.float32)
-        self.goal_image = np.zeros((image_size, image_size, 3), np.uint8)
-        self.steps = 0
-        self._renderer = None
-
-    def set_state4(self, state4: np.ndarray) -> None:
-        """Put the hand and the puck at rest at (hand xy, puck xy), with the mocap target on the hand."""
-        self.data.qpos[:4] = state4
-        self.data.qvel[:] = 0.0
-        self.data.mocap_pos[0] = (state4[0], state4[1], HAND_Z)
-        mujoco.mj_forward(self.model, self.data)
-
-    def render_state(self, state4: np.ndarray) -> np.ndarray:
-        """An image of the configuration state4; the simulation state (qpos, qvel, act, mocap, time, warm start) is
-        restored exactly afterwards."""
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        mujoco.mj_getState(self.model, self.data, self._saved, spec)
-        self.set_state4(state4)
-        image = self.render()
-        mujoco.mj_setState(self.model, self.data, self._saved, spec)
-        mujoco.mj_forward(self.model, self.data)
-        return image
-
-    def _uniform(self, box: tuple) -> np.ndarray:
-        return self.np_random.uniform(box[0], box[1])
-
-    def _training_start(self) -> np.ndarray:
-        hand = self._uniform((ARENA_LOW, ARENA_HIGH))
-        while True:
-            angle, radius = self.np_random.uniform(0.0, 2 * np.pi), self.np_random.uniform(*PUCK_RING)
-            puck = hand + radius * np.array((np.cos(angle), np.sin(angle)))
-            if np.all(puck >= ARENA_LOW) and np.all(puck <= ARENA_HIGH):
-                return np.concatenate((hand, puck))
-
-    def _training_goal(self) -> np.ndarray:
-        while True:
-            hand, puck = self._uniform((ARENA_LOW, ARENA_HIGH)), self._uniform((ARENA_LOW, ARENA_HIGH))
-            if np.linalg.norm(hand - puck) > GOAL_CLEARANCE:
-                return np.concatenate((hand, puck))
-
-    def _info(self, state: np.ndarray) -> dict:
-        hand_distance = float(np.linalg.norm(state[:2] - self.goal[:2]))
-        puck_distance = float(np.linalg.norm(state[2:] - self.goal[2:]))
-        success = max(hand_distance, puck_distance) < SUCCESS_DISTANCE
-        return {"success": success, "hand_distance": hand_distance, "puck_distance": puck_distance}
-
-    def _observe(self) -> dict:
-        state = self.data.qpos[:4].astype(np.float32)
-        return {"image": self.render(), "state": state, "goal_image": self.goal_image.copy(), "goal": self.goal.copy()}
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        mujoco.mj_resetData(self.model, self.data)
-        if self.test:
-            box = TEST_BOXES
-            start = np.concatenate((self._uniform(box["hand_start"]), self._uniform(box["puck_start"])))
-            goal = np.concatenate((self._uniform(box["hand_goal"]), self._uniform(box["puck_goal"])))
-        else:
-            start, goal = self._training_start(), self._training_goal()
-        self.goal = goal.astype(np.float32)
-        self.set_state4(start)
-        self.goal_image = self.render_state(self.goal)
-        self.steps = 0
-        observation = self._observe()
-        return observation, self._info(observation["state"])
-
-    def step(self, action):
-        delta = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0) * self.action_scale
-        self.data.mocap_pos[0, :2] = np.clip(self.data.mocap_pos[0, :2] + delta, ARENA_LOW, ARENA_HIGH)
-        mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
-        self.steps += 1
-        observation = self._observe()
-        info = self._info(observation["state"])
-        return observation, -1.0, info["success"], self.steps >= EPISODE_STEPS, info
-
-    def snapshot(self) -> dict:
-        """What the env carries from one step to the next, for --resume: the MuJoCo integration state (positions,
-        velocities, the mocap target, time, the solver's warm start), the goal and its image, the step count and the reset
-        generator's state."""
-        physics = np.empty(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION))
-        mujoco.mj_getState(self.model, self.data, physics, mujoco.mjtState.mjSTATE_INTEGRATION)
-        return {
-            "physics": physics, "goal": self.goal.copy(), "goal_image": self.goal_image.copy(), "steps": self.steps,
-            "np_random": self.np_random.bit_generator.state,
-        }  # fmt: skip
-
-    def restore(self, snapshot: dict) -> None:
-        mujoco.mj_setState(self.model, self.data, snapshot["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
-        mujoco.mj_forward(self.model, self.data)
-        self.goal, self.goal_image, self.steps = snapshot["goal"].copy(), snapshot["goal_image"].copy(), snapshot["steps"]
-        self.np_random.bit_generator.state = snapshot["np_random"]
-
-    def render(self) -> np.ndarray:
-        """The current state as an image_size x image_size RGB array."""
-        if self._renderer is None:
-            try:
-                self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
-            except mujoco.FatalError as error:
-                backend = os.environ.get("MUJOCO_GL", "the default")
-                raise RuntimeError(
-                    f"off-screen rendering failed (MUJOCO_GL={backend}): try MUJOCO_GL=egl or osmesa"
-                ) from error
-            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        self._renderer.update_scene(self.data, camera="top")
-        return self._renderer.render()
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
-
-def reached(states: np.ndarray, goals: np.ndarray) -> np.ndarray:
-    """The success test on (..., 4) arrays of (hand xy, puck xy): max(hand distance, puck distance) < 0.05."""
-    hand = np.linalg.norm(states[..., :2] - goals[..., :2], axis=-1)
-    puck = np.linalg.norm(states[..., 2:] - goals[..., 2:], axis=-1)
-    return np.maximum(hand, puck) < SUCCESS_DISTANCE
-
-
-def make_env(seed: int, test: bool):
-    def thunk():
-        env = gym.wrappers.RecordEpisodeStatistics(SawyerPushAndReachEnv(test=test))
-        env.action_space.seed(seed)
-        return env
-
-    return thunk
-
-
-def make_vector_env(n: int, seed: int, test: bool) -> gym.vector.SyncVectorEnv:
-    thunks = [make_env(seed + i, test) for i in range(n)]
-    return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
-
-
-def vector_env_state(envs: gym.vector.SyncVectorEnv) -> dict:
-    """Everything a vector of Sawyer envs carries from one step to the next, for --resume: each env's snapshot, its action
-    space's generator and its episode statistics so far, and the batched action space's generator (the warm-up's random
-    actions). Copied out explicitly: pickling an env rebuilds it from its constructor arguments, losing all of this. Under
-    SAME_STEP autoreset the vector env keeps nothing else between steps; the last observations are the training loop's."""
-    return {
-        "envs": [
-            {"env": env.unwrapped.snapshot(), "action_space": env.action_space.np_random.bit_generator.state,
-             "episode_returns": env.episode_returns, "episode_lengths": env.episode_lengths,
-             "episode_count": env.episode_count}
-            for env in envs.envs
-        ],
-        "action_space": envs.action_space.np_random.bit_generator.state,
-    }  # fmt: skip
-
-
-def set_vector_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
-    for env, saved in zip(envs.envs, state["envs"], strict=True):
-        env.unwrapped.restore(saved["env"])
-        env.action_space.np_random.bit_generator.state = saved["action_space"]
-        env.episode_returns, env.episode_lengths, env.episode_count = (
-            saved["episode_returns"], saved["episode_lengths"], saved["episode_count"]
-        )  # fmt: skip
-    envs.action_space.np_random.bit_generator.state = state["action_space"]
-
-
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
@@ -501,6 +230,11 @@ def orthogonal_init(module: nn.Module) -> None:
     elif isinstance(module, nn.Linear):
         nn.init.orthogonal_(module.weight)
         nn.init.zeros_(module.bias)
+
+
+# The environment's image size, here rather than with the environment (an appendix below): ImageEncoder's default
+# argument reads it when the module is imported.
+IMAGE_SIZE = 84  # observation images are IMAGE_SIZE x IMAGE_SIZE RGB
 
 
 class ImageEncoder(nn.Module):
@@ -928,6 +662,179 @@ def ris_update(
     return {name: value.detach() for name, value in metrics.items()}
 
 
+def main(args: Args) -> None:
+    """Train RIS (--groups 0) or DGRL on Sawyer push-and-reach from pixels, or evaluate a --checkpoint and exit."""
+    validate(args)
+    resumed = None if args.resume is None else load_resume(args)
+    dgrl = args.groups > 0  # DGRL
+    run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if resumed is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    device = seed_and_device(args)
+    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL
+    saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, must_match, device)
+    rng = np.random.default_rng(args.seed)  # replay sampling
+    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly (rc 0), at the next check of `stop`
+
+    envs = make_vector_env(args.num_envs, args.seed, test=False)
+    eval_envs = make_vector_env(args.eval_episodes, args.seed + 10_000, test=True)
+    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    image_shape = envs.single_observation_space["image"].shape
+    action_dim = envs.single_action_space.shape[0]
+    agent = make_agent(
+        image_shape[0],
+        action_dim,
+        hidden_dim=args.hidden_dim,
+        feature_dim=args.feature_dim,
+        driml_dim=args.driml_dim,
+        q_lr=args.q_lr,
+        actor_lr=args.actor_lr,
+        h_lr=args.h_lr,
+        encoder_lr=args.encoder_lr,
+        groups=args.groups,  # DGRL
+        n_embed=args.n_embed,  # DGRL
+        vq_beta=args.vq_beta,  # DGRL
+        vq_decay=args.vq_decay,  # DGRL
+        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
+        device=device,
+    )
+
+    if saved is not None:
+        evaluate_checkpoint(saved, agent, eval_envs, device, stop, args, run_name)
+        return
+
+    replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim, device)
+    episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
+    observations, _ = envs.reset(seed=args.seed)
+    step = 0
+    updates = 0
+    evaluations = 0
+    next_eval = args.eval_frequency
+    next_log = 1  # losses every 100 updates, from the first
+    recent_success = []
+    result = dict.fromkeys(("success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance"), float("nan"))
+    finished = False  # the last evaluation is done
+    if resumed is not None:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
+        loop = restore_training_state(resumed, agent, replay, envs, eval_envs, rng)
+        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
+        next_eval, next_log, finished = loop["next_eval"], loop["next_log"], loop["finished"]
+        recent_success, result = loop["recent_success"], loop["result"]
+        observations, episode = loop["observations"], loop["episode"]
+
+    # A resumed run drops whatever the stopped one logged after its resume.pt (every figure of `step` came before it).
+    writer = make_writer(args, run_name, purge_step=None if resumed is None else step + 1)
+    about = f"{image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}"
+    print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {step}"))
+    if device.type == "cpu" and args.batch_size >= 128:
+        print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
+    update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
+    progress = Progress(args.total_timesteps, start_step=step)
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    if resumed is not None:
+        set_rng_states(resumed["rng"])  # last: building the run above drew from them
+    while not finished and not stop:
+        # Evaluate on the test configuration once a step reaches the next evaluation, and at the end. It comes first in the
+        # loop so that a run stopped mid-evaluation resumes with it.
+        if step >= next_eval or step >= args.total_timesteps:
+            video = [] if args.capture_video and evaluations % 10 == 0 else None
+            before_evaluation = vector_env_state(eval_envs), rng_states()
+            evaluation = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
+            if evaluation is None:  # stopped mid-evaluation: nothing logged, and its draws undone for the resumed run
+                set_vector_env_state(eval_envs, before_evaluation[0])
+                set_rng_states(before_evaluation[1])
+                break
+            next_eval += args.eval_frequency
+            result = evaluation
+            evaluations += 1
+            for name, value in result.items():
+                writer.add_scalar(f"eval/{name}", value, step)
+            writer.add_scalar("charts/SPS", progress.sps(step), step)
+            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
+            recent_success = []
+            progress.line(
+                step,
+                f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}  distance hand "
+                f"{result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}  train success {train_success}",
+            )
+            if video:
+                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
+            if args.save_model:
+                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+        if step >= args.total_timesteps:
+            finished = True
+            break
+        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):  # every figure of `step` is logged
+            loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
+                        recent_success=recent_success, result=result, finished=finished, observations=observations,
+                        episode=episode)  # fmt: skip
+            save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
+
+        # Act: uniform random actions during the warm-up, then the policy.
+        if step < args.start_timesteps:
+            actions = envs.action_space.sample()
+        else:
+            actions = act(agent, observations, device, deterministic=False)
+        next_observations, _, terminations, truncations, infos = envs.step(actions)
+        step += args.num_envs
+
+        # Stage each env's transitions; a finished episode goes to the replay whole, with its true last observation
+        # (final_obs) and its goal.
+        for env in range(args.num_envs):
+            episode["images"][env].append(observations["image"][env])
+            episode["states"][env].append(observations["state"][env])
+            episode["actions"][env].append(actions[env])
+            if terminations[env] or truncations[env]:
+                last = infos["final_obs"][env]
+                final_info = infos["final_info"]
+                replay.add_episode(
+                    np.stack([*episode["images"][env], last["image"]]), np.stack([*episode["states"][env], last["state"]]),
+                    np.stack(episode["actions"][env]), observations["goal_image"][env], observations["goal"][env],
+                )  # fmt: skip
+                for key in episode:
+                    episode[key][env] = []
+                recent_success.append(float(terminations[env]))
+                writer.add_scalar("charts/episodic_return", final_info["episode"]["r"][env], step)
+                writer.add_scalar("charts/episodic_length", final_info["episode"]["l"][env], step)
+                writer.add_scalar("charts/success_rate", float(terminations[env]), step)
+                writer.add_scalar("charts/hand_distance", final_info["hand_distance"][env], step)
+                writer.add_scalar("charts/puck_distance", final_info["puck_distance"][env], step)
+        observations = next_observations
+
+        # Train: one update per environment step once the random phase is over.
+        if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
+            for _ in range(args.num_envs):
+                batch = replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng)
+                metrics = update(
+                    agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
+                    n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
+                    driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
+                    vq_commitment_grad=args.vq_commitment_grad,
+                )  # fmt: skip
+                updates += 1
+            if updates >= next_log:
+                next_log += 100
+                for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
+                    writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
+                if dgrl:  # DGRL
+                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
+                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
+        progress.heartbeat(step, f"{updates} updates")
+
+    loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
+                recent_success=recent_success, result=result, finished=finished, observations=observations,
+                episode=episode)  # fmt: skip
+    save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
+    if args.save_model:
+        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
+        print(f"checkpoint: {checkpoint_path}")
+    summary = f"last eval success {result['success_rate']:.0%} (hand {result['hand_success_rate']:.0%})"
+    progress.finish(bool(stop), run_name, f"{step} steps, {updates} updates, {summary}")
+    envs.close()
+    eval_envs.close()
+    writer.close()
+
+
 # --- Acting and evaluation --------------------------------------------------------------------------------------------
 
 
@@ -975,6 +882,303 @@ def evaluate(
         "success_rate": success.mean(), "hand_success_rate": (hand < SUCCESS_DISTANCE).mean(),
         "final_hand_distance": hand.mean(), "final_puck_distance": puck.mean(),
     }  # fmt: skip
+
+
+def evaluate_checkpoint(
+    saved: dict,
+    agent: Agent,
+    eval_envs: gym.vector.SyncVectorEnv,
+    device: torch.device,
+    stop: list[int],
+    args: Args,
+    run_name: str,
+) -> None:
+    """--checkpoint: load the saved networks into the agent, run --eval-episodes test episodes, print the results (and
+    write a video with --capture-video)."""
+    agent.load_state_dicts(saved)
+    video = [] if args.capture_video else None
+    result = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
+    if result is None:
+        print("stopped before every test episode ended")
+        return
+    print(
+        f"{args.eval_episodes} test episodes: success {result['success_rate']:.0%}, hand success "
+        f"{result['hand_success_rate']:.0%}, final hand distance {result['final_hand_distance']:.3f}, "
+        f"final puck distance {result['final_puck_distance']:.3f}"
+    )
+    if video:
+        write_video(f"videos/{run_name}/checkpoint_eval.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
+
+
+# --- Environments -----------------------------------------------------------------------------------------------------
+
+ARENA_LOW, ARENA_HIGH = np.array((-0.2, 0.5)), np.array((0.2, 0.7))  # bounds of the hand's and the puck's centres (xy)
+HAND_Z, HAND_RADIUS = 0.06, 0.015  # the end effector moves at this fixed height
+PUCK_RADIUS, PUCK_HALF_HEIGHT = 0.04, 0.015
+WALL_HALF_THICKNESS, WALL_HALF_HEIGHT = 0.01, 0.02
+PUCK_RING = (0.055, 0.075)  # training resets put the puck at this distance from the hand
+GOAL_CLEARANCE = PUCK_RADIUS + HAND_RADIUS  # training goals keep the hand and the puck this far apart (0.055)
+TEST_BOXES = {  # (low xy, high xy) of the test configuration's uniform draws
+    "hand_start": ((0.15, 0.65), (0.20, 0.70)),
+    "puck_start": ((-0.15, 0.55), (-0.10, 0.60)),
+    "hand_goal": ((-0.20, 0.50), (-0.15, 0.55)),
+    "puck_goal": ((0.15, 0.65), (0.20, 0.70)),
+}
+SUCCESS_DISTANCE = 0.05
+EPISODE_STEPS = 100
+# IMAGE_SIZE (84, the observation images' side) is defined above ImageEncoder, whose default argument reads it
+TIMESTEP, FRAME_SKIP = 0.002, 50  # 0.1 s per env step
+CAMERA_HEIGHT = 0.65  # the top camera's height: its 45-degree field of view spans 0.54 m, the arena and its walls
+
+
+def sawyer_xml() -> str:
+    """The scene: a table plane at z = 0, walls whose inner faces stop the puck's centre at the arena's bounds, a puck
+    with two slide joints, an end effector with two slide joints welded to a mocap body, and a camera over the arena.
+
+    qpos is (hand x, hand y, puck x, puck y): both bodies sit at the world origin in xy, so a slide joint's position is
+    the world coordinate. The puck has no z or tilt freedom (it cannot tip over or fly) and does not touch the table;
+    dry friction on its slide joints (`frictionloss`) stands in for table friction, so it stops when no longer pushed.
+    The end effector is a vertical capsule whose top is at the hand height and whose shaft reaches down to the puck."""
+    root = ET.Element("mujoco", model="sawyer_push_and_reach")
+    ET.SubElement(root, "option", timestep=str(TIMESTEP))
+    visual = ET.SubElement(root, "visual")
+    ET.SubElement(visual, "quality", shadowsize="0")  # no shadows: 3x faster software rendering
+    ET.SubElement(visual, "headlight", ambient="0.5 0.5 0.5", diffuse="0.5 0.5 0.5", specular="0 0 0")
+    # Contacts and the hand's joint limits much stiffer than the hand's weld: the puck yields to the hand, the walls hold
+    # the puck (the default softness let a hand pressing the puck into a wall push its centre 1 cm past the arena), and
+    # the limits hold a hand shoved by a puck that is pressed against a wall.
+    default = ET.SubElement(root, "default")
+    ET.SubElement(default, "geom", solref="0.004 1", solimp="0.99 0.999 0.001")
+    ET.SubElement(default, "joint", solreflimit="0.004 1", solimplimit="0.99 0.999 0.001")
+    world = ET.SubElement(root, "worldbody")
+    (x0, y0), (x1, y1) = ARENA_LOW, ARENA_HIGH
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    inner_x, inner_y = (x1 - x0) / 2 + PUCK_RADIUS, (y1 - y0) / 2 + PUCK_RADIUS  # half-extents inside the walls
+    ET.SubElement(world, "geom", name="table", type="plane", pos=f"{cx} {cy} 0", size=f"{inner_x + 0.2} {inner_y + 0.2} 0.01",
+                  rgba="0.9 0.88 0.82 1", contype="0", conaffinity="0")  # fmt: skip
+    t, h = WALL_HALF_THICKNESS, WALL_HALF_HEIGHT
+    walls = {
+        "left": (cx - inner_x - t, cy, t, inner_y + 2 * t), "right": (cx + inner_x + t, cy, t, inner_y + 2 * t),
+        "near": (cx, cy - inner_y - t, inner_x, t), "far": (cx, cy + inner_y + t, inner_x, t),
+    }  # fmt: skip
+    for name, (x, y, hx, hy) in walls.items():
+        ET.SubElement(world, "geom", name=f"wall_{name}", type="box", pos=f"{x} {y} {h}", size=f"{hx} {hy} {h}",
+                      rgba="0.45 0.45 0.5 1")  # fmt: skip
+    ET.SubElement(world, "camera", name="top", pos=f"{cx} {cy} {CAMERA_HEIGHT}", xyaxes="1 0 0 0 1 0")
+    ET.SubElement(world, "body", name="hand_target", mocap="true", pos=f"{cx} {cy} {HAND_Z}")
+    hand = ET.SubElement(world, "body", name="hand", pos=f"0 0 {HAND_Z}")
+    for axis, name in enumerate(("hand_x", "hand_y")):
+        ET.SubElement(hand, "joint", name=name, type="slide", axis=("1 0 0", "0 1 0")[axis], limited="true",
+                      range=f"{ARENA_LOW[axis]} {ARENA_HIGH[axis]}")  # fmt: skip
+    ET.SubElement(hand, "geom", name="hand", type="capsule", fromto=f"0 0 {PUCK_HALF_HEIGHT - HAND_Z} 0 0 0",
+                  size=str(HAND_RADIUS), mass="0.1", rgba="0.85 0.1 0.1 1")  # fmt: skip
+    puck = ET.SubElement(world, "body", name="puck", pos=f"0 0 {PUCK_HALF_HEIGHT}")
+    for axis, name in enumerate(("puck_x", "puck_y")):
+        ET.SubElement(puck, "joint", name=name, type="slide", axis=("1 0 0", "0 1 0")[axis], frictionloss="0.3",
+                      damping="0.5")  # fmt: skip
+    ET.SubElement(puck, "geom", name="puck", type="cylinder", size=f"{PUCK_RADIUS} {PUCK_HALF_HEIGHT}", mass="0.1",
+                  rgba="0.1 0.35 0.9 1")  # fmt: skip
+    # relpose is given (identity), so the compiler does not take it from where the two bodies sit in the file
+    ET.SubElement(ET.SubElement(root, "equality"), "weld", name="hand_to_target", body1="hand_target", body2="hand",
+                  relpose="0 0 0 1 0 0 0", solref="0.02 1")  # fmt: skip
+    return ET.tostring(root, encoding="unicode")
+
+
+class SawyerPushAndReachEnv(gym.Env):
+    """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings.
+
+    The Sawyer arm is replaced by its end effector: a capsule of radius 0.015 at the fixed height z = 0.06, on two slide
+    joints, welded to a mocap body; as in the original, an action in [-1, 1]^2 moves the mocap target by
+    action * action_scale (clipped to the arena) and 50 physics steps of 0.002 s follow, so the hand tracks the target
+    and pushes the puck by contact. The puck (radius 0.04, half-height 0.015) slides in x and y inside four walls that
+    keep its centre in the arena x in [-0.2, 0.2], y in [0.5, 0.7]; the clipping and two joint limits keep the hand's
+    centre there too. Camera: the original one (distance 0.26, look-at (0, 0.88, 0.30), elevation -55, azimuth 270, tuned
+    for the Sawyer scene) sees the arena at a slant and, at 84 x 84, cuts off its side walls and corners, so images come
+    from a fixed camera `top` straight above the arena's centre that shows all of it (x to the right, y up).
+
+    Observation: Dict(image = the current state rendered at image_size x image_size (uint8 RGB), state = (hand xy, puck
+    xy), goal_image = the goal configuration rendered the same way (once per reset), goal = the 4-d goal state).
+    Reward -1 per step (RIS); terminated on success, max(||hand - hand goal||, ||puck - puck goal||) < 0.05; truncated
+    after 100 steps. `info` holds `success`, `hand_distance` and `puck_distance`.
+    Training resets (`test=False`): the hand uniform in the arena, the puck at U(0.055, 0.075) from it in a uniform
+    direction (redrawn until its centre lies in the arena); the goal's hand and puck uniform in the arena, redrawn until
+    they are more than 0.055 (puck radius + hand radius) apart. Test resets draw from the fixed boxes of TEST_BOXES.
+    """
+
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self, test: bool = False, image_size: int = IMAGE_SIZE, action_scale: float = 0.02, render_mode: str | None = None
+    ):
+        self.test = test
+        self.image_size = image_size
+        self.action_scale = action_scale
+        self.render_mode = render_mode
+        self.model = mujoco.MjModel.from_xml_string(sawyer_xml())
+        self.data = mujoco.MjData(self.model)
+        image = gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
+        walls = np.tile(ARENA_LOW - PUCK_RADIUS, 2), np.tile(ARENA_HIGH + PUCK_RADIUS, 2)  # no centre gets past them
+        state = gym.spaces.Box(walls[0].astype(np.float32), walls[1].astype(np.float32), (4,), np.float32)
+        self.observation_space = gym.spaces.Dict(image=image, state=state, goal_image=image, goal=state)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self._saved = np.empty(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION))
+        self.goal = np.zeros(4, np.float32)
+        self.goal_image = np.zeros((image_size, image_size, 3), np.uint8)
+        self.steps = 0
+        self._renderer = None
+
+    def set_state4(self, state4: np.ndarray) -> None:
+        """Put the hand and the puck at rest at (hand xy, puck xy), with the mocap target on the hand."""
+        self.data.qpos[:4] = state4
+        self.data.qvel[:] = 0.0
+        self.data.mocap_pos[0] = (state4[0], state4[1], HAND_Z)
+        mujoco.mj_forward(self.model, self.data)
+
+    def render_state(self, state4: np.ndarray) -> np.ndarray:
+        """An image of the configuration state4; the simulation state (qpos, qvel, act, mocap, time, warm start) is
+        restored exactly afterwards."""
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        mujoco.mj_getState(self.model, self.data, self._saved, spec)
+        self.set_state4(state4)
+        image = self.render()
+        mujoco.mj_setState(self.model, self.data, self._saved, spec)
+        mujoco.mj_forward(self.model, self.data)
+        return image
+
+    def _uniform(self, box: tuple) -> np.ndarray:
+        return self.np_random.uniform(box[0], box[1])
+
+    def _training_start(self) -> np.ndarray:
+        hand = self._uniform((ARENA_LOW, ARENA_HIGH))
+        while True:
+            angle, radius = self.np_random.uniform(0.0, 2 * np.pi), self.np_random.uniform(*PUCK_RING)
+            puck = hand + radius * np.array((np.cos(angle), np.sin(angle)))
+            if np.all(puck >= ARENA_LOW) and np.all(puck <= ARENA_HIGH):
+                return np.concatenate((hand, puck))
+
+    def _training_goal(self) -> np.ndarray:
+        while True:
+            hand, puck = self._uniform((ARENA_LOW, ARENA_HIGH)), self._uniform((ARENA_LOW, ARENA_HIGH))
+            if np.linalg.norm(hand - puck) > GOAL_CLEARANCE:
+                return np.concatenate((hand, puck))
+
+    def _info(self, state: np.ndarray) -> dict:
+        hand_distance = float(np.linalg.norm(state[:2] - self.goal[:2]))
+        puck_distance = float(np.linalg.norm(state[2:] - self.goal[2:]))
+        success = max(hand_distance, puck_distance) < SUCCESS_DISTANCE
+        return {"success": success, "hand_distance": hand_distance, "puck_distance": puck_distance}
+
+    def _observe(self) -> dict:
+        state = self.data.qpos[:4].astype(np.float32)
+        return {"image": self.render(), "state": state, "goal_image": self.goal_image.copy(), "goal": self.goal.copy()}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        mujoco.mj_resetData(self.model, self.data)
+        if self.test:
+            box = TEST_BOXES
+            start = np.concatenate((self._uniform(box["hand_start"]), self._uniform(box["puck_start"])))
+            goal = np.concatenate((self._uniform(box["hand_goal"]), self._uniform(box["puck_goal"])))
+        else:
+            start, goal = self._training_start(), self._training_goal()
+        self.goal = goal.astype(np.float32)
+        self.set_state4(start)
+        self.goal_image = self.render_state(self.goal)
+        self.steps = 0
+        observation = self._observe()
+        return observation, self._info(observation["state"])
+
+    def step(self, action):
+        delta = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0) * self.action_scale
+        self.data.mocap_pos[0, :2] = np.clip(self.data.mocap_pos[0, :2] + delta, ARENA_LOW, ARENA_HIGH)
+        mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
+        self.steps += 1
+        observation = self._observe()
+        info = self._info(observation["state"])
+        return observation, -1.0, info["success"], self.steps >= EPISODE_STEPS, info
+
+    def snapshot(self) -> dict:
+        """What the env carries from one step to the next, for --resume: the MuJoCo integration state (positions,
+        velocities, the mocap target, time, the solver's warm start), the goal and its image, the step count and the reset
+        generator's state."""
+        physics = np.empty(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION))
+        mujoco.mj_getState(self.model, self.data, physics, mujoco.mjtState.mjSTATE_INTEGRATION)
+        return {
+            "physics": physics, "goal": self.goal.copy(), "goal_image": self.goal_image.copy(), "steps": self.steps,
+            "np_random": self.np_random.bit_generator.state,
+        }  # fmt: skip
+
+    def restore(self, snapshot: dict) -> None:
+        mujoco.mj_setState(self.model, self.data, snapshot["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(self.model, self.data)
+        self.goal, self.goal_image, self.steps = snapshot["goal"].copy(), snapshot["goal_image"].copy(), snapshot["steps"]
+        self.np_random.bit_generator.state = snapshot["np_random"]
+
+    def render(self) -> np.ndarray:
+        """The current state as an image_size x image_size RGB array."""
+        if self._renderer is None:
+            try:
+                self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
+            except mujoco.FatalError as error:
+                backend = os.environ.get("MUJOCO_GL", "the default")
+                raise RuntimeError(
+                    f"off-screen rendering failed (MUJOCO_GL={backend}): try MUJOCO_GL=egl or osmesa"
+                ) from error
+            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self._renderer.update_scene(self.data, camera="top")
+        return self._renderer.render()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+def reached(states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+    """The success test on (..., 4) arrays of (hand xy, puck xy): max(hand distance, puck distance) < 0.05."""
+    hand = np.linalg.norm(states[..., :2] - goals[..., :2], axis=-1)
+    puck = np.linalg.norm(states[..., 2:] - goals[..., 2:], axis=-1)
+    return np.maximum(hand, puck) < SUCCESS_DISTANCE
+
+
+def make_env(seed: int, test: bool):
+    def thunk():
+        env = gym.wrappers.RecordEpisodeStatistics(SawyerPushAndReachEnv(test=test))
+        env.action_space.seed(seed)
+        return env
+
+    return thunk
+
+
+def make_vector_env(n: int, seed: int, test: bool) -> gym.vector.SyncVectorEnv:
+    thunks = [make_env(seed + i, test) for i in range(n)]
+    return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+def vector_env_state(envs: gym.vector.SyncVectorEnv) -> dict:
+    """Everything a vector of Sawyer envs carries from one step to the next, for --resume: each env's snapshot, its action
+    space's generator and its episode statistics so far, and the batched action space's generator (the warm-up's random
+    actions). Copied out explicitly: pickling an env rebuilds it from its constructor arguments, losing all of this. Under
+    SAME_STEP autoreset the vector env keeps nothing else between steps; the last observations are the training loop's."""
+    return {
+        "envs": [
+            {"env": env.unwrapped.snapshot(), "action_space": env.action_space.np_random.bit_generator.state,
+             "episode_returns": env.episode_returns, "episode_lengths": env.episode_lengths,
+             "episode_count": env.episode_count}
+            for env in envs.envs
+        ],
+        "action_space": envs.action_space.np_random.bit_generator.state,
+    }  # fmt: skip
+
+
+def set_vector_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
+    for env, saved in zip(envs.envs, state["envs"], strict=True):
+        env.unwrapped.restore(saved["env"])
+        env.action_space.np_random.bit_generator.state = saved["action_space"]
+        env.episode_returns, env.episode_lengths, env.episode_count = (
+            saved["episode_returns"], saved["episode_lengths"], saved["episode_count"]
+        )  # fmt: skip
+    envs.action_space.np_random.bit_generator.state = state["action_space"]
 
 
 # --- Resuming ---------------------------------------------------------------------------------------------------------
@@ -1492,185 +1696,4 @@ def validate(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
-    validate(args)
-    resumed = None if args.resume is None else load_resume(args)
-    dgrl = args.groups > 0  # DGRL
-    run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if resumed is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
-    device = seed_and_device(args)
-    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL
-    saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, must_match, device)
-    rng = np.random.default_rng(args.seed)  # replay sampling
-    stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly (rc 0), at the next check of `stop`
-
-    envs = make_vector_env(args.num_envs, args.seed, test=False)
-    eval_envs = make_vector_env(args.eval_episodes, args.seed + 10_000, test=True)
-    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    image_shape = envs.single_observation_space["image"].shape
-    action_dim = envs.single_action_space.shape[0]
-    agent = make_agent(
-        image_shape[0],
-        action_dim,
-        hidden_dim=args.hidden_dim,
-        feature_dim=args.feature_dim,
-        driml_dim=args.driml_dim,
-        q_lr=args.q_lr,
-        actor_lr=args.actor_lr,
-        h_lr=args.h_lr,
-        encoder_lr=args.encoder_lr,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        device=device,
-    )
-
-    if saved is not None:
-        agent.load_state_dicts(saved)
-        video = [] if args.capture_video else None
-        result = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
-        if result is None:
-            print("stopped before every test episode ended")
-            raise SystemExit(0)
-        print(
-            f"{args.eval_episodes} test episodes: success {result['success_rate']:.0%}, hand success "
-            f"{result['hand_success_rate']:.0%}, final hand distance {result['final_hand_distance']:.3f}, "
-            f"final puck distance {result['final_puck_distance']:.3f}"
-        )
-        if video:
-            write_video(f"videos/{run_name}/checkpoint_eval.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
-        raise SystemExit(0)
-
-    replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim, device)
-    episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
-    observations, _ = envs.reset(seed=args.seed)
-    step = 0
-    updates = 0
-    evaluations = 0
-    next_eval = args.eval_frequency
-    next_log = 1  # losses every 100 updates, from the first
-    recent_success = []
-    result = dict.fromkeys(("success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance"), float("nan"))
-    finished = False  # the last evaluation is done
-    if resumed is not None:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
-        loop = restore_training_state(resumed, agent, replay, envs, eval_envs, rng)
-        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
-        next_eval, next_log, finished = loop["next_eval"], loop["next_log"], loop["finished"]
-        recent_success, result = loop["recent_success"], loop["result"]
-        observations, episode = loop["observations"], loop["episode"]
-
-    # A resumed run drops whatever the stopped one logged after its resume.pt (every figure of `step` came before it).
-    writer = make_writer(args, run_name, purge_step=None if resumed is None else step + 1)
-    about = f"{image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}"
-    print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {step}"))
-    if device.type == "cpu" and args.batch_size >= 128:
-        print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
-    update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
-    progress = Progress(args.total_timesteps, start_step=step)
-    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    if resumed is not None:
-        set_rng_states(resumed["rng"])  # last: building the run above drew from them
-    while not finished and not stop:
-        # Evaluate on the test configuration once a step reaches the next evaluation, and at the end. It comes first in the
-        # loop so that a run stopped mid-evaluation resumes with it.
-        if step >= next_eval or step >= args.total_timesteps:
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            before_evaluation = vector_env_state(eval_envs), rng_states()
-            evaluation = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
-            if evaluation is None:  # stopped mid-evaluation: nothing logged, and its draws undone for the resumed run
-                set_vector_env_state(eval_envs, before_evaluation[0])
-                set_rng_states(before_evaluation[1])
-                break
-            next_eval += args.eval_frequency
-            result = evaluation
-            evaluations += 1
-            for name, value in result.items():
-                writer.add_scalar(f"eval/{name}", value, step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
-            recent_success = []
-            progress.line(
-                step,
-                f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}  distance hand "
-                f"{result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}  train success {train_success}",
-            )
-            if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
-            if args.save_model:
-                save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-        if step >= args.total_timesteps:
-            finished = True
-            break
-        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):  # every figure of `step` is logged
-            loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
-                        recent_success=recent_success, result=result, finished=finished, observations=observations,
-                        episode=episode)  # fmt: skip
-            save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
-
-        # Act: uniform random actions during the warm-up, then the policy.
-        if step < args.start_timesteps:
-            actions = envs.action_space.sample()
-        else:
-            actions = act(agent, observations, device, deterministic=False)
-        next_observations, _, terminations, truncations, infos = envs.step(actions)
-        step += args.num_envs
-
-        # Stage each env's transitions; a finished episode goes to the replay whole, with its true last observation
-        # (final_obs) and its goal.
-        for env in range(args.num_envs):
-            episode["images"][env].append(observations["image"][env])
-            episode["states"][env].append(observations["state"][env])
-            episode["actions"][env].append(actions[env])
-            if terminations[env] or truncations[env]:
-                last = infos["final_obs"][env]
-                final_info = infos["final_info"]
-                replay.add_episode(
-                    np.stack([*episode["images"][env], last["image"]]), np.stack([*episode["states"][env], last["state"]]),
-                    np.stack(episode["actions"][env]), observations["goal_image"][env], observations["goal"][env],
-                )  # fmt: skip
-                for key in episode:
-                    episode[key][env] = []
-                recent_success.append(float(terminations[env]))
-                writer.add_scalar("charts/episodic_return", final_info["episode"]["r"][env], step)
-                writer.add_scalar("charts/episodic_length", final_info["episode"]["l"][env], step)
-                writer.add_scalar("charts/success_rate", float(terminations[env]), step)
-                writer.add_scalar("charts/hand_distance", final_info["hand_distance"][env], step)
-                writer.add_scalar("charts/puck_distance", final_info["puck_distance"][env], step)
-        observations = next_observations
-
-        # Train: one update per environment step once the random phase is over.
-        if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
-            for _ in range(args.num_envs):
-                batch = replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng)
-                metrics = update(
-                    agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
-                    n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
-                    driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
-                    vq_commitment_grad=args.vq_commitment_grad,
-                )  # fmt: skip
-                updates += 1
-            if updates >= next_log:
-                next_log += 100
-                for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
-                    writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
-                if dgrl:  # DGRL
-                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
-                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
-        progress.heartbeat(step, f"{updates} updates")
-
-    loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
-                recent_success=recent_success, result=result, finished=finished, observations=observations,
-                episode=episode)  # fmt: skip
-    save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
-    if args.save_model:
-        save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-        print(f"checkpoint: {checkpoint_path}")
-    summary = f"last eval success {result['success_rate']:.0%} (hand {result['hand_success_rate']:.0%})"
-    progress.finish(bool(stop), run_name, f"{step} steps, {updates} updates, {summary}")
-    envs.close()
-    eval_envs.close()
-    writer.close()
+    main(tyro.cli(Args))

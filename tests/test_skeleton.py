@@ -122,6 +122,31 @@ def test_drift_check_fails_when_a_piece_is_missing():
     assert any("dgrl_amigo.py: shared pieces ['write_video']" in problem for problem in drift(sources))
 
 
+def layout(source: str) -> dict[str, int]:
+    """Where the landmarks of a script's layout are: the line of `def main`, of its training loop (main's longest
+    top-level `while`/`for`), of the run-management block's banner, and of `validate`, and the length of the file."""
+    tree = ast.parse(source)
+    functions = {node.name: node for node in tree.body if isinstance(node, ast.FunctionDef)}
+    main = functions["main"]
+    loop = max((node for node in main.body if isinstance(node, ast.While | ast.For)), key=lambda n: n.end_lineno - n.lineno)
+    banner = next(i for i, line in enumerate(source.splitlines(), 1) if line.startswith(BLOCK_START))
+    return {"main": main.lineno, "loop": loop.lineno, "run_management": banner, "validate": functions["validate"].lineno,
+            "lines": len(source.splitlines())}  # fmt: skip
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_the_training_loop_comes_first_and_the_machinery_after(script):
+    """The reader meets main and its loop in the first half of the file; the run management and validate are
+    appendices after it; running the file is `main(tyro.cli(Args))` and nothing else."""
+    source = (ROOT / script).read_text()
+    where = layout(source)
+    assert where["main"] < where["lines"] / 2 and where["loop"] < where["lines"] / 2, where
+    assert where["main"] < where["run_management"] < where["validate"], where
+    last = ast.parse(source).body[-1]
+    assert ast.unparse(last) == "if __name__ == '__main__':\n    main(tyro.cli(Args))"
+    assert ast.unparse(ast.parse(source).body[-2]).startswith("def validate(args")
+
+
 # --- Bad input every script shares: a clean exit 2 naming the flag, no traceback ---------------------------------------
 
 

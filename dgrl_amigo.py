@@ -493,6 +493,9 @@ def learning_rates_as_tensors(optimizers: list[torch.optim.Optimizer], as_tensor
             group["lr"] = torch.tensor(lr, dtype=torch.float32, device=group["params"][0].device) if as_tensors else lr
 
 
+# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+
+
 def main(args: Args) -> None:
     """Train AMIGo (--groups 0) or DGRL on AMIGo (--groups G) with `args`, or evaluate --checkpoint."""
     validate(args)
@@ -728,7 +731,7 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Acting, evaluation -----------------------------------------------------------------------------------------------
+# --- Acting and evaluation --------------------------------------------------------------------------------------------
 
 
 def tensors(device, *arrays: np.ndarray) -> list[torch.Tensor]:

@@ -572,6 +572,9 @@ def td_update(
     }
 
 
+# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+
+
 def main(args: Args) -> None:
     """Pre-train phi, then train the goal-conditioned DQN (DGRL, or --groups 0 the baseline); or evaluate a --checkpoint."""
     validate(args)

@@ -737,6 +737,9 @@ def train_adjacency(
     return epochs, torch.stack(losses).mean().item(), accuracy
 
 
+# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+
+
 def main(args: Args) -> None:
     """Train HRAC (--groups 0) or DGRL on a HIRO Ant task, or evaluate a --checkpoint and exit."""
     validate(args)

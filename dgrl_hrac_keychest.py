@@ -639,6 +639,9 @@ def manager_update(
     }
 
 
+# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+
+
 def main(args: Args) -> None:
     """One run: build the envs and the agent, explore to pre-train adjacency, then train both levels; or --checkpoint."""
     validate(args)

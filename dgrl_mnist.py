@@ -196,6 +196,9 @@ def make_classifier(n_classes: int) -> nn.Module:
     return nn.Sequential(nn.Flatten(), nn.Linear(3 * 28 * 28, 256), nn.ReLU(), nn.Linear(256, n_classes))
 
 
+# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+
+
 def main(args: Args) -> None:
     """The run: the data, the autoencoder's training, its checkpoint, the referees and the factor tests."""
     validate(args)

@@ -519,6 +519,9 @@ def ris_update(
     return {name: value.detach() for name, value in metrics.items()}
 
 
+# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+
+
 def main(args: Args) -> None:
     """Train RIS (--groups 0) or DGRL in a maze, or evaluate a --checkpoint and exit."""
     validate(args)
@@ -719,7 +722,7 @@ def main(args: Args) -> None:
         raise SystemExit(1)
 
 
-# --- Evaluation -------------------------------------------------------------------------------------------------------
+# --- Acting and evaluation --------------------------------------------------------------------------------------------
 
 
 @torch.no_grad()

@@ -662,6 +662,9 @@ def ris_update(
     return {name: value.detach() for name, value in metrics.items()}
 
 
+# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+
+
 def main(args: Args) -> None:
     """Train RIS (--groups 0) or DGRL on Sawyer push-and-reach from pixels, or evaluate a --checkpoint and exit."""
     validate(args)

@@ -1451,8 +1451,12 @@ def functional_step(optimizer: torch.optim.Optimizer) -> None:
             torch._foreach_mul_(exp_avg_sqs, beta2)
             torch._foreach_addcmul_(exp_avg_sqs, grads, grads, 1.0 - beta2)
             for param, exp_avg, exp_avg_sq, step in zip(params, exp_avgs, exp_avg_sqs, steps, strict=True):
-                denom = exp_avg_sq.sqrt() / (1.0 - beta2**step).sqrt() + group["eps"]
-                param.sub_(exp_avg / denom * (group["lr"] / (1.0 - beta1**step)))
+                # The bias corrections in float64, as torch's fused Adam computes them: in float32, beta2 = 0.999 rounds
+                # up by 1.3e-8 and 1 - beta2**step cancels, which moved every early step by ~7e-6 of itself.
+                step = step.double()
+                bias_correction2_sqrt = (1.0 - beta2**step).sqrt().to(param.dtype)
+                step_size = (group["lr"] / (1.0 - beta1**step)).to(param.dtype)
+                param.sub_(exp_avg / (exp_avg_sq.sqrt() / bias_correction2_sqrt + group["eps"]) * step_size)
         else:
             square_avgs = [state["square_avg"] for state in states]
             torch._foreach_mul_(square_avgs, group["alpha"])

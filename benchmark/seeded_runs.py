@@ -143,6 +143,9 @@ def main() -> None:
     parser.add_argument("--compare", nargs=2, metavar=("BEFORE", "AFTER"), help="compare two --out files")
     args = parser.parse_args()
     if args.compare:
+        missing = [path for path in args.compare if not os.path.isfile(path)]
+        if missing:
+            parser.error(f"--compare: no such file: {', '.join(missing)} (write it with --out first)")
         raise SystemExit(compare(*args.compare, args.scripts))
     if not args.out:
         parser.error("--out is needed to run the scripts (or --compare BEFORE AFTER)")

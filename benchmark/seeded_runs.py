@@ -23,7 +23,8 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-WALL_CLOCK_TAGS = ("charts/SPS",)
+sys.path.insert(0, str(ROOT / "tests"))
+from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars  # noqa: E402  (tests/conftest.py: what the resume tests compare)
 
 # (script, DGRL's groups, the small seeded budget): the smoke budgets of tests/, grown where a phase was not reached.
 RUNS = {
@@ -64,9 +65,6 @@ RUNS = {
 
 def run_outputs(source: Path, script: str, groups: int, budget: str, workdir: Path) -> dict:
     """Run one script from `source` in `workdir` and return its scalars and checkpoint tensors."""
-    sys.path.insert(0, str(ROOT / "tests"))
-    from conftest import checkpoint_tensors, tensorboard_scalars  # tests/conftest.py: what the resume tests compare
-
     flags = [*budget.split(), "--groups", str(groups), "--seed", "1", "--threads", "1", "--save-model", "--exp-name", "seeded"]
     env = {"PATH": os.environ["PATH"], "PYTHONPATH": str(source), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
     env |= {key: os.environ[key] for key in ("MUJOCO_GL", "HOME") if key in os.environ}

@@ -24,7 +24,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars  # noqa: E402  (tests/conftest.py: what the resume tests compare)
+# tests/conftest.py: what the resume tests compare, compared here the same way
+from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars  # noqa: E402
 
 # (script, DGRL's groups, the small seeded budget): the smoke budgets of tests/, grown where a phase was not reached.
 RUNS = {

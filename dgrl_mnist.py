@@ -624,6 +624,206 @@ MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # t
 
 CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
+
+
+def seed_and_device(args) -> torch.device:
+    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
+    random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    torch.set_num_threads(args.threads)
+    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+
+
+def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
+    """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
+    if args.track:
+        wandb = importlib.import_module("wandb")  # an optional package, needed only here
+        options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
+        wandb.init(**options, sync_tensorboard=True, save_code=True)
+    writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
+    if purge_step is None:
+        table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
+        writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def stop_on_signals() -> list[int]:
+    """Ctrl-C, SIGTERM, SIGUSR1/2 (Slurm's) ask the run to stop after its step (a second: at once); the loop polls the list."""
+    received = []
+
+    def request_stop(number, frame):
+        received.append(number)
+        signal.signal(number, signal.SIG_DFL)
+
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
+        signal.signal(number, request_stop)
+    return received
+
+
+class Progress:
+    """Progress lines (step, figures, SPS, time elapsed and left), a heartbeat after a silent minute, the resume cadence."""
+
+    def __init__(self, total: int, unit: str = "step", start_step: int = 0):
+        self.total, self.unit, self.start_step = total, unit, start_step
+        self.start_time = self.print_time = self.save_time = time.time()
+        self.print_step = self.save_step = start_step
+
+    def sps(self, step: int) -> int:
+        return int((step - self.start_step) / max(time.time() - self.start_time, 1e-6))
+
+    def resume_due(self, step: int, seconds: int, steps: int) -> bool:
+        """True once every `seconds` of wall clock, and whenever `step` passes a multiple of `steps` (0 turns either off)."""
+        now = time.time()
+        if (seconds and now - self.save_time >= seconds) or (steps and step // steps > self.save_step // steps):
+            self.save_time, self.save_step = now, step
+            return True
+        return False
+
+    def line(self, step: int, figures: str, suffix: str = "") -> None:
+        now = time.time()
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
+        elapsed = f"{now - self.start_time:.0f}s elapsed"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}{suffix}", flush=True)
+        self.print_time, self.print_step = now, step
+
+    def heartbeat(self, step: int, figures: str = "") -> None:
+        if time.time() - self.print_time > 60:
+            self.line(step, figures, " (running)")
+
+    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
+        outcome = "stopped" if stopped else "done"
+        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
+
+
+def save_checkpoint(path: str, entries: dict, args) -> None:
+    """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path + ".tmp", "wb") as file:
+        torch.save({"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)} | entries, file)
+        file.flush()
+        os.fsync(file.fileno())
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
+    """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
+    saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
+    script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+
+    def refuse(problem: str) -> None:
+        print(f"{script}: {shown}{problem}", file=sys.stderr)
+        raise SystemExit(2)
+
+    try:
+        saved = torch.load(path, map_location=device, weights_only=not resume)
+    except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        if resume:
+            cause = f"{type(error).__name__}: {str(error)[:120]}"
+            advice = "start the run afresh without --resume, or put back an older copy of the file"
+            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
+        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+    older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
+    if older:  # a flag added since: the file cannot say which value it had
+        started = f" was started before {older} existed; continue it with the version that started it"
+        refuse(started if resume else f" was written before {older} existed; use its version")
+    differ = [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]
+    if differ:
+        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+    return saved
+
+
+def rng_states() -> dict:
+    """The global random states a run draws from: Python's and torch's (CPU, and every GPU where there is one)."""
+    return {"python": random.getstate(), "torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all()}
+
+
+def set_rng_states(states: dict) -> None:
+    """Restore rng_states(); a resumed run calls it last, after building its networks and envs (which draw from them)."""
+    random.setstate(states["python"])
+    torch.set_rng_state(states["torch"])
+    torch.cuda.set_rng_state_all(states.get("cuda", []))
+
+
+def save_resume(run_name: str, state: dict, args) -> None:
+    """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+
+
+def load_resume(args) -> dict:
+    """--resume's state (on the CPU), saved by this script with the same flags but FREE_FLAGS (otherwise exit 2)."""
+    must_match = tuple(key for key in vars(args) if key not in FREE_FLAGS)
+    return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
+
+
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        params = [param for group in optimizer.param_groups for param in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    optimizer.step()
+
+
+FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once
+
+
+def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
+    """`update` as it is (eager), compiled (compile), or compiled and replayed as one CUDA graph (cudagraphs)."""
+    torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
+    if fast != "cudagraphs":
+        return update if fast == "eager" else torch.compile(update)
+    for optimizer in optimizers:  # capturable: step counts on the device (reloading moves a resumed optimizer's there)
+        for group in optimizer.param_groups:
+            group["capturable"] = True
+        optimizer.load_state_dict(optimizer.state_dict())
+    return CudaGraphUpdate(torch.compile(update))
+
+
+class CudaGraphUpdate:
+    """An update as one CUDA graph: `warmup` calls on a side stream, then one recorded on copies of its tensor arguments,
+    which later calls refill and replay (other arguments must not change), returning the recording's tensors."""
+
+    def __init__(self, update, warmup: int = 3):
+        self.update, self.warmup, self.graph = update, warmup, None
+
+    def __call__(self, *args, **kwargs):
+        if self.warmup:
+            self.warmup -= 1
+            stream = torch.cuda.Stream()
+            stream.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(stream):
+                outputs = self.update(*args, **kwargs)
+            torch.cuda.current_stream().wait_stream(stream)
+            return outputs
+        leaves, spec = torch.utils._pytree.tree_flatten((args, kwargs))
+        if self.graph is None:
+            self.static = [leaf.clone() if isinstance(leaf, torch.Tensor) else leaf for leaf in leaves]
+            static_args, static_kwargs = torch.utils._pytree.tree_unflatten(self.static, spec)
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph):
+                self.outputs = self.update(*static_args, **static_kwargs)
+        for static, leaf in zip(self.static, leaves, strict=True):
+            if isinstance(leaf, torch.Tensor):
+                static.copy_(leaf)
+            elif leaf is not static and leaf != static:
+                raise ValueError(f"--fast cudagraphs: a non-tensor argument changed after capture ({static!r} -> {leaf!r})")
+        self.graph.replay()
+        return self.outputs
+
+
+# --- end of run management --------------------------------------------------------------------------------------------
+
+
+# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
+
+# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -656,26 +856,24 @@ def range_errors(
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --resume's folder and the folder a training run writes to."""
+    """The checks every script makes: finite floats, torch, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file, --exp-name, --fast, --resume's folder and the folder a training run writes to."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    oldest_torch = (2, 11)  # the oldest torch these scripts run on (README, Install)
-    if tuple(int(part) for part in torch.__version__.split("+")[0].split(".")[:2]) < oldest_torch:
+    if tuple(int(part) for part in torch.__version__.split("+")[0].split(".")[:2]) < (2, 11):  # README, Install
         errors.append(f"torch {torch.__version__} is older than 2.11, the oldest these scripts run on: see requirements.txt")
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
-    errors += range_errors(args, "vq_beta vq_dead_code_steps", 0)
+    errors += range_errors(args, "vq_beta vq_dead_code_steps checkpoint_every checkpoint_every_steps", 0)
     errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:
         errors.append("--track needs Weights and Biases: `pip install wandb`, or run without --track")
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
-    errors += range_errors(args, "checkpoint_every checkpoint_every_steps", 0)
     if not args.exp_name or any(separator in args.exp_name for separator in {"/", os.sep, os.altsep or "/"}):
         name = f"--exp-name {args.exp_name!r}"
         errors.append(f"{name} must be a plain name, without '/': it becomes part of the run's folder and file names in runs/")
@@ -693,21 +891,14 @@ def common_errors(args) -> list[str]:
             errors.append(f"--resume {args.resume}: run from the folder that holds it as runs/{name} (the run writes there)")
         if args.checkpoint is not None:
             errors.append("--resume continues a training run and --checkpoint only evaluates one: pass one of them")
-    if args.checkpoint is None:
-        errors += output_errors(args.resume or "runs")
-    return errors
-
-
-def output_errors(folder: str) -> list[str]:
-    """Why a training run cannot write its logs and files under `folder` (runs/, or the resumed run's folder), if it
-    cannot: found before any work, instead of a PermissionError once the run starts."""
+    folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
-    if not os.path.isdir(existing):
-        return [f"{folder} is in the way: the run writes its logs in a folder of that name; move it, or run elsewhere"]
-    if not os.access(existing, os.W_OK | os.X_OK):
+    if args.checkpoint is None and not os.path.isdir(existing):
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it, or run elsewhere")
+    elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        return [f"cannot {wanted} {os.path.abspath(existing)} (permission denied): run from a folder you can write to"]
-    return []
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): run from a folder you can write to")
+    return errors
 
 
 def exit_on_errors(errors: list[str]) -> None:
@@ -717,308 +908,7 @@ def exit_on_errors(errors: list[str]) -> None:
         raise SystemExit(2)
 
 
-def seed_and_device(args) -> torch.device:
-    """Seed Python and torch (numpy draws come from seeded Generators), set threads and determinism, pick the device."""
-    random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-    torch.set_num_threads(args.threads)
-    return torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-
-
-def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
-    """TensorBoard in runs/{run_name} (mirrored to Weights and Biases with --track), the flags as a markdown table. A
-    resumed run passes `purge_step`, the first step it has not logged yet: TensorBoard then drops whatever the stopped run
-    logged from that step on, so the curves continue without duplicated or missing points."""
-    if args.track:
-        import wandb
-
-        wandb.init(
-            project=args.wandb_project_name,
-            entity=args.wandb_entity,
-            sync_tensorboard=True,
-            config=vars(args),
-            name=run_name,
-            save_code=True,
-        )
-    writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
-    if purge_step is None:
-        table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
-        writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
-    return writer
-
-
-def stop_on_signals() -> list[int]:
-    """Ctrl-C (SIGINT), SIGTERM, SIGUSR1 or SIGUSR2 (what Slurm and submitit send before a time limit or a preemption)
-    asks the run to stop after the current step, with its resume file, checkpoint and logs written; a second one stops at
-    once. The training loop polls the returned list, which holds the signals received."""
-    received = []
-
-    def request_stop(number, frame):
-        received.append(number)
-        signal.signal(number, signal.SIG_DFL)
-
-    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
-        signal.signal(number, request_stop)
-    return received
-
-
-class Progress:
-    """Progress output. `line` prints the step, the script's figures, SPS (steps per second since the start), the time
-    elapsed and the time left at the rate since the previous printed line (a whole-run mean would count a fast random
-    phase); `heartbeat` prints the same without figures when a minute passes in silence, so a slow run never looks hung
-    and its time left stays current; `finish` prints the end-of-run line; `resume_due` says when to write the resume
-    file. A resumed run passes the step it starts from."""
-
-    def __init__(self, total: int, unit: str = "step", start_step: int = 0):
-        self.total, self.unit, self.start_step = total, unit, start_step
-        self.start_time = self.print_time = self.save_time = time.time()
-        self.print_step = self.save_step = start_step
-
-    def sps(self, step: int) -> int:
-        return int((step - self.start_step) / max(time.time() - self.start_time, 1e-6))
-
-    def resume_due(self, step: int, seconds: int, steps: int) -> bool:
-        """True once every `seconds` of wall clock, and whenever `step` passes a multiple of `steps` (0 turns either off)."""
-        now = time.time()
-        if (seconds and now - self.save_time >= seconds) or (steps and step // steps > self.save_step // steps):
-            self.save_time, self.save_step = now, step
-            return True
-        return False
-
-    def print_line(self, step: int, figures: str, suffix: str = "") -> None:
-        now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
-        left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
-        elapsed = f"{now - self.start_time:.0f}s elapsed"
-        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}{suffix}", flush=True)
-        self.print_time, self.print_step = now, step
-
-    def line(self, step: int, figures: str) -> None:
-        self.print_line(step, figures)
-
-    def heartbeat(self, step: int, figures: str = "") -> None:
-        if time.time() - self.print_time > 60:
-            self.print_line(step, figures, " (running)")
-
-    def finish(self, stopped: bool, run_name: str, summary: str) -> None:
-        outcome = "stopped" if stopped else "done"
-        print(f"{outcome}: {summary}; {time.time() - self.start_time:.0f}s; logs in runs/{run_name}", flush=True)
-
-
-def save_checkpoint(path: str, entries: dict, args) -> None:
-    """Save `entries` (state dicts and plain values) with this script's name, the format and the flags. Written to a
-    temporary file and renamed, so a crash mid-write never destroys the previous checkpoint."""
-    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), **entries}
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    torch.save(payload, path + ".tmp")
-    os.replace(path + ".tmp", path)
-
-
-def load_checkpoint(path: str, args, must_match: tuple[str, ...], device: torch.device) -> dict:
-    """A checkpoint of this script saved with the same `must_match` flags; otherwise exit with a message saying what the
-    file is, or which flags to pass (loading tensors and plain values only: no code in the file is run)."""
-    script = os.path.basename(__file__)
-    try:
-        saved = torch.load(path, map_location=device, weights_only=True)
-    except Exception as error:
-        problem = f"--checkpoint {path} is not a checkpoint ({type(error).__name__})"
-        print(f"{script}: {problem}; pass a file that `{script} --save-model` wrote", file=sys.stderr)
-        raise SystemExit(2) from None
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
-        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        print(f"{script}: --checkpoint {path} holds {found}; it needs {wanted}", file=sys.stderr)
-        raise SystemExit(2)
-    older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
-    if older:  # a flag added since: the file cannot say which value it had
-        print(f"{script}: --checkpoint {path} was written before {older} existed; use its version", file=sys.stderr)
-        raise SystemExit(2)
-    differ = [flag_text(key, saved["args"].get(key)) for key in must_match if saved["args"].get(key) != getattr(args, key)]
-    if differ:
-        print(f"{script}: --checkpoint {path} was saved with other settings: pass {' '.join(differ)}", file=sys.stderr)
-        raise SystemExit(2)
-    return saved
-
-
-def rng_states() -> dict:
-    """The global random states a run draws from: Python's and torch's (CPU, and every GPU where there is one)."""
-    states = {"python": random.getstate(), "torch": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        states["cuda"] = torch.cuda.get_rng_state_all()
-    return states
-
-
-def set_rng_states(states: dict) -> None:
-    """Restore rng_states(); a resumed run calls it last, after building its networks and envs (which draw from them)."""
-    random.setstate(states["python"])
-    torch.set_rng_state(states["torch"])
-    if "cuda" in states:
-        torch.cuda.set_rng_state_all(states["cuda"])
-
-
-def save_resume(run_name: str, state: dict, args) -> None:
-    """Write the whole training state (`state`, with the global random states added) to runs/{run_name}/resume.pt: to a
-    temporary file, flushed to disk, then renamed over the previous one, so a kill at any moment leaves a whole file."""
-    path = os.path.join("runs", run_name, RESUME_FILE)
-    payload = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args), "rng": rng_states()}
-    with open(path + ".tmp", "wb") as file:
-        torch.save(payload | state, file)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(path + ".tmp", path)
-
-
-def load_resume(args) -> dict:
-    """The state in --resume's resume.pt (on the CPU), once it is known to be this script's, saved with the same flags
-    but FREE_FLAGS (otherwise exit 2, naming the flags to pass). It is the run's own file and holds pickled objects (env
-    and generator states), so it is loaded in full: resume only runs you trust."""
-    script, path = os.path.basename(__file__), os.path.join(args.resume, RESUME_FILE)
-    try:
-        saved = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
-        problem = f"--resume {args.resume}: {path} cannot be read ({type(error).__name__}: {str(error)[:120]})"
-        advice = "start the run afresh without --resume, or put back an older copy of the file"
-        print(f"{script}: {problem}; it is damaged or incomplete: {advice}", file=sys.stderr)
-        raise SystemExit(2) from None
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
-        print(f"{script}: --resume {args.resume} holds another script's or format's state", file=sys.stderr)
-        raise SystemExit(2)
-    flags, kept = vars(args), {key: value for key, value in saved["args"].items() if key not in FREE_FLAGS}
-    older = " ".join(f"--{key.replace('_', '-')}" for key in flags if key not in saved["args"] and key not in FREE_FLAGS)
-    if older:  # a flag added since: continuing with today's default could change the run halfway
-        problem = f"--resume {args.resume} was started before {older} existed"
-        print(f"{script}: {problem}; continue it with the version that started it", file=sys.stderr)
-        raise SystemExit(2)
-    differ = [flag_text(key, value) for key, value in kept.items() if flags.get(key) != value]
-    if differ:
-        print(f"{script}: --resume {args.resume} was started with other settings: pass {' '.join(differ)}", file=sys.stderr)
-        raise SystemExit(2)
-    return saved
-
-
-FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast's choices
-
-
-def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
-    """One gradient step on `loss`: clear the gradients of the optimizer's parameters, backpropagate, clip their global
-    norm to `max_grad_norm` if given, step. Eagerly the step is the optimizer's own; inside torch.compile (--fast compile
-    or cudagraphs) it is functional_step, the same arithmetic without Optimizer.step's graph breaks."""
-    params = [param for group in optimizer.param_groups for param in group["params"]]
-    for param in params:
-        param.grad = None
-    loss.backward()
-    if max_grad_norm is not None:
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
-    if torch.compiler.is_compiling():
-        functional_step(optimizer)
-    else:
-        optimizer.step()
-
-
-def init_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
-    """Create the state an Adam or RMSprop step would create on its first call (zeros, the step count as a tensor on the
-    parameter's device), so that a compiled update finds it in place."""
-    for group in optimizer.param_groups:
-        for param in group["params"]:
-            if optimizer.state[param]:  # a resumed optimizer's: its step count as this function would create it
-                optimizer.state[param]["step"] = optimizer.state[param]["step"].to(param.device, torch.float32)
-                continue
-            state = {"step": torch.zeros((), dtype=torch.float32, device=param.device)}
-            names = ("exp_avg", "exp_avg_sq") if isinstance(optimizer, torch.optim.Adam) else ("square_avg",)
-            state.update({name: torch.zeros_like(param, memory_format=torch.preserve_format) for name in names})
-            optimizer.state[param] = state
-
-
-@torch.no_grad()
-def functional_step(optimizer: torch.optim.Optimizer) -> None:
-    """optimizer.step() for torch.optim.Adam and RMSprop (with L2 weight decay; no momentum, amsgrad or centring: the
-    options the scripts use) in foreach ops that torch.compile traces into the update's graph; the state is the
-    optimizer's own, and a learning rate may be a 0-d tensor (changed in place, it needs no recompilation)."""
-    for group in optimizer.param_groups:
-        params = [param for param in group["params"] if param.grad is not None]
-        grads = [param.grad for param in params]
-        states = [optimizer.state[param] for param in params]
-        steps = [state["step"] for state in states]
-        torch._foreach_add_(steps, 1.0)
-        if group["weight_decay"]:
-            grads = torch._foreach_add(grads, params, alpha=group["weight_decay"])
-        if isinstance(optimizer, torch.optim.Adam):
-            beta1, beta2 = group["betas"]
-            exp_avgs, exp_avg_sqs = [state["exp_avg"] for state in states], [state["exp_avg_sq"] for state in states]
-            torch._foreach_lerp_(exp_avgs, grads, 1.0 - beta1)
-            torch._foreach_mul_(exp_avg_sqs, beta2)
-            torch._foreach_addcmul_(exp_avg_sqs, grads, grads, 1.0 - beta2)
-            for param, exp_avg, exp_avg_sq, step in zip(params, exp_avgs, exp_avg_sqs, steps, strict=True):
-                # The bias corrections in float64, as torch's fused Adam computes them: in float32, beta2 = 0.999 rounds
-                # up by 1.3e-8 and 1 - beta2**step cancels, which moved every early step by ~7e-6 of itself.
-                step = step.double()
-                bias_correction2_sqrt = (1.0 - beta2**step).sqrt().to(param.dtype)
-                step_size = (group["lr"] / (1.0 - beta1**step)).to(param.dtype)
-                param.sub_(exp_avg / (exp_avg_sq.sqrt() / bias_correction2_sqrt + group["eps"]) * step_size)
-        else:
-            square_avgs = [state["square_avg"] for state in states]
-            torch._foreach_mul_(square_avgs, group["alpha"])
-            torch._foreach_addcmul_(square_avgs, grads, grads, 1.0 - group["alpha"])
-            denoms = torch._foreach_add(torch._foreach_sqrt(square_avgs), group["eps"])
-            torch._foreach_addcdiv_(params, torch._foreach_mul(grads, -group["lr"]), denoms)
-
-
-def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast: `update` itself (eager), compiled into one graph with its backward passes and optimizer steps (compile),
-    or that graph captured once and replayed as one CUDA graph (cudagraphs). The result is called like `update`."""
-    if fast == "eager":
-        return update
-    for optimizer in optimizers:
-        unsupported = {"amsgrad": False, "maximize": False, "momentum": 0, "centered": False}
-        for group in optimizer.param_groups:
-            wrong = [key for key, value in unsupported.items() if group.get(key, value) != value]
-            if wrong or not isinstance(optimizer, torch.optim.Adam | torch.optim.RMSprop):
-                raise ValueError(f"--fast {fast}: functional_step has no {type(optimizer).__name__} with {wrong}")
-        init_optimizer_state(optimizer)
-    torch._dynamo.config.trace_autograd_ops = True  # loss.backward() becomes part of the graph instead of breaking it
-    torch._inductor.config.fallback_random = True  # random draws as in eager, so that a seed gives the same numbers
-    compiled = torch.compile(update, fullgraph=True)
-    return compiled if fast == "compile" else CudaGraphUpdate(compiled)
-
-
-class CudaGraphUpdate:
-    """Replay an update as one CUDA graph. The first `warmup` calls run it as it is, on a side stream (compilation,
-    allocations); the next call records it with its arguments copied into static tensors and replays the recording; every
-    later call copies its tensor arguments into those (same shapes; other arguments must not change) and replays. Each
-    call is one real update; the returned tensors are the recording's, overwritten by the next call."""
-
-    def __init__(self, update, warmup: int = 3):
-        self.update, self.warmup, self.calls = update, warmup, 0
-        self.graph, self.static, self.outputs = None, None, None
-
-    def __call__(self, *args, **kwargs):
-        self.calls += 1
-        leaves, spec = torch.utils._pytree.tree_flatten((args, kwargs))
-        if self.calls <= self.warmup:
-            stream = torch.cuda.Stream()
-            stream.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(stream):
-                outputs = self.update(*args, **kwargs)
-            torch.cuda.current_stream().wait_stream(stream)
-            return outputs
-        if self.graph is None:
-            self.static = [leaf.clone() if isinstance(leaf, torch.Tensor) else leaf for leaf in leaves]
-            static_args, static_kwargs = torch.utils._pytree.tree_unflatten(self.static, spec)
-            self.graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(self.graph):
-                self.outputs = self.update(*static_args, **static_kwargs)
-        else:
-            for static, leaf in zip(self.static, leaves, strict=True):
-                if isinstance(leaf, torch.Tensor):
-                    static.copy_(leaf)
-                elif leaf is not static and leaf != static:
-                    raise ValueError(f"CudaGraphUpdate: a non-tensor argument changed after capture ({static!r} -> {leaf!r})")
-        self.graph.replay()
-        return self.outputs
-
-
-# --- end of run management ---------------------------------------------------------------------------------------------
+# --- end of the shared checks -----------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:

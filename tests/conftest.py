@@ -232,10 +232,11 @@ def training_tensors(agent) -> dict[str, torch.Tensor]:
 def check_fast_update(script, update, agent, call, optimizers, warm: int = 20, updates: int = 10) -> None:
     """The contract of a script's --fast path for one update function:
 
-    - `torch._dynamo.explain` finds one graph and no graph break (backward passes and optimizer steps included);
-    - from the same state and random state, `updates` compiled updates (--fast compile) equal as many eager ones within
-      rtol = atol = 1e-5: every parameter, buffer (codebooks) and optimizer moment, and every returned metric;
-    - an eager update runs under NoHostSync: nothing in it makes the host wait for the device.
+    - from the same state and random state, `updates` compiled updates (--fast compile: torch.compile of the update,
+      the optimizers' own steps) equal as many eager ones within rtol = atol = 1e-5: every parameter, buffer (codebooks)
+      and optimizer moment, and every returned metric;
+    - an eager update runs under NoHostSync: nothing in it makes the host wait for the device (what lets --fast
+      cudagraphs capture it).
 
     `call(function, agent, i)` makes the i-th update of `agent` with `function` (the script's update or its compiled
     version) and returns its metrics; `optimizers(agent)` lists the optimizers the update steps. The comparison starts
@@ -247,11 +248,8 @@ def check_fast_update(script, update, agent, call, optimizers, warm: int = 20, u
     torch._dynamo.reset()  # compiled code of earlier tests holds guards on their agents
     for i in range(warm):
         call(update, agent, i)
-    eager_agent, fast_agent, explained_agent = copy.deepcopy(agent), copy.deepcopy(agent), copy.deepcopy(agent)
+    eager_agent, fast_agent = copy.deepcopy(agent), copy.deepcopy(agent)
     fast = script.fast_update(update, "compile", optimizers(fast_agent))
-    script.fast_update(update, "compile", optimizers(explained_agent))
-    explanation = torch._dynamo.explain(lambda: call(update, explained_agent, warm))()
-    assert (explanation.graph_count, explanation.graph_break_count) == (1, 0), explanation.break_reasons
 
     metrics = {}
     for name, function, state in (("eager", update, eager_agent), ("fast", fast, fast_agent)):

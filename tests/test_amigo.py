@@ -853,8 +853,8 @@ def teacher_batches(n: int, size: int = 8) -> list[dict[str, torch.Tensor]]:
 
 
 @pytest.mark.parametrize("groups", [0, 4])
-def test_fast_student_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: student_update traced whole (goal encoder with the codebook's EMA and dead-code restarts under
+def test_fast_student_update_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: student_update compiled (goal encoder with the codebook's EMA and dead-code restarts under
     DGRL, V-trace, backward, gradient clipping, RMSprop step) and equal to eager."""
     agent = tiny_agent(groups, vq_dead_code_steps=3)
     batches = student_batches(agent, 31)
@@ -866,8 +866,8 @@ def test_fast_student_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(
     check_fast_update(amigo, amigo.student_update, agent, call, lambda state: [state.student_optimizer])
 
 
-def test_fast_teacher_update_is_one_graph_equal_to_eager_and_free_of_host_syncs():
-    """--fast compile: teacher_update traced whole (the teacher's loss, backward, gradient clipping, RMSprop step)."""
+def test_fast_teacher_update_equals_eager_and_is_free_of_host_syncs():
+    """--fast compile: teacher_update compiled (the teacher's loss, backward, gradient clipping, RMSprop step)."""
     agent = tiny_agent(groups=0)
     batches = teacher_batches(31)
 

@@ -432,14 +432,14 @@ def test_cell_embedder_inputs_draw_noise_on_the_host_and_embed_like_the_embedder
     torch.testing.assert_close(gdqn.embed_images(rep, images, None), again(rep, cells))
 
 
-# --- --fast: each update is one graph, equal to eager, free of host syncs ---------------------------------------------
+# --- --fast: each update compiled equals eager and is free of host syncs ---------------------------------------------
 
 FAST_BATCH = 32
 
 
 @pytest.mark.parametrize("groups, objective", [(0, "infomax"), (4, "autoencoder")])
-def test_fast_pretrain_step_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups, objective):
-    """--fast compile: pretrain_step traced whole (phi, its objective, Adam, and for DGRL the codebook EMA with dead-code
+def test_fast_pretrain_step_equals_eager_and_is_free_of_host_syncs(groups, objective):
+    """--fast compile: pretrain_step compiled (phi, its objective, Adam, and for DGRL the codebook EMA with dead-code
     restarts and the codes' perplexity) and equal to eager. InfoNCE does not change when a row's scores all shift by
     the same amount, so psi_next's bias has a gradient of exactly zero but for rounding, which Adam turns into steps of
     a whole learning rate that differ with any summation order: the infomax case leaves it out of the optimizer."""
@@ -464,8 +464,8 @@ def test_fast_pretrain_step_is_one_graph_equal_to_eager_and_free_of_host_syncs(g
 
 
 @pytest.mark.parametrize("groups, finetune", [(0, False), (4, True)], ids=["baseline-frozen-table", "dgrl-finetune"])
-def test_fast_td_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups, finetune):
-    """--fast compile: td_update traced whole (Double DQN targets, the bonus, the TD loss and Adam; with --finetune phi's
+def test_fast_td_update_equals_eager_and_is_free_of_host_syncs(groups, finetune):
+    """--fast compile: td_update compiled (Double DQN targets, the bonus, the TD loss and Adam; with --finetune phi's
     encoder and, for DGRL, the codebook EMA on the (state, goal) batch) and equal to eager."""
     layout = gdqn.MazeLayout("SpiralWorld")
     embedder = gdqn.CellEmbedder(layout, 0.0, CPU, np.random.default_rng(0))

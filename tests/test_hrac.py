@@ -635,8 +635,8 @@ def filled_manager_replay(rng, n=64, k=4, goal_dim=3):
 
 
 @pytest.mark.parametrize("groups", [0, 4])
-def test_fast_controller_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: controller_update traced whole (both backward passes, both Adam steps, Polyak, under DGRL the
+def test_fast_controller_update_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: controller_update compiled (both backward passes, both Adam steps, Polyak, under DGRL the
     encoder and the codebook's EMA with dead-code restarts, the critic's weight decay) and equal to eager."""
     args, _, trained = agent(groups=groups)
     if groups:
@@ -653,8 +653,8 @@ def test_fast_controller_update_is_one_graph_equal_to_eager_and_free_of_host_syn
 
 
 @pytest.mark.parametrize("groups", [0, 4])
-def test_fast_manager_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: manager_update traced whole, HIRO's off-policy correction (under DGRL through the encoder, its
+def test_fast_manager_update_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: manager_update compiled, HIRO's off-policy correction (under DGRL through the encoder, its
     codebook untouched) and the adjacency term included, and equal to eager. On AntFall: 3-d subgoals."""
     args, bounds, trained = agent(groups=groups, env_id="AntFall")
     rng = np.random.default_rng(0)

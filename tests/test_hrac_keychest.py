@@ -523,7 +523,7 @@ def test_manager_update_with_a_tensor_policy_term_equals_the_bool_one():
         assert torch.equal(parameters(getattr(with_tensors, name)), parameters(getattr(with_bools, name))), name
 
 
-# --- the --fast path: each update one graph, equal to eager, free of host syncs ---------------------------------------
+# --- the --fast path: each update compiled equals eager and is free of host syncs ---------------------------------------
 
 
 def trained_agent(groups: int) -> kc.Agent:
@@ -546,8 +546,8 @@ def episode(rng: np.random.Generator, length: int) -> tuple[torch.Tensor, ...]:
 
 
 @pytest.mark.parametrize("groups", [0, 4])
-def test_fast_controller_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: controller_update traced whole (under DGRL the codebook's EMA with dead-code restarts and the
+def test_fast_controller_update_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: controller_update compiled (under DGRL the codebook's EMA with dead-code restarts and the
     autoencoder's Adam step, then the A2C step), over episodes of different lengths (a dynamic length), equal to eager."""
     agent = trained_agent(groups)
     rng = np.random.default_rng(0)
@@ -563,8 +563,8 @@ def test_fast_controller_update_is_one_graph_equal_to_eager_and_free_of_host_syn
 
 
 @pytest.mark.parametrize("groups", [0, 4])
-def test_fast_manager_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: manager_update traced whole (critic, actor with the adjacency term and, every other update, the
+def test_fast_manager_update_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: manager_update compiled (critic, actor with the adjacency term and, every other update, the
     critic term as a tensor switch, Polyak targets), equal to eager. The goal autoencoder takes no part in it."""
     agent = trained_agent(groups)
     replay = kc.ManagerReplay(256, np.random.default_rng(0))
@@ -582,7 +582,7 @@ def test_fast_manager_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(
     check_fast_update(kc, kc.manager_update, agent, call, optimizers)
 
 
-def test_fast_goal_autoencoder_update_is_one_graph_equal_to_eager_and_free_of_host_syncs():
+def test_fast_goal_autoencoder_update_equals_eager_and_is_free_of_host_syncs():
     """--fast compile: the autoencoder's pre-training update (codebook EMA with dead-code restarts, Adam step)."""
     agent = trained_agent(4)
     torch.manual_seed(1)

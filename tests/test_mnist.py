@@ -170,8 +170,8 @@ def test_train_step_minimises_the_per_image_squared_error_plus_the_vq_loss():
 
 
 @pytest.mark.parametrize("groups", [0, 2])
-def test_fast_train_step_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: train_step traced whole (encoder, the codebook EMA with dead-code restarts, decoder, Adam, the
+def test_fast_train_step_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: train_step compiled (encoder, the codebook EMA with dead-code restarts, decoder, Adam, the
     codes' statistics) and equal to eager."""
     model = mnist.make_model(30, 32, groups, 16, 0.25, 0.99, 3 if groups else 0, 1e-3, CPU)
     generator = torch.Generator().manual_seed(0)

@@ -1015,8 +1015,8 @@ def test_args_docstrings_are_one_line():
 
 
 @pytest.mark.parametrize("groups", [0, 4])
-def test_fast_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: ris_update traced whole (backward passes, Adam steps, Polyak, codebook EMA with dead-code
+def test_fast_update_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: ris_update compiled (backward passes, Adam steps, Polyak, codebook EMA with dead-code
     restarts) and equal to eager."""
     agent, replay = tiny_agent(groups)
     if groups:

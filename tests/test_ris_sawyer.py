@@ -616,8 +616,8 @@ def test_the_encoder_feels_the_commitment_loss_of_each_embedding(reduction, grad
 
 
 @pytest.mark.parametrize("groups", [0, 4])
-def test_fast_update_is_one_graph_equal_to_eager_and_free_of_host_syncs(groups):
-    """--fast compile: ris_update traced whole (random translate, encoder, DRIML loss, backward passes, Adam steps,
+def test_fast_update_equals_eager_and_is_free_of_host_syncs(groups):
+    """--fast compile: ris_update compiled (random translate, encoder, DRIML loss, backward passes, Adam steps,
     Polyak, codebook EMA with dead-code restarts) and equal to eager, on batches the replay gathered on its device.
 
     The DRIML loss is blind to a shift common to the global vectors of the batch, so the gradient of the global head's

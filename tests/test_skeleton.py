@@ -23,37 +23,54 @@ SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
 MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
 WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
-    "CHECKPOINT_FORMAT", "flag_text", "range_errors", "common_errors", "output_errors", "exit_on_errors", "seed_and_device",
-    "make_writer", "stop_on_signals", "Progress", "save_checkpoint", "load_checkpoint", "write_video", "RESUME_FILE",
-    "FREE_FLAGS", "rng_states", "set_rng_states", "save_resume", "load_resume", "FAST_PATHS", "learn", "init_optimizer_state",
-    "functional_step", "fast_update", "CudaGraphUpdate",
+    "CHECKPOINT_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress", "save_checkpoint",
+    "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS", "fast_update",
+    "CudaGraphUpdate",  # the run-management appendix
+    "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors",  # the checks every script makes
+    "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
 BLOCK_START = "# --- Run management: identical in every script (tests/test_skeleton.py) "
 BLOCK_END = "# --- end of run management "
+REGIONS = [
+    (BLOCK_START, BLOCK_END),
+    ("# --- Checks: identical in every script (tests/test_skeleton.py) ", "# --- end of the shared checks "),
+]
+RUN_MANAGEMENT_LINES = 200  # the most the run-management appendix may take, its banners included
+SPEED_SWITCH_LINES = 40  # the most --fast may take: FAST_PATHS through CudaGraphUpdate, blank lines not counted
 MUJOCO_GL_DEFAULT = (
     'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'
 )
 
 
+def region(lines: list[str], start: str, end: str) -> tuple[int, int]:
+    """The indices of a shared region's first and last lines (its banners)."""
+    first = next(i for i, line in enumerate(lines) if line.startswith(start))
+    return first, next(i for i in range(first, len(lines)) if lines[i].startswith(end))
+
+
 def shared_pieces(source: str) -> dict[str, str]:
     """The shared pieces of one script's source: "Args" (the common fields, from the first field through
-    --checkpoint-every's docstring) and each top-level name of the run-management block, as source text."""
+    --checkpoint-every's docstring), each top-level name of the two shared regions (the run management and the checks),
+    and write_video, as source text."""
     lines = source.splitlines()
     pieces = {}
     start = lines.index("class Args:") + 1
     end = next(i for i in range(start, len(lines)) if lines[i].startswith("    checkpoint_every: int")) + 2
     pieces["Args"] = "\n".join(lines[start:end])
-    first = next(i for i, line in enumerate(lines) if line.startswith(BLOCK_START))
-    last = next(i for i, line in enumerate(lines) if line.startswith(BLOCK_END))
-    block = "\n".join(lines[first + 1 : last])
-    for node in ast.parse(block).body:
-        if isinstance(node, ast.Assign):
-            name = node.targets[0].id
-        elif isinstance(node, ast.FunctionDef | ast.ClassDef):
-            name = node.name
-        else:
-            raise AssertionError(f"the run-management block holds a {type(node).__name__}, not a definition")
-        pieces[name] = ast.get_source_segment(block, node)
+    for banners in REGIONS:
+        first, last = region(lines, *banners)
+        block = "\n".join(lines[first + 1 : last])
+        for node in ast.parse(block).body:
+            if isinstance(node, ast.Assign):
+                name = node.targets[0].id
+            elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+                name = node.name
+            else:
+                raise AssertionError(f"a shared region holds a {type(node).__name__}, not a definition")
+            pieces[name] = ast.get_source_segment(block, node)
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.FunctionDef) and node.name == "write_video":
+            pieces["write_video"] = ast.get_source_segment(source, node)
     return pieces
 
 
@@ -98,13 +115,24 @@ def test_shared_pieces_are_identical_in_every_script():
     assert drift(read_sources()) == []
 
 
+def test_the_run_management_appendix_and_its_speed_switches_stay_short():
+    """Read seven times, the run management takes at most RUN_MANAGEMENT_LINES lines (one script's copy: the drift test
+    holds the others to it), and --fast (its choices, fast_update, CudaGraphUpdate) at most SPEED_SWITCH_LINES."""
+    lines = (ROOT / "dgrl_ris.py").read_text().splitlines()
+    first, last = region(lines, *REGIONS[0])
+    assert last - first + 1 <= RUN_MANAGEMENT_LINES
+    start = next(i for i in range(first, last) if lines[i].startswith("FAST_PATHS = "))
+    end = next(i for i in range(start, last) if lines[i] == "        return self.outputs")
+    assert sum(1 for line in lines[start : end + 1] if line.strip()) <= SPEED_SWITCH_LINES
+
+
 @pytest.mark.parametrize(
     "edit",
     [
         ('"""seed of the experiment"""', '"""the seed"""'),  # a docstring of the common Args block
         ('"stopped" if stopped else "done"', '"stopped" if stopped else "finished"'),  # the end-of-run line
         ("raise SystemExit(2)\n", "raise SystemExit(1)\n"),  # the exit status of a bad flag
-        ("weights_only=True", "weights_only=False"),  # loading a checkpoint runs no code
+        ("weights_only=not resume", "weights_only=False"),  # loading a checkpoint runs no code
     ],
 )
 def test_drift_check_fails_when_one_copy_is_edited(edit):

@@ -15,7 +15,7 @@ Budgets and frequencies count frames: env steps x --num-envs.
 
     python dgrl_amigo.py --groups 16                           # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
     python dgrl_amigo.py --groups 0                            # AMIGo
-    python dgrl_amigo.py --groups 16 --goal-channel on         # DGRL with the goal channel too (the CPU studies' variant)
+    python dgrl_amigo.py --groups 16 --goal-channel on         # with the goal channel too (the CPU studies' DGRL variant)
     python dgrl_amigo.py --env-id MiniGrid-DoorKey-5x5-v0 --total-timesteps 1000000 --groups 16   # learns in ~3 min on a CPU
     python dgrl_amigo.py --groups 16 --resume runs/<run_name>  # continue a stopped run exactly (its flags, same folder)
 
@@ -33,7 +33,7 @@ import shutil
 import signal
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 import gymnasium as gym
@@ -46,7 +46,7 @@ import tyro
 from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
 from torch.utils.tensorboard import SummaryWriter
 
-from vq import VectorQuantizerEMA, active_codes, perplexity  # DGRL
+from vq import VectorQuantizerEMA, active_codes, perplexity
 
 
 @dataclass
@@ -227,30 +227,20 @@ class GoalEncoder(nn.Module):
     through the same trunk design as the student's, to an `embed_dim` vector. Under DGRL the vector is split into G
     factors, each snapped to the nearest code of one shared EMA codebook; for AMIGo (G = 0) it stays continuous."""
 
-    def __init__(
-        self,
-        width: int,
-        height: int,
-        embed_dim: int,
-        groups: int,  # DGRL: 0 for AMIGo
-        n_embed: int,  # DGRL
-        beta: float,  # DGRL
-        decay: float,  # DGRL
-        dead_code_steps: int,  # DGRL
-    ):
+    def __init__(self, width: int, height: int, embed_dim: int, groups: int, n_embed: int, beta, decay, dead_code_steps):
         super().__init__()
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(11, width, height)
         self.head = nn.Linear(trunk_out, embed_dim)
-        self.vq = None  # DGRL
-        if groups > 0:  # DGRL
+        self.vq = None
+        if groups > 0:
             self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
 
     def forward(self, frames, goals, update: bool = False):
         """(goal embedding, commitment loss, code indices or None); `update=True` only in learner batches."""
         z = self.head(self.trunk(self.embedding(frames, goals)))
-        if self.vq is None:  # DGRL
-            return z, z.new_zeros(()), None  # DGRL: AMIGo's embedding stays continuous, with no commitment loss
+        if self.vq is None:
+            return z, z.new_zeros(()), None  # AMIGo's embedding stays continuous, with no commitment loss
         return self.vq(z, update=update)  # DGRL: (z_q straight-through, commitment loss, (B, G) indices)
 
 
@@ -289,16 +279,11 @@ class Agent:
 
     def state_dicts(self) -> dict[str, dict]:
         """Every network's state dict, the goal encoder's with its codebook buffers: what evaluation needs."""
-        return {
-            "student": self.student.state_dict(),
-            "goal_encoder": self.goal_encoder.state_dict(),
-            "teacher": self.teacher.state_dict(),
-        }
+        return {name: getattr(self, name).state_dict() for name in ("student", "goal_encoder", "teacher")}
 
     def load_state_dicts(self, saved: dict) -> None:
-        self.student.load_state_dict(saved["student"])
-        self.goal_encoder.load_state_dict(saved["goal_encoder"])
-        self.teacher.load_state_dict(saved["teacher"])
+        for name in ("student", "goal_encoder", "teacher"):
+            getattr(self, name).load_state_dict(saved[name])
 
 
 GOAL_CHANNELS = ("auto", "on", "off")  # --goal-channel's choices
@@ -314,45 +299,19 @@ def resolve_goal_channel(goal_channel: str, groups: int) -> str:
     return goal_channel
 
 
-def make_agent(
-    width: int,
-    height: int,
-    n_actions: int,
-    device,
-    *,
-    goal_channel: str,
-    embed_dim: int,
-    learning_rate: float,
-    teacher_learning_rate: float,
-    rmsprop_alpha: float,
-    rmsprop_eps: float,
-    groups: int,  # DGRL
-    n_embed: int,  # DGRL
-    vq_beta: float,  # DGRL
-    vq_decay: float,  # DGRL
-    vq_dead_code_steps: int,  # DGRL
-) -> Agent:
-    """The student (with the one-hot goal channel when `goal_channel`, resolved with `groups`, is "on"), the goal encoder
+def make_agent(width: int, height: int, n_actions: int, args: Args, device) -> Agent:
+    """The student (with the one-hot goal channel when --goal-channel, resolved with --groups, is "on"), the goal encoder
     (continuous for --groups 0) and the teacher, built in this order (the seeded initial weights depend on it), with
     their RMSProp optimizers."""
-    channel = resolve_goal_channel(goal_channel, groups) == "on"
-    student = Student(width, height, n_actions, channel, embed_dim).to(device)
-    goal_encoder = GoalEncoder(
-        width,
-        height,
-        embed_dim,
-        groups,  # DGRL
-        n_embed,  # DGRL
-        vq_beta,  # DGRL
-        vq_decay,  # DGRL
-        vq_dead_code_steps,  # DGRL
-    ).to(device)
+    channel = resolve_goal_channel(args.goal_channel, args.groups) == "on"
+    student = Student(width, height, n_actions, channel, args.embed_dim).to(device)
+    codebook = (args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps)
+    goal_encoder = GoalEncoder(width, height, args.embed_dim, *codebook).to(device)
     teacher = Teacher(width, height).to(device)
+    rmsprop = {"alpha": args.rmsprop_alpha, "eps": args.rmsprop_eps}
     student_params = [*student.parameters(), *goal_encoder.parameters()]  # the goal encoder learns from the student's loss
-    student_optimizer = torch.optim.RMSprop(student_params, lr=learning_rate, alpha=rmsprop_alpha, eps=rmsprop_eps)
-    teacher_optimizer = torch.optim.RMSprop(
-        teacher.parameters(), lr=teacher_learning_rate, alpha=rmsprop_alpha, eps=rmsprop_eps
-    )
+    student_optimizer = torch.optim.RMSprop(student_params, lr=args.learning_rate, **rmsprop)
+    teacher_optimizer = torch.optim.RMSprop(teacher.parameters(), lr=args.teacher_learning_rate, **rmsprop)
     return Agent(student, goal_encoder, teacher, student_optimizer, teacher_optimizer)
 
 
@@ -404,8 +363,7 @@ def teacher_tensors(batch: dict, rewards: np.ndarray, device) -> dict[str, torch
 
 def teacher_loss(teacher: Teacher, batch: dict[str, torch.Tensor], *, baseline_coef: float, entropy_coef: float):
     """The teacher's contextual-bandit update (discount 0): V-trace with one step reduces to an importance-weighted
-    policy gradient, rho = min(1, pi/mu), with advantage rho * (r - b) and baseline target b + rho * (r - b). `batch`
-    holds teacher_tensors' tensors."""
+    policy gradient, rho = min(1, pi/mu), with advantage rho * (r - b) and baseline target b + rho * (r - b)."""
     logits, baseline = teacher(batch["frame"])
     goals, rewards_t, behaviour = batch["goal"], batch["reward"], batch["logp"]
     log_probs = F.log_softmax(logits, -1)
@@ -420,11 +378,12 @@ def teacher_loss(teacher: Teacher, batch: dict[str, torch.Tensor], *, baseline_c
     return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy / len(goals)}
 
 
-def teacher_update(agent: Agent, batch: dict[str, torch.Tensor], *, baseline_coef, entropy_coef, max_grad_norm) -> dict:
-    """One teacher step on a batch of goal outcomes (teacher_tensors: frame, goal, logp of the proposing teacher, reward);
-    tensors in, detached loss tensors out, nothing read back to the host (--fast compiles it whole)."""
-    losses = teacher_loss(agent.teacher, batch, baseline_coef=baseline_coef, entropy_coef=entropy_coef)
-    learn(agent.teacher_optimizer, losses["loss"], max_grad_norm)
+def teacher_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict:
+    """One teacher step on teacher_tensors' batch of goal outcomes; tensors in, detached loss tensors out, nothing read
+    back to the host (--fast compiles it whole)."""
+    coefs = {"baseline_coef": args.teacher_baseline_coef, "entropy_coef": args.teacher_entropy_coef}
+    losses = teacher_loss(agent.teacher, batch, **coefs)
+    learn(agent.teacher_optimizer, losses["loss"], args.max_grad_norm)
     return {name: value.detach() for name, value in losses.items()}
 
 
@@ -438,10 +397,10 @@ def student_batch(rollout: dict, last: dict, device) -> dict[str, torch.Tensor]:
     return dict(zip([*obs, *keys], tensors(device, *obs.values(), *(rollout[key] for key in keys)), strict=True))
 
 
-def student_update(agent: Agent, batch: dict[str, torch.Tensor], *, gamma, baseline_coef, entropy_coef, max_grad_norm):
-    """One learner step on a batch of rollouts (student_batch's tensors; the last B observation rows bootstrap). The goal
-    encoder trains through the student's loss, plus the commitment loss under DGRL. Tensors in, detached metric tensors
-    out, nothing read back to the host (--fast compiles it whole)."""
+def student_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict:
+    """One learner step on student_batch's tensors (the last B observation rows bootstrap). The goal encoder trains
+    through the student's loss, plus the commitment loss under DGRL. Tensors in, detached metric tensors out, nothing
+    read back to the host (--fast compiles it whole)."""
     T, B = batch["actions"].shape
     goals = batch["goals"]
     embedding, vq_loss, codes = agent.goal_encoder(batch["goal_frames"], goals, update=True)  # DGRL: the codebook moves
@@ -450,20 +409,15 @@ def student_update(agent: Agent, batch: dict[str, torch.Tensor], *, gamma, basel
     logits = logits[: T * B].view(T, B, -1)
     actions = batch["actions"]
     target_logp = F.log_softmax(logits, -1).gather(-1, actions[..., None]).squeeze(-1).detach()
-    discounts = gamma * (1.0 - batch["dones"])
+    discounts = args.gamma * (1.0 - batch["dones"])
     vs, advantages = vtrace(batch["logps"], target_logp, batch["rewards"], values[:T].detach(), values[T].detach(), discounts)
     loss, policy_loss, baseline_loss, entropy = actor_critic_loss(
-        logits, values[:T], actions, vs, advantages, baseline_coef, entropy_coef
+        logits, values[:T], actions, vs, advantages, args.baseline_coef, args.entropy_coef
     )
     # DGRL: the commitment loss summed over the batch's goals like the RL losses (zero for AMIGo)
-    learn(agent.student_optimizer, loss + vq_loss * len(goals), max_grad_norm)
-    return {
-        "policy_loss": policy_loss.detach(),
-        "baseline_loss": baseline_loss.detach(),
-        "entropy": entropy.detach() / (T * B),
-        "vq_loss": vq_loss.detach(),  # DGRL
-        "codes": codes,  # DGRL
-    }
+    learn(agent.student_optimizer, loss + vq_loss * len(goals), args.max_grad_norm)
+    metrics = {"policy_loss": policy_loss, "baseline_loss": baseline_loss, "entropy": entropy / (T * B)}
+    return {name: value.detach() for name, value in metrics.items()} | {"vq_loss": vq_loss.detach(), "codes": codes}
 
 
 def linear_decay(frames: int, total: int) -> float:
@@ -472,8 +426,7 @@ def linear_decay(frames: int, total: int) -> float:
 
 
 def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    """Set the learning rate of every group: in place where it is a tensor (learning_rates_as_tensors), so that a compiled
-    update reads the new value instead of compiling again for it; as a float otherwise (eager, the same arithmetic)."""
+    """Set every group's learning rate: in place where it is a tensor (learning_rates_as_tensors), as a float otherwise."""
     for group in optimizer.param_groups:
         if isinstance(group["lr"], torch.Tensor):
             group["lr"].fill_(lr)
@@ -484,9 +437,8 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
 def learning_rates_as_tensors(optimizers: list[torch.optim.Optimizer], as_tensors: bool) -> None:
     """Make each group's learning rate a 0-d float32 tensor on its parameters' device (--fast compile, cudagraphs), or a
     float (eager). torch.compile bakes a float learning rate into the graph, so a decaying one would recompile it every
-    update; it reads a tensor's value at each call instead. Eager RMSprop steps equal with either (the float is rounded
-    to float32 in the kernel either way), but an eager step reads a tensor learning rate back to the host, so eager
-    keeps floats. Called after a resume, whose optimizer state holds the learning rate of the run that saved it."""
+    update; a tensor it reads at each call. Eager RMSprop steps equal with either, but an eager step reads a tensor
+    learning rate back to the host, so eager keeps floats. Called after a resume too (the saved optimizers' rates)."""
     for optimizer in optimizers:
         for group in optimizer.param_groups:
             lr = float(group["lr"])
@@ -501,34 +453,14 @@ def main(args: Args) -> None:
     validate(args)
     args.goal_channel = resolve_goal_channel(args.goal_channel, args.groups)  # saved, matched and resumed as on or off
     saved = load_resume(args) if args.resume is not None else None
-    dgrl = args.groups > 0  # DGRL
     if saved is None:
         run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     else:
         run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
-    width = envs.width
-    height = envs.height
-    n_envs = args.num_envs
-    T = args.num_steps
-    agent = make_agent(
-        width,
-        height,
-        envs.n_actions,
-        device,
-        goal_channel=args.goal_channel,
-        embed_dim=args.embed_dim,
-        learning_rate=args.learning_rate,
-        teacher_learning_rate=args.teacher_learning_rate,
-        rmsprop_alpha=args.rmsprop_alpha,
-        rmsprop_eps=args.rmsprop_eps,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-    )
+    width, height, n_envs, T = envs.width, envs.height, args.num_envs, args.num_steps
+    agent = make_agent(width, height, envs.n_actions, args, device)
     stop = stop_on_signals()
 
     if args.checkpoint is not None:
@@ -558,42 +490,32 @@ def main(args: Args) -> None:
     renew_goals(agent, book, np.ones(n_envs, dtype=bool), obs["grid"], goal_embedding, device)
     envs.record = args.capture_video  # record env 0's first episode, then every --video-frequency-th
     video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
-    episodes_env0 = 0
-    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    step = 0  # frames: env steps x --num-envs
-    student_updates = 0
-    teacher_updates = 0
-    next_progress = args.progress_frequency
-    next_loss_log = LOSS_LOG_UPDATES
-    window = new_window()
-    metrics = {}
+    loop = LoopState(obs, envs.record, video, next_progress=args.progress_frequency, next_loss_log=LOSS_LOG_UPDATES)
     if saved is not None:  # continue where the stopped run left off: its envs mid-episode, its goals, its counters
         loop = restore_training_state(saved, agent, envs, book, t_star, outcomes)
-        obs, step, window = loop["obs"], loop["step"], loop["window"]
-        student_updates, teacher_updates = loop["student_updates"], loop["teacher_updates"]
-        next_progress, next_loss_log, episodes_env0 = loop["next_progress"], loop["next_loss_log"], loop["episodes_env0"]
-        envs.record = args.capture_video and loop["record"]  # --capture-video may change on resume
-        video = loop["video"] if envs.record else []
-        print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {step}")
+        envs.record = loop.record = args.capture_video and loop.record  # --capture-video may change on resume
+        loop.video = loop.video if loop.record else []
+        print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {loop.step}")
         set_rng_states(saved["rng"])  # last: building the run above drew from them
-    optimizers = [agent.student_optimizer, agent.teacher_optimizer]
-    learning_rates_as_tensors(optimizers, as_tensors=args.fast != "eager")  # compiled: no recompile for a new LR
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    metrics = {}
+    learning_rates_as_tensors([agent.student_optimizer, agent.teacher_optimizer], as_tensors=args.fast != "eager")
     update_student = fast_update(student_update, args.fast, [agent.student_optimizer])
     update_teacher = fast_update(teacher_update, args.fast, [agent.teacher_optimizer])
-    progress = Progress(args.total_timesteps, unit="frame", start_step=step)
-    while step < args.total_timesteps and not stop:
+    progress = Progress(args.total_timesteps, unit="frame", start_step=loop.step)
+    while loop.step < args.total_timesteps and not stop:
         # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
         goal_embedding = embed_goals(agent.goal_encoder, book.frame, book.goal, device)  # the encoder changed since
         for t in range(T):
             goal0 = book.goal[0]
-            actions, logps = act(agent.student, obs, book.goal, goal_embedding, device)
-            rollout["grids"][t] = obs["grid"]
-            rollout["carried"][t] = obs["carried"]
+            actions, logps = act(agent.student, loop.obs, book.goal, goal_embedding, device)
+            rollout["grids"][t] = loop.obs["grid"]
+            rollout["carried"][t] = loop.obs["carried"]
             rollout["goal_frames"][t] = book.frame
             rollout["goals"][t] = book.goal
             rollout["actions"][t] = actions
             rollout["logps"][t] = logps
-            obs, extrinsic, terminated, truncated, info = envs.step(actions)
+            loop.obs, extrinsic, terminated, truncated, info = envs.step(actions)
             reached = book.advance(info["final_grid"])
             done = terminated | truncated
             intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
@@ -601,41 +523,35 @@ def main(args: Args) -> None:
             rollout["dones"][t] = done
             # One teacher outcome per reached goal, and one per episode end for a goal still pending.
             renew = reached | done
-            outcomes.add(
-                frame=book.frame[renew],
-                goal=book.goal[renew],
-                logp=book.logp[renew],
-                reached=reached[renew],
-                steps=book.steps[renew],
-                extrinsic_success=extrinsic[renew] > 0,
-            )
-            window["reached"] += int(reached.sum())
-            window["outcomes"] += int(renew.sum())
-            window["goal_steps"] += book.steps[reached].tolist()
+            outcome = {"frame": book.frame, "goal": book.goal, "logp": book.logp, "reached": reached, "steps": book.steps}
+            outcomes.add(**{key: value[renew] for key, value in outcome.items()}, extrinsic_success=extrinsic[renew] > 0)
+            loop.window["reached"] += int(reached.sum())
+            loop.window["outcomes"] += int(renew.sum())
+            loop.window["goal_steps"] += book.steps[reached].tolist()
             if renew.any():  # a new goal on the frame the student is in now (the reset frame after an episode end)
-                renew_goals(agent, book, renew, obs["grid"], goal_embedding, device)
+                renew_goals(agent, book, renew, loop.obs["grid"], goal_embedding, device)
             ended = info["_episode"]
             for ret, length in zip(info["episode"]["r"][ended], info["episode"]["l"][ended], strict=True):
-                window["return"].append(ret)
-                window["success"].append(float(ret > 0))
-                writer.add_scalar("charts/episodic_return", ret, step)
-                writer.add_scalar("charts/episodic_length", length, step)
-                writer.add_scalar("charts/success_rate", float(ret > 0), step)
-            step += n_envs
+                loop.window["return"].append(ret)
+                loop.window["success"].append(float(ret > 0))
+                writer.add_scalar("charts/episodic_return", ret, loop.step)
+                writer.add_scalar("charts/episodic_length", length, loop.step)
+                writer.add_scalar("charts/success_rate", float(ret > 0), loop.step)
+            loop.step += n_envs
             # Video of env 0: its frame before any reset, its goal as it was when acting.
-            if envs.record:
-                video.append(goal_frame(envs.frame0, goal0, height))
+            if loop.record:
+                loop.video.append(goal_frame(envs.frame0, goal0, height))
             if done[0]:
-                if envs.record:
-                    write_video(f"videos/{run_name}/episode_{episodes_env0}.mp4", video, VIDEO_FPS)
-                episodes_env0 += 1
-                envs.record = args.capture_video and episodes_env0 % args.video_frequency == 0
-                video = [goal_frame(envs.render()[0], book.goal[0], height)] if envs.record else []
+                if loop.record:
+                    write_video(f"videos/{run_name}/episode_{loop.episodes_env0}.mp4", loop.video, VIDEO_FPS)
+                loop.episodes_env0 += 1
+                envs.record = loop.record = args.capture_video and loop.episodes_env0 % args.video_frequency == 0
+                loop.video = [goal_frame(envs.render()[0], book.goal[0], height)] if loop.record else []
 
         # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
-        student_lr = args.learning_rate * linear_decay(step - n_envs * T, args.total_timesteps)  # from the collection's start
+        student_lr = args.learning_rate * linear_decay(loop.step - n_envs * T, args.total_timesteps)  # at collection start
         set_learning_rate(agent.student_optimizer, student_lr)
-        last = {"grids": obs["grid"], "carried": obs["carried"], "goal_frames": book.frame, "goals": book.goal}
+        last = {"grids": loop.obs["grid"], "carried": loop.obs["carried"], "goal_frames": book.frame, "goals": book.goal}
         for first in range(0, n_envs, args.batch_envs):
             envs_slice = slice(first, first + args.batch_envs)
             learner_batch = student_batch(
@@ -643,90 +559,66 @@ def main(args: Args) -> None:
                 {key: value[envs_slice] for key, value in last.items()},
                 device,
             )
-            metrics = update_student(
-                agent,
-                learner_batch,
-                gamma=args.gamma,
-                baseline_coef=args.baseline_coef,
-                entropy_coef=args.entropy_coef,
-                max_grad_norm=args.max_grad_norm,
-            )
-            student_updates += 1
+            metrics = update_student(agent, learner_batch, args)
+            loop.student_updates += 1
 
         # Teacher: one update per --teacher-batch-size outcomes, rewards under the current t*; then the t* schedule.
         while outcomes.size >= args.teacher_batch_size:
             batch = outcomes.pop(args.teacher_batch_size)
-            rewards = teacher_reward(
-                batch["reached"],
-                batch["steps"],
-                batch["extrinsic_success"],
-                t_star.value,
-                args.teacher_reward_negative,
-                args.teacher_reward_positive,
-            )
-            set_learning_rate(agent.teacher_optimizer, args.teacher_learning_rate * linear_decay(step, args.total_timesteps))
-            losses = update_teacher(
-                agent,
-                teacher_tensors(batch, rewards, device),
-                baseline_coef=args.teacher_baseline_coef,
-                entropy_coef=args.teacher_entropy_coef,
-                max_grad_norm=args.max_grad_norm,
-            )
-            teacher_updates += 1
+            reward_flags = (t_star.value, args.teacher_reward_negative, args.teacher_reward_positive)
+            rewards = teacher_reward(batch["reached"], batch["steps"], batch["extrinsic_success"], *reward_flags)
+            teacher_lr = args.teacher_learning_rate * linear_decay(loop.step, args.total_timesteps)
+            set_learning_rate(agent.teacher_optimizer, teacher_lr)
+            losses = update_teacher(agent, teacher_tensors(batch, rewards, device), args)
+            loop.teacher_updates += 1
             t_star.update(float(rewards.mean()))
-            window["teacher_reward"].append(float(rewards.mean()))
-            writer.add_scalar("teacher/reward", rewards.mean(), step)
-            writer.add_scalar("teacher/t_star", t_star.value, step)
-            writer.add_scalar("teacher/policy_loss", losses["policy_loss"].item(), step)
-            writer.add_scalar("teacher/baseline_loss", losses["baseline_loss"].item(), step)
-            writer.add_scalar("teacher/entropy", losses["entropy"].item(), step)
-            writer.add_scalar("teacher/reached_rate", batch["reached"].mean(), step)
+            loop.window["teacher_reward"].append(float(rewards.mean()))
+            writer.add_scalar("teacher/reward", rewards.mean(), loop.step)
+            writer.add_scalar("teacher/t_star", t_star.value, loop.step)
+            for name in ("policy_loss", "baseline_loss", "entropy"):
+                writer.add_scalar(f"teacher/{name}", losses[name].item(), loop.step)
+            writer.add_scalar("teacher/reached_rate", batch["reached"].mean(), loop.step)
 
         # The student's losses (of the collection's last update), every LOSS_LOG_UPDATES student updates.
-        if student_updates >= next_loss_log:
-            next_loss_log += LOSS_LOG_UPDATES
+        if loop.student_updates >= loop.next_loss_log:
+            loop.next_loss_log += LOSS_LOG_UPDATES
             for name in ("policy_loss", "baseline_loss", "entropy"):
-                writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
-            writer.add_scalar("charts/learning_rate", student_lr, step)
-            if dgrl:  # DGRL
-                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
-                writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                writer.add_scalar(f"losses/{name}", metrics[name].item(), loop.step)
+            writer.add_scalar("charts/learning_rate", student_lr, loop.step)
+            if args.groups > 0:
+                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL
+                writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), loop.step)  # DGRL
+                writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), loop.step)  # DGRL
 
         # Progress line (and checkpoint), every --progress-frequency frames and at the end.
-        if step >= next_progress or step >= args.total_timesteps:
-            next_progress += args.progress_frequency
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
+        if loop.step >= loop.next_progress or loop.step >= args.total_timesteps:
+            loop.next_progress += args.progress_frequency
+            window = loop.window
+            writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
             if window["outcomes"]:
-                writer.add_scalar("charts/goal_reach_rate", window["reached"] / window["outcomes"], step)
+                writer.add_scalar("charts/goal_reach_rate", window["reached"] / window["outcomes"], loop.step)
             if window["goal_steps"]:
-                writer.add_scalar("charts/steps_per_goal", np.mean(window["goal_steps"]), step)
+                writer.add_scalar("charts/steps_per_goal", np.mean(window["goal_steps"]), loop.step)
             progress.line(
-                step,
+                loop.step,
                 f"return {mean_text(window['return'])}  success {mean_text(window['success'])}  t* {t_star.value}  "
                 f"teacher reward {mean_text(window['teacher_reward'])}  "
                 f"goals reached {window['reached'] / max(window['outcomes'], 1):.0%}",
             )
-            window = new_window()
+            loop.window = new_window()
             if args.save_model:
-                save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
-        progress.heartbeat(step, f"{student_updates} student updates  t* {t_star.value}")
-        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
+                save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": loop.step}, args)
+        progress.heartbeat(loop.step, f"{loop.student_updates} student updates  t* {t_star.value}")
+        if progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # a run killed outright after this save still has every scalar up to it on disk
-            loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
-            loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
-            loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
             save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)
 
-    loop = {"obs": obs, "step": step, "window": window, "record": envs.record, "video": video}
-    loop |= {"student_updates": student_updates, "teacher_updates": teacher_updates, "episodes_env0": episodes_env0}
-    loop |= {"next_progress": next_progress, "next_loss_log": next_loss_log}
     save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)  # stopped or done
     if args.save_model:
-        save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": step}, args)
+        save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": loop.step}, args)
         print(f"checkpoint: {checkpoint_path}")
-    updates = f"{student_updates} student and {teacher_updates} teacher updates"
-    progress.finish(bool(stop), run_name, f"{step} frames, {updates}, t* {t_star.value}")
+    updates = f"{loop.student_updates} student and {loop.teacher_updates} teacher updates"
+    progress.finish(bool(stop), run_name, f"{loop.step} frames, {updates}, t* {t_star.value}")
     envs.close()
     writer.close()
 
@@ -802,12 +694,8 @@ def evaluate(agent: Agent, envs: "MiniGridVecEnv", episodes: int, seed: int, dev
     returns = np.array(returns[:episodes])
     if not len(returns):
         return {"episodes": 0, "return": math.nan, "success": math.nan, "goals_per_episode": math.nan}
-    return {
-        "episodes": len(returns),
-        "return": returns.mean(),
-        "success": (returns > 0).mean(),
-        "goals_per_episode": reached_total / len(returns),
-    }
+    success, per_episode = (returns > 0).mean(), reached_total / len(returns)
+    return {"episodes": len(returns), "return": returns.mean(), "success": success, "goals_per_episode": per_episode}
 
 
 def mean_text(values: list[float]) -> str:
@@ -858,12 +746,6 @@ def full_grid(env) -> np.ndarray:
     return grid
 
 
-def _no_partial_view():
-    """Replaces MiniGridEnv.gen_obs: the egocentric 7x7 view it renders at every step (80% of a step's time) is unused
-    here, where teacher and student see the full grid."""
-    return None
-
-
 def carried(env) -> tuple[int, int]:
     """(object id, colour id) of what the agent carries; (empty, 0) when it carries nothing."""
     return (EMPTY, 0) if env.carrying is None else (OBJECT_TO_IDX[env.carrying.type], COLOR_TO_IDX[env.carrying.color])
@@ -872,17 +754,12 @@ def carried(env) -> tuple[int, int]:
 class MiniGridVecEnv(gym.vector.VectorEnv):
     """`num_envs` MiniGrid envs stepped in one loop, fully observed, with same-step autoreset: gymnasium's VectorEnv API.
 
-    An observation is a dict of batched arrays: "grid", (num_envs, W, H, 3) uint8 [object, colour, state] ids
-    (`full_grid`), and "carried", (num_envs, 2) int64 (`carried`). `reset(seed=s)` seeds env i with s + i (a list gives
-    each env its seed) and returns (obs, {}). `step(actions)` returns (obs, rewards, terminated, truncated, info); an env
-    whose episode ended is reset in the same step (AutoresetMode.SAME_STEP: obs holds its reset frame), and info holds
-    - "final_grid": every env's grid right after the step, before any reset: what the goal-reach test compares (equal
-      to obs["grid"] where no episode ended). A dense (num_envs, W, H, 3) array rather than gymnasium's "final_obs"
-      object array of the ended envs only, so that the reach test runs on all envs at once;
-    - "episode": {"r": return, "l": length} of the episodes that ended, where the mask "_episode" is set (the layout of
-      gymnasium's RecordEpisodeStatistics).
-    A new layout is generated at every reset (procedural generation). Only env 0 renders (`render_env0`): `render()`
-    returns (env 0's frame,), and while `record` is set, `frame0` is env 0's frame after the last step, before any reset.
+    Observations: "grid", (num_envs, W, H, 3) uint8 ids (`full_grid`), and "carried", (num_envs, 2) int64 (`carried`).
+    `reset(seed=s)` seeds env i with s + i (a list: one seed each). An env whose episode ended is reset in the same step,
+    and info holds "final_grid", every env's grid right after the step, before any reset (dense, unlike gymnasium's
+    "final_obs", so that the goal-reach test runs on all envs at once), and "episode" {"r", "l"} where "_episode" is set
+    (RecordEpisodeStatistics' layout). Every reset generates a new layout (procedural generation). Only env 0 renders
+    (`render_env0`); while `record` is set, `frame0` is its frame after the last step, before any reset.
     """
 
     metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
@@ -892,7 +769,7 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
             gym.make(env_id, render_mode="rgb_array" if render_env0 and i == 0 else None).unwrapped for i in range(num_envs)
         ]
         for env in self.envs:
-            env.gen_obs = _no_partial_view
+            env.gen_obs = lambda: None  # the egocentric 7x7 view, 80% of a step's time, unused: both see the full grid
         self.env_id = env_id
         self.num_envs = num_envs
         self.render_mode = "rgb_array" if render_env0 else None
@@ -969,10 +846,9 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
 
     def get_state(self) -> dict:
         """A copy of everything the next steps and resets depend on, for --resume: each env's attributes but the renderer's
-        and its spec (the grid with its objects, agent position and direction, what it carries, step count, mission,
-        np_random, and what an env class adds, e.g. KeyCorridor's target object, kept identical to the object carried),
-        and the current observation and episode statistics. Copied as a whole, so objects shared between envs' attributes
-        stay shared (pickling a gymnasium env instead would rebuild it from its constructor arguments)."""
+        and its spec (grid, agent, carried object, step count, np_random, what an env class adds), the observation and the
+        episode statistics, copied as a whole so that objects shared between attributes stay shared (pickling a gymnasium
+        env instead would rebuild it from its constructor arguments)."""
         envs = [{key: value for key, value in env.__dict__.items() if key not in NOT_ENV_STATE} for env in self.envs]
         arrays = {key: getattr(self, key) for key in ("grids", "carried", "episode_return", "episode_length")}
         return copy.deepcopy({"envs": envs, **arrays})
@@ -1079,12 +955,27 @@ class OutcomeBuffer:
 # --- Resuming ---------------------------------------------------------------------------------------------------------
 
 
-def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes: OutcomeBuffer, loop: dict):
+@dataclass
+class LoopState:
+    """The variables the training loop carries from one step to the next; resume.pt holds them as a plain dict."""
+
+    obs: dict  # the observation to act on
+    record: bool  # whether env 0's episode in progress is recorded (envs.record)
+    video: list  # its frames so far
+    next_progress: int  # the frame of the next progress line
+    next_loss_log: int  # the student update of the next write of its losses
+    step: int = 0  # frames: env steps x --num-envs
+    student_updates: int = 0
+    teacher_updates: int = 0
+    episodes_env0: int = 0
+    window: dict = field(default_factory=new_window)  # what the next progress line reports
+
+
+def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes, loop: LoopState) -> dict:
     """Everything a stopped run needs to continue exactly, for runs/{run_name}/resume.pt (save_resume adds the global
     random states, which acting and goal proposals draw from): the networks with the codebook and its EMA buffers, both
     optimizers, the envs mid-episode with their generators, the goal book, t* and its streak, the goal outcomes waiting
-    for a teacher update, and `loop`: the training loop's variables (observation, counters, cadences, progress window,
-    env 0's video in progress). Rollout storage is not saved: a run stops between collections, which overwrite it."""
+    for a teacher update, and the LoopState. Rollout storage is not saved: a run stops between collections."""
     return {
         "networks": agent.state_dicts(),
         "student_optimizer": agent.student_optimizer.state_dict(),
@@ -1093,12 +984,12 @@ def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: T
         "goal_book": {"goal": book.goal, "frame": book.frame, "logp": book.logp, "steps": book.steps},
         "t_star": {"value": t_star.value, "streak": t_star.streak},
         "outcomes": {"parts": outcomes.parts, "size": outcomes.size},
-        "loop": loop,
+        "loop": copy.deepcopy(vars(loop)),
     }
 
 
-def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes):
-    """Put `training_state`'s entries back into a freshly built run; returns the loop's variables."""
+def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star, outcomes) -> LoopState:
+    """Put `training_state`'s entries back into a freshly built run; returns the LoopState."""
     agent.load_state_dicts(saved["networks"])
     agent.student_optimizer.load_state_dict(saved["student_optimizer"])
     agent.teacher_optimizer.load_state_dict(saved["teacher_optimizer"])
@@ -1107,7 +998,7 @@ def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book
         getattr(book, key)[:] = value
     t_star.value, t_star.streak = saved["t_star"]["value"], saved["t_star"]["streak"]
     outcomes.parts, outcomes.size = saved["outcomes"]["parts"], saved["outcomes"]["size"]
-    return saved["loop"]
+    return LoopState(**saved["loop"])
 
 
 # --- The run's constants ----------------------------------------------------------------------------------------------
@@ -1423,15 +1314,10 @@ def boolean_goal_channel_errors(args: Args) -> list[str]:
     """--checkpoint's file or --resume's resume.pt written when --goal-channel was a boolean (True: today's on, False:
     off) can match no value of today's flag: say so, instead of naming a flag spelling that no longer exists. A file
     that cannot be read is left to load_checkpoint's or load_resume's message."""
-    files = [
-        ("--checkpoint", args.checkpoint, True),
-        ("--resume", args.resume and os.path.join(args.resume, RESUME_FILE), False),
-    ]
     errors = []
-    for flag, path, weights_only in files:
-        if path is None or not os.path.isfile(path):
-            continue
-        try:
+    resume_file = args.resume and os.path.join(args.resume, RESUME_FILE)
+    for flag, path, weights_only in (("--checkpoint", args.checkpoint, True), ("--resume", resume_file, False)):
+        try:  # also when there is no such file
             value = torch.load(path, map_location="cpu", weights_only=weights_only)["args"]["goal_channel"]
         except Exception:
             continue
@@ -1466,8 +1352,8 @@ def validate(args: Args) -> None:
         )
     if not 0 <= args.t_star_start <= args.t_star_max:
         errors.append(f"--t-star-start ({args.t_star_start}) must be in [0, --t-star-max ({args.t_star_max})]")
-    if args.num_envs >= 1 and args.num_steps >= 1 and args.total_timesteps < args.num_envs * args.num_steps:
-        frames = args.num_envs * args.num_steps
+    frames = args.num_envs * args.num_steps
+    if args.num_envs >= 1 and args.num_steps >= 1 and args.total_timesteps < frames:
         errors.append(
             f"--total-timesteps ({args.total_timesteps}) must cover one collection: >= --num-envs x --num-steps ({frames})"
         )
@@ -1475,11 +1361,11 @@ def validate(args: Args) -> None:
         errors.append(f"--batch-envs ({args.batch_envs}) must divide --num-envs ({args.num_envs})")
     if args.checkpoint is not None and (args.save_model or args.capture_video):
         errors.append("--save-model and --capture-video apply to training; a --checkpoint evaluation records neither")
-    if args.groups < 0 or (args.groups and args.embed_dim >= 1 and args.embed_dim % args.groups):  # DGRL
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
-        errors.append(  # DGRL
-            f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"  # DGRL
-        )  # DGRL
+    if args.groups < 0 or (args.groups and args.embed_dim >= 1 and args.embed_dim % args.groups):
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        errors.append(
+            f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
+        )
     if args.goal_channel not in GOAL_CHANNELS:
         errors.append(f"--goal-channel {args.goal_channel!r} is unknown: use one of {', '.join(GOAL_CHANNELS)}")
     errors += boolean_goal_channel_errors(args)

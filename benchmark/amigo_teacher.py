@@ -10,7 +10,6 @@ likely cell written in the title. The env id comes from the checkpoint. Prints, 
 its mean largest cell probability and how often that cell is a wall.
 """
 
-import inspect
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,8 +24,6 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import dgrl_amigo as amigo
-
-AGENT_FLAGS = [name for name, p in inspect.signature(amigo.make_agent).parameters.items() if p.kind is p.KEYWORD_ONLY]
 
 
 @dataclass
@@ -49,7 +46,8 @@ def teacher_maps(checkpoint: str, seeds: int) -> tuple[list[tuple[np.ndarray, np
     if isinstance(flags.get("goal_channel"), bool):  # saved when --goal-channel was a boolean (True: today's on)
         flags["goal_channel"] = "on" if flags["goal_channel"] else "off"
     envs = amigo.MiniGridVecEnv(flags["env_id"], 1, render_env0=True)
-    agent = amigo.make_agent(envs.width, envs.height, envs.n_actions, "cpu", **{name: flags[name] for name in AGENT_FLAGS})
+    args = amigo.Args(**{name: value for name, value in flags.items() if name in amigo.Args.__dataclass_fields__})
+    agent = amigo.make_agent(envs.width, envs.height, envs.n_actions, args, "cpu")
     agent.load_state_dicts(saved)
     maps = []
     for seed in range(seeds):

@@ -15,7 +15,6 @@ Prints one line per measurement:
 
 import argparse
 import copy
-import inspect
 import re
 import subprocess
 import sys
@@ -35,7 +34,6 @@ import dgrl_amigo as amigo
 ROOT = Path(__file__).resolve().parents[1]
 
 ENVS = ("MiniGrid-DoorKey-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-KeyCorridorS3R3-v0")
-AGENT_FLAGS = [name for name, p in inspect.signature(amigo.make_agent).parameters.items() if p.kind is p.KEYWORD_ONLY]
 
 
 def sync_vector_speed(env_id: str, n: int = 16, steps: int = 500) -> float:
@@ -66,10 +64,7 @@ def update_times(env_id: str, groups: int, paths: list[str], repeats: int = 5) -
     envs = amigo.MiniGridVecEnv(env_id, args.batch_envs)
     w, h, t, b = envs.width, envs.height, args.num_steps, args.batch_envs
     cpu = torch.device("cpu")
-    agent = amigo.make_agent(w, h, envs.n_actions, cpu, **{name: getattr(args, name) for name in AGENT_FLAGS})
-    hyper = {name: getattr(args, name) for name in ("gamma", "baseline_coef", "entropy_coef", "max_grad_norm")}
-    teacher_hyper = {"baseline_coef": args.teacher_baseline_coef, "entropy_coef": args.teacher_entropy_coef}
-    teacher_hyper["max_grad_norm"] = args.max_grad_norm
+    agent = amigo.make_agent(w, h, envs.n_actions, args, cpu)
     obs, _ = envs.reset(seed=0)
     grids, carry = obs["grid"], obs["carried"]
     rng = np.random.default_rng(0)
@@ -97,11 +92,11 @@ def update_times(env_id: str, groups: int, paths: list[str], repeats: int = 5) -
         state = copy.deepcopy(agent)  # every path starts from the same weights; the learning rates stay put (floats)
         student = amigo.fast_update(amigo.student_update, path, [state.student_optimizer])
         teacher = amigo.fast_update(amigo.teacher_update, path, [state.teacher_optimizer])
-        student(state, batch, **hyper)  # compiles (compile time is not measured)
-        teacher(state, teacher_batch, **teacher_hyper)
+        student(state, batch, args)  # compiles (compile time is not measured)
+        teacher(state, teacher_batch, args)
         times[path] = {
-            "student": median_time(lambda: student(state, batch, **hyper), repeats),  # noqa: B023
-            "teacher": median_time(lambda: teacher(state, teacher_batch, **teacher_hyper), repeats * 4),  # noqa: B023
+            "student": median_time(lambda: student(state, batch, args), repeats),  # noqa: B023
+            "teacher": median_time(lambda: teacher(state, teacher_batch, args), repeats * 4),  # noqa: B023
         }
     return times
 

@@ -40,20 +40,7 @@ def timed(update, optimizers, fast: str, call, device: torch.device, repeats: in
 def goal_dqn_agent(groups: int, finetune: bool, device: torch.device) -> tuple[gdqn.Args, gdqn.Agent]:
     args = gdqn.Args(groups=groups, finetune=finetune)
     torch._dynamo.reset()  # a new agent: compile afresh rather than against the previous agent's guards
-    agent = gdqn.make_agent(
-        embed_dim=args.embed_dim,
-        hidden_dim=args.hidden_dim,
-        objective=args.rep,
-        groups=args.groups,
-        n_embed=args.n_embed,
-        vq_beta=args.vq_beta,
-        vq_decay=args.vq_decay,
-        vq_dead_code_steps=args.vq_dead_code_steps,
-        learning_rate=args.learning_rate,
-        rep_learning_rate=args.rep_learning_rate,
-        finetune=args.finetune,
-        device=device,
-    )
+    agent = gdqn.make_agent(args, device)
     return args, agent
 
 
@@ -91,11 +78,10 @@ def td_time(groups: int, finetune: bool, device: torch.device, fast: str) -> flo
         cell, goal, action = rng.integers(layout.n_cells), rng.integers(layout.n_cells), rng.integers(len(gdqn.MOVES))
         following = layout.next_cell[cell, action]
         replay.add(cell, following, goal, action, 5.0 if following == goal else -1.0, following == goal)
-    settings = {"gamma": args.gamma, "bonus_coef": args.bonus_coef, "double_dqn": args.double_dqn}
 
     def call(function):
         batch = replay.sample(args.batch_size, rng)
-        function(agent, batch, table, gdqn.td_inputs(embedder, batch, table, finetune, args.double_dqn), **settings)
+        function(agent, batch, table, gdqn.td_inputs(embedder, batch, table, finetune, args.double_dqn), args)
 
     return timed(gdqn.td_update, [agent.q_optimizer], fast, call, device)
 
@@ -106,10 +92,7 @@ def mnist_time(groups: int, device: torch.device, fast: str) -> float:
 
     args = mnist.Args(groups=groups)
     torch._dynamo.reset()
-    model = mnist.make_model(
-        args.latent_dim, args.hidden_dim, args.groups, args.n_embed, args.vq_beta, args.vq_decay,
-        args.vq_dead_code_steps, args.learning_rate, device,
-    )  # fmt: skip
+    model = mnist.make_model(args, device)
     images = torch.rand(50, args.batch_size, 3, 28, 28, device=device)
     count = iter(range(10**9))
 

@@ -52,26 +52,7 @@ def build(groups: int, device: str, **overrides) -> tuple[hrac.Args, np.ndarray,
     its make_agent."""
     args = hrac.Args(groups=groups, **overrides)
     bounds = hrac.subgoal_bounds(args.env_id, args.subgoal_scale)
-    agent = hrac.make_agent(
-        30,
-        8,
-        bounds,
-        hrac.MANAGER_GOAL_DIMS[args.env_id],
-        hidden_dim=args.hidden_dim,
-        actor_lr=args.actor_lr,
-        critic_lr=args.critic_lr,
-        critic_weight_decay=args.critic_weight_decay,
-        adj_lr=args.adj_lr,
-        groups=args.groups,
-        n_embed=args.n_embed,
-        embed_dim=args.embed_dim,
-        encoder_hidden_dim=args.encoder_hidden_dim,
-        encoder_lr=args.encoder_lr,
-        vq_beta=args.vq_beta,
-        vq_decay=args.vq_decay,
-        vq_dead_code_steps=args.vq_dead_code_steps,
-        device=torch.device(device),
-    )
+    agent = hrac.make_agent(30, 8, args, torch.device(device))
     return args, bounds, agent
 
 

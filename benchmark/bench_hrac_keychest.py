@@ -41,26 +41,8 @@ CPU = torch.device("cpu")
 
 
 def agent_from(args: kc.Args) -> kc.Agent:
-    """The script's make_agent on the CPU, with the values of `args` it takes."""
-    return kc.make_agent(
-        hidden_dim=args.hidden_dim,
-        man_actor_lr=args.man_actor_lr,
-        man_critic_lr=args.man_critic_lr,
-        ctrl_lr=args.ctrl_lr,
-        adj_lr=args.adj_lr,
-        adj_hidden_dim=args.adj_hidden_dim,
-        adj_embed_dim=args.adj_embed_dim,
-        groups=args.groups,
-        n_embed=args.n_embed,
-        vq_beta=args.vq_beta,
-        vq_decay=args.vq_decay,
-        vq_dead_code_steps=args.vq_dead_code_steps,
-        embed_dim=args.embed_dim,
-        dgrl_goal=args.dgrl_goal,
-        ae_hidden_dim=args.ae_hidden_dim,
-        ae_lr=args.ae_lr,
-        device=CPU,
-    )
+    """The script's make_agent on the CPU."""
+    return kc.make_agent(args, CPU)
 
 
 def td3_seconds(rng: np.random.Generator) -> float:
@@ -83,9 +65,7 @@ def td3_seconds(rng: np.random.Generator) -> float:
         kc.manager_update(
             agent,
             replay.sample(args.man_batch_size, CPU),
-            gamma=args.man_gamma,
-            tau=args.man_tau,
-            adj_weight=args.adj_weight,
+            args,
             threshold=(args.adj_margin_pos + args.adj_margin_neg) / 2,
             policy_term=counter[0] % args.man_policy_delay == 0,
         )
@@ -108,18 +88,7 @@ def controller_seconds(groups: int, envs: kc.KeyChestVecEnv, rng: np.random.Gene
     discounts = kc.segment_discounts(args.ctrl_gamma, args.k)
 
     def a2c_update():
-        kc.controller_update(
-            agent,
-            states,
-            goals,
-            actions,
-            next_states,
-            discounts=discounts,
-            entropy_coef=args.ctrl_entropy,
-            reward_scale=args.ctrl_reward_scale,
-            goal_threshold=args.goal_threshold,
-            reach_rule=args.reach_rule,
-        )
+        kc.controller_update(agent, states, goals, actions, next_states, discounts, args)
 
     acting_states = torch.as_tensor(envs._observe())
     acting_goals = kc.controller_goals(agent.goal_ae, torch.rand(envs.num_envs, 2) * 10, agent.dgrl_goal)[0]
@@ -148,8 +117,7 @@ def fast_updates(rng: np.random.Generator) -> dict[str, tuple]:
 
     def manager(function, agent):
         i = manager_calls[0] = manager_calls[0] + 1
-        flags = {"gamma": args.man_gamma, "tau": args.man_tau, "adj_weight": args.adj_weight, "threshold": threshold}
-        function(agent, batches[i % 64], **flags, policy_term=i % args.man_policy_delay == 0)
+        function(agent, batches[i % 64], args, threshold=threshold, policy_term=i % args.man_policy_delay == 0)
 
     torch.manual_seed(0)
     agent = agent_from(kc.Args(groups=0))
@@ -162,15 +130,13 @@ def fast_updates(rng: np.random.Generator) -> dict[str, tuple]:
         torch.as_tensor(rng.integers(4, size=500)),
         torch.as_tensor(rng.random((500, 3)) * 10, dtype=torch.float32),
     )
-    flags = {"entropy_coef": args.ctrl_entropy, "reward_scale": args.ctrl_reward_scale, "goal_threshold": args.goal_threshold}
-    flags["reach_rule"] = args.reach_rule
     discounts = kc.segment_discounts(args.ctrl_gamma, args.k)
     for groups in (0, 16):
         torch.manual_seed(0)
         agent = agent_from(kc.Args(groups=groups))
         optimizers = lambda agent: [agent.controller_optimizer] + ([agent.ae_optimizer] if agent.goal_ae is not None else [])  # noqa: E731
         updates[f"A2C (controller), 500 steps, G{groups}"] = (
-            kc.controller_update, agent, lambda function, agent: function(agent, *episode, discounts=discounts, **flags),
+            kc.controller_update, agent, lambda function, agent: function(agent, *episode, discounts, args),
             optimizers,
         )  # fmt: skip
     torch.manual_seed(0)

@@ -42,23 +42,7 @@ def update_time(
     through `--fast fast` (its compilation and capture done before the clock starts)."""
     args = ris.Args(groups=groups, batch_size=batch)
     torch._dynamo.reset()  # a new agent: compile afresh rather than against the previous agent's guards
-    agent = ris.make_agent(
-        state_dim,
-        goal_dim,
-        action_dim,
-        hidden_dim=args.hidden_dim,
-        q_lr=args.q_lr,
-        actor_lr=args.actor_lr,
-        h_lr=args.h_lr,
-        groups=args.groups,
-        embed_dim=args.embed_dim,
-        n_embed=args.n_embed,
-        vq_beta=args.vq_beta,
-        vq_decay=args.vq_decay,
-        vq_dead_code_steps=args.vq_dead_code_steps,
-        encoder_lr=args.encoder_lr,
-        device=device,
-    )
+    agent = ris.make_agent(state_dim, goal_dim, action_dim, args, device)
     replay = ris.EpisodeReplay(60_000, state_dim, action_dim, goal_dim, device)
     rng = np.random.default_rng(0)
     for _ in range(100):
@@ -71,18 +55,7 @@ def update_time(
 
     def step():
         sample = replay.sample(batch, goal_dim, ris.ANT_THRESHOLD, args.her_goal_frac, args.her_random_frac)
-        update(
-            agent,
-            sample,
-            goal_dim=goal_dim,
-            gamma=args.gamma,
-            tau=args.tau,
-            alpha=args.alpha,
-            h_lambda=args.h_lambda,
-            n_subgoals=args.n_subgoals,
-            prior_epsilon=args.prior_epsilon,
-            vq_loss_reduction=args.vq_loss_reduction,
-        )
+        update(agent, sample, args)
         if device.type == "cuda":
             torch.cuda.synchronize()
 

@@ -55,11 +55,7 @@ def filled_replay(episodes: int, rng: np.random.Generator, device: torch.device)
 
 def agent_of(args: sawyer.Args, device: torch.device) -> sawyer.Agent:
     """The script's make_agent with the flags of `args`, for 84x84 images and 2-d actions."""
-    return sawyer.make_agent(
-        84, 2, hidden_dim=args.hidden_dim, feature_dim=args.feature_dim, driml_dim=args.driml_dim, q_lr=args.q_lr,
-        actor_lr=args.actor_lr, h_lr=args.h_lr, encoder_lr=args.encoder_lr, groups=args.groups, n_embed=args.n_embed,
-        vq_beta=args.vq_beta, vq_decay=args.vq_decay, vq_dead_code_steps=args.vq_dead_code_steps, device=device,
-    )  # fmt: skip
+    return sawyer.make_agent(84, 2, args, device)
 
 
 def act_time(groups: int, device: torch.device) -> float:
@@ -91,12 +87,7 @@ def update_times(replay, batch: int, device: torch.device, rng: np.random.Genera
 
         def step(agent=agent, args=args):
             sample = replay.sample(batch, args.her_goal_frac, args.her_random_frac, rng)
-            sawyer.ris_update(
-                agent, sample, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda,
-                n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon, image_pad=args.image_pad,
-                driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
-                vq_commitment_grad=args.vq_commitment_grad,
-            )  # fmt: skip
+            sawyer.ris_update(agent, sample, args)
             if device.type == "cuda":
                 torch.cuda.synchronize()
 
@@ -126,12 +117,7 @@ def fast_update_times(replay, groups: int, batch: int, device: torch.device, rng
 
         def step(update=update, state=state):
             nonlocal calls
-            update(
-                state, batches[calls % len(batches)], gamma=args.gamma, tau=args.tau, alpha=args.alpha,
-                h_lambda=args.h_lambda, n_subgoals=args.n_subgoals, prior_epsilon=args.prior_epsilon,
-                image_pad=args.image_pad, driml_coef=args.driml_coef, vq_loss_reduction=args.vq_loss_reduction,
-                vq_commitment_grad=args.vq_commitment_grad,
-            )  # fmt: skip
+            update(state, batches[calls % len(batches)], args)
             calls += 1
             if device.type == "cuda":
                 torch.cuda.synchronize()

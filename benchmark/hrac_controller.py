@@ -23,13 +23,8 @@ import dgrl_hrac as hrac
 def agent_from(saved_args: dict) -> hrac.Agent:
     """An untrained agent (seed 0) with a checkpoint's flags, built by the script's make_agent (a 30-d state)."""
     torch.manual_seed(0)
-    bounds = hrac.subgoal_bounds(saved_args["env_id"], saved_args["subgoal_scale"])
-    flags = ("hidden_dim", "actor_lr", "critic_lr", "critic_weight_decay", "adj_lr", "groups", "n_embed", "embed_dim",
-             "encoder_hidden_dim", "encoder_lr", "vq_beta", "vq_decay", "vq_dead_code_steps")  # fmt: skip
-    manager_goal_dim = hrac.MANAGER_GOAL_DIMS[saved_args["env_id"]]
-    return hrac.make_agent(
-        30, 8, bounds, manager_goal_dim, **{name: saved_args[name] for name in flags}, device=torch.device("cpu")
-    )
+    args = hrac.Args(**{name: value for name, value in saved_args.items() if name in hrac.Args.__dataclass_fields__})
+    return hrac.make_agent(30, 8, args, torch.device("cpu"))
 
 
 def probe(agent: hrac.Agent, radius: float = 4.0, segments: int = 5, k: int = 10) -> tuple[float, float]:

@@ -6,7 +6,6 @@ teacher and one student update with and without DGRL, evaluation with scripted n
 points or killed after periodic saves equal straight runs, changed flags refused)."""
 
 import dataclasses
-import inspect
 import math
 import re
 import signal
@@ -34,12 +33,12 @@ DOORKEY, EMPTY, CORRIDOR = "MiniGrid-DoorKey-5x5-v0", "MiniGrid-Empty-5x5-v0", "
 ROOT = Path(__file__).resolve().parents[1]
 TINY_AGENT = dict(goal_channel="on", embed_dim=16, n_embed=8, vq_beta=0.25, vq_decay=0.99, vq_dead_code_steps=50)
 TINY_AGENT |= dict(learning_rate=1e-3, teacher_learning_rate=2e-3, rmsprop_alpha=0.99, rmsprop_eps=0.01)
-STUDENT_HYPER = {"gamma": 0.99, "baseline_coef": 0.5, "entropy_coef": 0.0005, "max_grad_norm": 40.0}
+STUDENT_ARGS = amigo.Args(gamma=0.99, baseline_coef=0.5, entropy_coef=0.0005, max_grad_norm=40.0)
 
 
 def tiny_agent(groups: int, width: int = 5, height: int = 5, **overrides) -> amigo.Agent:
     """The script's make_agent with small goal embeddings (16-d, 8 codes)."""
-    return amigo.make_agent(width, height, 7, "cpu", groups=groups, **(TINY_AGENT | overrides))
+    return amigo.make_agent(width, height, 7, amigo.Args(groups=groups, **(TINY_AGENT | overrides)), "cpu")
 
 
 def cell(x: int, y: int, height: int) -> int:
@@ -637,7 +636,8 @@ def test_teacher_update_steps_the_teacher_only_with_clipped_gradients():
     student = {name: p.detach().clone() for name, p in agent.student.named_parameters()}
     teacher = {name: p.detach().clone() for name, p in agent.teacher.named_parameters()}
     batch = amigo.teacher_tensors(batch, np.array([1.0, -0.3, 0.7, 1.0]), "cpu")
-    losses = amigo.teacher_update(agent, batch, baseline_coef=0.5, entropy_coef=0.05, max_grad_norm=1e-3)
+    args = amigo.Args(teacher_baseline_coef=0.5, teacher_entropy_coef=0.05, max_grad_norm=1e-3)
+    losses = amigo.teacher_update(agent, batch, args)
     assert set(losses) == {"loss", "policy_loss", "baseline_loss", "entropy"}
     for name, p in agent.student.named_parameters():
         torch.testing.assert_close(p, student[name])
@@ -700,8 +700,7 @@ def test_the_default_student_sees_the_goal_map_for_amigo_and_only_the_codes_unde
     """The agent main builds from the default flags: AMIGo's student gets the 10 embedded channels plus the one-hot goal
     cell (11), as the original; DGRL's gets the 10 alone, so a goal reaches it only through the goal embedding."""
     args = amigo.Args(env_id=DOORKEY, groups=groups)
-    agent_flags = [name for name, p in inspect.signature(amigo.make_agent).parameters.items() if p.kind is p.KEYWORD_ONLY]
-    agent = amigo.make_agent(5, 5, 7, "cpu", **{name: getattr(args, name) for name in agent_flags})
+    agent = amigo.make_agent(5, 5, 7, args, "cpu")
     goals, other_goals = torch.tensor([6, 7, 12, 18]), torch.tensor([8, 11, 13, 16])
     inputs, logits = trunk_inputs_and_logits(agent, goals)
     _, other_logits = trunk_inputs_and_logits(agent, other_goals)
@@ -755,7 +754,7 @@ def test_student_update_under_dgrl_moves_the_codebook_and_every_parameter():
         torch.testing.assert_close(value, buffers[name])
     teacher = {name: p.detach().clone() for name, p in agent.teacher.named_parameters()}
     params = {name: p.detach().clone() for name, p in [*agent.student.named_parameters(), *encoder.named_parameters()]}
-    metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), **STUDENT_HYPER)
+    metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), STUDENT_ARGS)
     assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
     assert not torch.equal(encoder.vq.ema_count, buffers["ema_count"])
     for name, p in [*agent.student.named_parameters(), *encoder.named_parameters()]:
@@ -807,7 +806,7 @@ def test_student_update_without_dgrl_matches_the_n_step_targets():
     discounts = 0.99 * (1.0 - rollout["dones"])
     vs, _ = naive_vtrace(rollout["logps"], rollout["logps"], rollout["rewards"], values[:T], values[T], discounts)
     params = {name: p.detach().clone() for name, p in [*student.named_parameters(), *encoder.named_parameters()]}
-    metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), **STUDENT_HYPER)
+    metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), STUDENT_ARGS)
     assert metrics["baseline_loss"].item() == pytest.approx(0.5 * ((vs - values[:T]) ** 2).sum(), rel=1e-4)
     assert metrics["codes"] is None and metrics["vq_loss"].item() == 0
     for name, p in [*student.named_parameters(), *encoder.named_parameters()]:
@@ -860,7 +859,7 @@ def test_fast_student_update_equals_eager_and_is_free_of_host_syncs(groups):
     batches = student_batches(agent, 31)
 
     def call(function, state, i):
-        metrics = function(state, batches[i], **STUDENT_HYPER)
+        metrics = function(state, batches[i], STUDENT_ARGS)
         return {name: value for name, value in metrics.items() if value is not None}  # AMIGo has no codes
 
     check_fast_update(amigo, amigo.student_update, agent, call, lambda state: [state.student_optimizer])
@@ -870,9 +869,10 @@ def test_fast_teacher_update_equals_eager_and_is_free_of_host_syncs():
     """--fast compile: teacher_update compiled (the teacher's loss, backward, gradient clipping, RMSprop step)."""
     agent = tiny_agent(groups=0)
     batches = teacher_batches(31)
+    args = amigo.Args(teacher_baseline_coef=0.5, teacher_entropy_coef=0.05, max_grad_norm=40.0)
 
     def call(function, state, i):
-        return function(state, batches[i], baseline_coef=0.5, entropy_coef=0.05, max_grad_norm=40.0)
+        return function(state, batches[i], args)
 
     check_fast_update(amigo, amigo.teacher_update, agent, call, lambda state: [state.teacher_optimizer])
 
@@ -890,7 +890,7 @@ def test_learning_rates_as_tensors_keep_eager_steps_identical():
     for i, batch in enumerate(batches):
         for agent in agents:
             amigo.set_learning_rate(agent.student_optimizer, 1e-3 * amigo.linear_decay(i * 300, 1000))
-            amigo.student_update(agent, batch, **STUDENT_HYPER)
+            amigo.student_update(agent, batch, STUDENT_ARGS)
     expected, got = training_tensors(agents[0]), training_tensors(agents[1])
     assert expected.keys() == got.keys()
     for key, tensor in expected.items():
@@ -914,7 +914,7 @@ def test_fast_student_update_follows_a_decaying_learning_rate_without_recompilin
         for i, batch in enumerate(batches):
             for state, function in ((eager, amigo.student_update), (fast, update)):
                 amigo.set_learning_rate(state.student_optimizer, 1e-3 * amigo.linear_decay(i * 100, 1000))
-                function(state, batch, **STUDENT_HYPER)
+                function(state, batch, STUDENT_ARGS)
     for key, value in training_tensors(eager).items():
         torch.testing.assert_close(training_tensors(fast)[key], value, rtol=1e-5, atol=1e-5)
 

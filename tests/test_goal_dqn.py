@@ -262,10 +262,10 @@ CPU = torch.device("cpu")
 
 
 def small_agent(groups: int = 4, finetune: bool = False, objective: str = "infomax") -> gdqn.Agent:
-    return gdqn.make_agent(
+    args = gdqn.Args(
         embed_dim=16,
         hidden_dim=32,
-        objective=objective,
+        rep=objective,
         groups=groups,
         n_embed=8,
         vq_beta=0.25,
@@ -274,8 +274,8 @@ def small_agent(groups: int = 4, finetune: bool = False, objective: str = "infom
         learning_rate=1e-2,
         rep_learning_rate=1e-2,
         finetune=finetune,
-        device=CPU,
     )
+    return gdqn.make_agent(args, CPU)
 
 
 def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
@@ -359,7 +359,7 @@ def test_td_update_minimises_the_double_dqn_loss_with_the_bonus_and_leaves_a_fro
     assert bonus[1] == 1.0  # at the goal every factor matches
     rep_before, q_before, target_before = snapshot(agent.rep), snapshot(agent.q_network), snapshot(agent.target_q_network)
     assert gdqn.td_inputs(embedder, batch, table, finetune=False, double_dqn=double_dqn) is None
-    metrics = gdqn.td_update(agent, batch, table, None, gamma=gamma, bonus_coef=bonus_coef, double_dqn=double_dqn)
+    metrics = gdqn.td_update(agent, batch, table, None, gdqn.Args(gamma=gamma, bonus_coef=bonus_coef, double_dqn=double_dqn))
     torch.testing.assert_close(metrics["td_loss"], expected_loss)
     torch.testing.assert_close(metrics["bonus"], bonus.mean())
     assert changed(rep_before, agent.rep) == set()  # frozen phi and codebook
@@ -374,7 +374,7 @@ def test_td_update_with_finetune_trains_the_encoder_and_the_codebook_but_not_the
     rep_before, target_before = snapshot(agent.rep), snapshot(agent.target_rep)
     batch = transitions_batch()
     observed = gdqn.td_inputs(embedder, batch, None, finetune=True, double_dqn=True)
-    metrics = gdqn.td_update(agent, batch, None, observed, gamma=0.9, bonus_coef=0.5, double_dqn=True)
+    metrics = gdqn.td_update(agent, batch, None, observed, gdqn.Args(gamma=0.9, bonus_coef=0.5, double_dqn=True))
     assert metrics["vq_loss"] > 0
     assert {"encoder.0.weight", "vq.codebook", "vq.ema_sum"} <= changed(rep_before, agent.rep)
     assert not any(name.startswith("psi") for name in changed(rep_before, agent.rep))  # the heads are not in the TD loss
@@ -484,8 +484,10 @@ def test_fast_td_update_equals_eager_and_is_free_of_host_syncs(groups, finetune)
     batches = [replay.sample(FAST_BATCH, rng) for _ in range(31)]
     observed = [gdqn.td_inputs(embedder, batch, table, finetune, True) for batch in batches]
 
+    settings = gdqn.Args(gamma=0.99, bonus_coef=0.5, double_dqn=True)
+
     def call(function, state, i):
-        return function(state, batches[i], table, observed[i], gamma=0.99, bonus_coef=0.5, double_dqn=True)
+        return function(state, batches[i], table, observed[i], settings)
 
     check_fast_update(gdqn, gdqn.td_update, agent, call, lambda state: [state.q_optimizer])
 

@@ -6,7 +6,6 @@ every env id in both modes (train, checkpoint, evaluate, video, Ctrl-C), and exa
 adjacency memory's states alone; whole runs stopped by SIGTERM, or killed outright after a periodic resume write, and
 continued with --resume)."""
 
-import inspect
 import re
 import signal
 import subprocess
@@ -448,12 +447,8 @@ def test_td3_target_is_the_smaller_of_the_two_target_critics():
 
 
 def make_agent(args: hrac.Args, state_dim: int = 30, action_dim: int = 8) -> hrac.Agent:
-    """The script's make_agent with the flags of `args` (every keyword it takes is a flag of the same name)."""
-    bounds = hrac.subgoal_bounds(args.env_id, args.subgoal_scale)
-    flags = {name: getattr(args, name) for name in inspect.signature(hrac.make_agent).parameters if hasattr(args, name)}
-    return hrac.make_agent(
-        state_dim, action_dim, bounds, hrac.MANAGER_GOAL_DIMS[args.env_id], **flags, device=torch.device("cpu")
-    )
+    """The script's make_agent with the flags of `args`."""
+    return hrac.make_agent(state_dim, action_dim, args, torch.device("cpu"))
 
 
 def agent(groups: int, env_id: str = "AntMaze", **overrides):

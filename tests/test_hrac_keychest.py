@@ -1,7 +1,6 @@
 """dgrl_hrac_keychest.py: Key-Chest layout and dynamics, BFS and adjacency labels, HRAC's losses, the agent and its
 updates, the subgoal autoencoder, subgoal proposals, smoke runs, checkpoints, Ctrl-C and flag validation."""
 
-import inspect
 import os
 import re
 import signal
@@ -310,8 +309,7 @@ def test_the_defaults_are_the_papers_wiring():
         for offset in (0.3, 0.4):  # diagonal offsets 0.42 and 0.57 from the cell: inside, then outside the radius
             figures = kc.controller_update(
                 agent, states, next_states[:, :2] + offset, torch.zeros(10, dtype=torch.long), next_states,
-                discounts=kc.segment_discounts(0.9, 5), entropy_coef=args.ctrl_entropy, reward_scale=args.ctrl_reward_scale,
-                goal_threshold=args.goal_threshold, reach_rule=args.reach_rule,
+                kc.segment_discounts(0.9, 5), args,
             )  # fmt: skip
             rewards[offset] = figures["charts/intrinsic_reward"].item()
         assert rewards == {0.3: 1.0, 0.4: 0.0}
@@ -344,9 +342,8 @@ def test_contrastive_loss_matches_its_formula():
 
 
 def agent_from(args: kc.Args) -> kc.Agent:
-    """The script's make_agent on the CPU, with the values of `args` it takes (each a keyword named as its flag)."""
-    names = inspect.signature(kc.make_agent).parameters.keys() - {"device"}
-    return kc.make_agent(**{name: getattr(args, name) for name in names}, device=torch.device("cpu"))
+    """The script's make_agent on the CPU."""
+    return kc.make_agent(args, torch.device("cpu"))
 
 
 def test_goal_autoencoder_round_trip_separates_cells():
@@ -373,7 +370,8 @@ def test_goal_autoencoder_round_trip_separates_cells():
 
 def test_controller_goals_in_each_mode():
     torch.manual_seed(0)
-    ae = kc.GoalAutoencoder(embed_dim=16, hidden_dim=32, groups=4, n_embed=8, beta=0.25, decay=0.99, dead_code_steps=0)
+    ae_flags = {"embed_dim": 16, "ae_hidden_dim": 32, "groups": 4, "n_embed": 8, "vq_beta": 0.25, "vq_decay": 0.99}
+    ae = kc.GoalAutoencoder(kc.Args(**ae_flags, vq_dead_code_steps=0))
     goals = torch.tensor([[3.0, 4.0], [11.0, 15.0]])
     inputs, targets, extra = kc.controller_goals(None, goals, "decoded")
     assert inputs is goals and targets is goals and extra is None  # HRAC: the raw subgoal, rewarded as it is
@@ -469,9 +467,8 @@ def test_manager_update_trains_both_nets_and_moves_the_targets_but_not_the_adjac
     replay.add(rng.random((64, 3)) * 10, rng.random((64, 2)) * 10, rng.random(64), rng.random((64, 3)) * 10, np.zeros(64))
     before = {name: parameters(getattr(agent, name)) for name in ("actor", "critic", "actor_target", "critic_target")}
     adjacency = parameters(agent.adjacency)
-    figures = kc.manager_update(
-        agent, replay.sample(32, torch.device("cpu")), gamma=0.99, tau=0.5, adj_weight=20.0, threshold=0.0, policy_term=True
-    )
+    flags = kc.Args(man_gamma=0.99, man_tau=0.5, adj_weight=20.0)
+    figures = kc.manager_update(agent, replay.sample(32, torch.device("cpu")), flags, threshold=0.0, policy_term=True)
     for name, values in before.items():
         assert not torch.equal(parameters(getattr(agent, name)), values), name
     assert torch.equal(parameters(agent.adjacency), adjacency)
@@ -488,11 +485,10 @@ def test_controller_update_trains_the_low_level_and_under_dgrl_the_autoencoder(g
     next_states = torch.tensor([[11.0, 8.0, 0.0]] * 12)  # every step ends on the raw subgoal
     controller = parameters(agent.controller)
     autoencoder = None if agent.goal_ae is None else (parameters(agent.goal_ae), agent.goal_ae.vq.codebook.clone())
+    flags = kc.Args(ctrl_entropy=0.01, ctrl_reward_scale=1.0, goal_threshold=0.5, reach_rule="euclidean")
     figures = kc.controller_update(
-        agent, states, goals, torch.zeros(12, dtype=torch.long), next_states,
-        discounts=kc.segment_discounts(0.9, 5), entropy_coef=0.01, reward_scale=1.0, goal_threshold=0.5,
-        reach_rule="euclidean",
-    )  # fmt: skip
+        agent, states, goals, torch.zeros(12, dtype=torch.long), next_states, kc.segment_discounts(0.9, 5), flags
+    )
     assert not torch.equal(parameters(agent.controller), controller)
     if groups:  # the autoencoder's step, and the EMA update of its codebook
         assert not torch.equal(parameters(agent.goal_ae), autoencoder[0])
@@ -514,10 +510,10 @@ def test_manager_update_with_a_tensor_policy_term_equals_the_bool_one():
     replay.add(rng.random((64, 3)) * 10, rng.random((64, 2)) * 10, rng.random(64), rng.random((64, 3)) * 10, np.zeros(64))
     batches = [replay.sample(32, torch.device("cpu")) for _ in range(6)]
     with_bools, with_tensors = agent, copy.deepcopy(agent)
+    flags = kc.Args(man_gamma=0.99, man_tau=0.5, adj_weight=20.0)
     for i, batch in enumerate(batches):
-        flags = {"gamma": 0.99, "tau": 0.5, "adj_weight": 20.0, "threshold": 1.1}
-        expected = kc.manager_update(with_bools, batch, **flags, policy_term=i % 2 == 0)
-        got = kc.manager_update(with_tensors, batch, **flags, policy_term=torch.tensor(float(i % 2 == 0)))
+        expected = kc.manager_update(with_bools, batch, flags, threshold=1.1, policy_term=i % 2 == 0)
+        got = kc.manager_update(with_tensors, batch, flags, threshold=1.1, policy_term=torch.tensor(float(i % 2 == 0)))
         assert all(torch.equal(got[key], expected[key]) for key in expected)
     for name in ("actor", "critic", "actor_target", "critic_target"):
         assert torch.equal(parameters(getattr(with_tensors, name)), parameters(getattr(with_bools, name))), name
@@ -553,10 +549,10 @@ def test_fast_controller_update_equals_eager_and_is_free_of_host_syncs(groups):
     rng = np.random.default_rng(0)
     episodes = [episode(rng, int(length)) for length in rng.integers(20, 60, 30)]
     discounts = kc.segment_discounts(0.9, 5)
+    flags = kc.Args(ctrl_entropy=0.01, ctrl_reward_scale=1.0, goal_threshold=0.5, reach_rule="euclidean")
 
     def call(function, state, i):
-        flags = {"entropy_coef": 0.01, "reward_scale": 1.0, "goal_threshold": 0.5, "reach_rule": "euclidean"}
-        return function(state, *episodes[i], discounts=discounts, **flags)
+        return function(state, *episodes[i], discounts, flags)
 
     optimizers = lambda state: [state.controller_optimizer] + ([state.ae_optimizer] if groups else [])  # noqa: E731
     check_fast_update(kc, kc.controller_update, agent, call, optimizers)
@@ -573,10 +569,10 @@ def test_fast_manager_update_equals_eager_and_is_free_of_host_syncs(groups):
                rng.random(256) < 0.1)  # fmt: skip
     batches = [replay.sample(32, torch.device("cpu")) for _ in range(31)]
     switches = (torch.tensor(0.0), torch.tensor(1.0))
+    flags = kc.Args(man_gamma=0.99, man_tau=0.01, adj_weight=20.0)
 
     def call(function, state, i):
-        flags = {"gamma": 0.99, "tau": 0.01, "adj_weight": 20.0, "threshold": 1.1}
-        return function(state, batches[i], **flags, policy_term=switches[i % 2 == 0])
+        return function(state, batches[i], flags, threshold=1.1, policy_term=switches[i % 2 == 0])
 
     optimizers = lambda state: [state.critic_optimizer, state.actor_optimizer]  # noqa: E731
     check_fast_update(kc, kc.manager_update, agent, call, optimizers)

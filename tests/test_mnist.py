@@ -133,9 +133,15 @@ def test_a_truncated_idx_file_is_refused_with_its_name(idx_folder):
 CPU = torch.device("cpu")
 
 
+def model_args(groups: int, hidden_dim: int, dead_code_steps: int) -> mnist.Args:
+    """make_model's flags in these tests: a 30-d latent, 16 codes, beta 0.25, decay 0.99, learning rate 1e-3."""
+    fields = {"latent_dim": 30, "n_embed": 16, "vq_beta": 0.25, "vq_decay": 0.99, "learning_rate": 1e-3}
+    return mnist.Args(groups=groups, hidden_dim=hidden_dim, vq_dead_code_steps=dead_code_steps, **fields)
+
+
 def test_the_dgrl_factor_of_a_latent_is_one_code():
     """With G=2 the two halves of the latent are exactly two codebook rows, so zeroing one half removes one factor."""
-    autoencoder = mnist.make_model(30, 64, 2, 16, 0.25, 0.99, 0, 1e-3, CPU).autoencoder.eval()
+    autoencoder = mnist.make_model(model_args(groups=2, hidden_dim=64, dead_code_steps=0), CPU).autoencoder.eval()
     latent, _, codes = autoencoder.quantize(torch.rand(5, 3, 28, 28))
     torch.testing.assert_close(latent[:, :15], autoencoder.vq.codebook[codes[:, 0]], rtol=0, atol=0)
     torch.testing.assert_close(latent[:, 15:], autoencoder.vq.codebook[codes[:, 1]], rtol=0, atol=0)
@@ -144,7 +150,7 @@ def test_the_dgrl_factor_of_a_latent_is_one_code():
 def test_train_step_minimises_the_per_image_squared_error_plus_the_vq_loss():
     """The reconstruction loss is summed over an image's 2,352 values and averaged over images; the VQ loss is beta x the
     squared distance of a factor to its code, summed over the factor's 15 values and averaged over images x factors."""
-    model = mnist.make_model(30, 64, 2, 16, 0.25, 0.99, 0, 1e-3, CPU)
+    model = mnist.make_model(model_args(groups=2, hidden_dim=64, dead_code_steps=0), CPU)
     autoencoder = model.autoencoder
     images = torch.rand(8, 3, 28, 28)
     with torch.no_grad():
@@ -163,7 +169,7 @@ def test_train_step_minimises_the_per_image_squared_error_plus_the_vq_loss():
     assert not torch.equal(autoencoder.encoder[1].weight, weight)  # Adam stepped
     assert not torch.equal(autoencoder.vq.codebook, codebook)  # and the codebook moved by its EMA
 
-    baseline = mnist.make_model(30, 64, 0, 16, 0.25, 0.99, 0, 1e-3, CPU)
+    baseline = mnist.make_model(model_args(groups=0, hidden_dim=64, dead_code_steps=0), CPU)
     assert baseline.autoencoder.vq is None
     metrics = mnist.train_step(baseline, images)
     assert metrics["vq_loss"].item() == 0 and "codes" not in metrics and metrics["reconstruction"].item() > 0
@@ -173,7 +179,7 @@ def test_train_step_minimises_the_per_image_squared_error_plus_the_vq_loss():
 def test_fast_train_step_equals_eager_and_is_free_of_host_syncs(groups):
     """--fast compile: train_step compiled (encoder, the codebook EMA with dead-code restarts, decoder, Adam, the
     codes' statistics) and equal to eager."""
-    model = mnist.make_model(30, 32, groups, 16, 0.25, 0.99, 3 if groups else 0, 1e-3, CPU)
+    model = mnist.make_model(model_args(groups, hidden_dim=32, dead_code_steps=3 if groups else 0), CPU)
     generator = torch.Generator().manual_seed(0)
     batches = [torch.rand(32, 3, 28, 28, generator=generator) for _ in range(31)]
 
@@ -188,7 +194,8 @@ def test_the_referees_stop_before_their_next_step_once_a_signal_came():
         raise AssertionError("a classifier trained on after the stop")
 
     targets = torch.zeros(10, dtype=torch.long)
-    classifier = mnist.train_classifier(never, targets, 10, 2, 4, torch.Generator().manual_seed(0), [signal.SIGINT])
+    args = mnist.Args(classifier_epochs=2, batch_size=4)
+    classifier = mnist.train_classifier(never, targets, 10, args, torch.Generator().manual_seed(0), [signal.SIGINT])
     assert not classifier.training
 
 

@@ -508,23 +508,9 @@ STATE_DIM_UPDATE, GOAL_DIM_UPDATE, ACTION_DIM_UPDATE, BATCH = 6, 2, 2, 32
 
 def tiny_agent(groups: int) -> tuple[ris.Agent, ris.EpisodeReplay]:
     """The script's own make_agent at a tiny size, and a replay of 8 random walks (each with its last point as goal)."""
-    agent = ris.make_agent(
-        STATE_DIM_UPDATE,
-        GOAL_DIM_UPDATE,
-        ACTION_DIM_UPDATE,
-        hidden_dim=16,
-        q_lr=1e-3,
-        actor_lr=1e-3,
-        h_lr=1e-4,
-        groups=groups,
-        embed_dim=8,
-        n_embed=8,
-        vq_beta=0.25,
-        vq_decay=0.99,
-        vq_dead_code_steps=0,
-        encoder_lr=1e-4,
-        device=torch.device("cpu"),
-    )
+    flags = dict(hidden_dim=16, q_lr=1e-3, actor_lr=1e-3, h_lr=1e-4, groups=groups, embed_dim=8, n_embed=8, vq_beta=0.25)
+    flags |= dict(vq_decay=0.99, vq_dead_code_steps=0, encoder_lr=1e-4)
+    agent = ris.make_agent(STATE_DIM_UPDATE, GOAL_DIM_UPDATE, ACTION_DIM_UPDATE, ris.Args(**flags), torch.device("cpu"))
     replay = ris.EpisodeReplay(500, STATE_DIM_UPDATE, ACTION_DIM_UPDATE, GOAL_DIM_UPDATE, torch.device("cpu"))
     rng = np.random.default_rng(0)
     for _ in range(8):
@@ -536,7 +522,7 @@ def tiny_agent(groups: int) -> tuple[ris.Agent, ris.EpisodeReplay]:
 
 def update(agent: ris.Agent, replay: ris.EpisodeReplay, **settings) -> dict[str, torch.Tensor]:
     batch = replay.sample(BATCH, GOAL_DIM_UPDATE, 0.45, 0.2, 0.4)
-    return ris.ris_update(agent, batch, goal_dim=GOAL_DIM_UPDATE, **(RIS_SETTINGS | settings))
+    return ris.ris_update(agent, batch, ris.Args(**(RIS_SETTINGS | settings)))
 
 
 def test_make_agent_wiring():
@@ -1023,8 +1009,10 @@ def test_fast_update_equals_eager_and_is_free_of_host_syncs(groups):
         agent.goal_encoder.vq.dead_code_steps = 3
     batches = [replay.sample(BATCH, GOAL_DIM_UPDATE, 0.45, 0.2, 0.4) for _ in range(31)]
 
+    settings = ris.Args(**RIS_SETTINGS)
+
     def call(function, state, i):
-        return function(state, batches[i], goal_dim=GOAL_DIM_UPDATE, **RIS_SETTINGS)
+        return function(state, batches[i], settings)
 
     optimizers = lambda state: [state.critic_optimizer, state.high_optimizer, state.actor_optimizer]  # noqa: E731
     check_fast_update(ris, ris.ris_update, agent, call, optimizers)

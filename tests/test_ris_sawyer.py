@@ -494,11 +494,7 @@ def test_the_replay_fills_to_a_batch_exactly_when_validate_accepts_its_size():
 
 def tiny_agent(groups: int):
     args = sawyer.Args(groups=groups, n_embed=8, hidden_dim=32, n_subgoals=3, batch_size=8, tau=0.25, driml_dim=16)
-    agent = sawyer.make_agent(
-        84, 2, hidden_dim=args.hidden_dim, feature_dim=args.feature_dim, driml_dim=args.driml_dim, q_lr=args.q_lr,
-        actor_lr=args.actor_lr, h_lr=args.h_lr, encoder_lr=args.encoder_lr, groups=args.groups, n_embed=args.n_embed,
-        vq_beta=args.vq_beta, vq_decay=args.vq_decay, vq_dead_code_steps=args.vq_dead_code_steps, device=torch.device("cpu"),
-    )  # fmt: skip
+    agent = sawyer.make_agent(84, 2, args, torch.device("cpu"))
     replay = sawyer.ImageEpisodeReplay(200, (84, 84, 3), 2)
     rng = np.random.default_rng(0)
     for _ in range(4):
@@ -512,11 +508,7 @@ def tiny_agent(groups: int):
 
 def update(agent: sawyer.Agent, batch: dict, args: sawyer.Args, function=sawyer.ris_update) -> dict:
     """ris_update (or its --fast version `function`) with the hyper-parameters of `args`, as the training loop calls it."""
-    return function(
-        agent, batch, gamma=args.gamma, tau=args.tau, alpha=args.alpha, h_lambda=args.h_lambda, n_subgoals=args.n_subgoals,
-        prior_epsilon=args.prior_epsilon, image_pad=args.image_pad, driml_coef=args.driml_coef,
-        vq_loss_reduction=args.vq_loss_reduction, vq_commitment_grad=args.vq_commitment_grad,
-    )  # fmt: skip
+    return function(agent, batch, args)
 
 
 def random_observations(n: int) -> dict:

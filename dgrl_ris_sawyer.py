@@ -272,6 +272,13 @@ class DrimlHeads(nn.Module):
         self.globl = nn.Sequential(nn.Linear(feature_dim, dim), nn.ReLU(), nn.Linear(dim, dim))
 
 
+def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
+    """The commitment losses of n equal-sized embeddings quantized in one call, from that call's loss (their mean): the
+    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet adds
+    the VQ losses of state, next state, goal and subgoal)."""
+    return pooled if reduction == "mean" else n_embeddings * pooled
+
+
 def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.Tensor:
     """What the actor and critics see of a goal or subgoal: its features (RIS) or their discrete embedding (DGRL), with the
     codebook untouched."""
@@ -558,7 +565,7 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
         goal_in = z_q[2 * batch_size : 3 * batch_size].detach()  # DGRL: the nets see the discrete goal embedding
         # The call's loss is the mean of the four commitment losses (the paper's text); --vq-loss-reduction sum: their sum
         # (the paper's snippet adds the VQ losses of state, next state, goal and subgoal).
-        commitment_loss = vq_loss if args.vq_loss_reduction == "mean" else 4 * vq_loss  # DGRL
+        commitment_loss = combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL
         representation_loss = representation_loss + commitment_loss  # DGRL: commitment trains the encoder
         metrics.update(vq_loss=vq_loss, codes=codes)
 

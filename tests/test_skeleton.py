@@ -49,12 +49,12 @@ def region(lines: list[str], start: str, end: str) -> tuple[int, int]:
 
 
 def shared_pieces(source: str) -> dict[str, str]:
-    """The shared pieces of one script's source: "Args" (the common fields, from the first field through
+    """The shared pieces of one script's source: "Args" (the common fields, from --exp-name through
     --checkpoint-every's docstring), each top-level name of the two shared regions (the run management and the checks),
     and write_video, as source text."""
     lines = source.splitlines()
     pieces = {}
-    start = lines.index("class Args:") + 1
+    start = next(i for i in range(lines.index("class Args:"), len(lines)) if lines[i].startswith("    exp_name: str"))
     end = next(i for i in range(start, len(lines)) if lines[i].startswith("    checkpoint_every: int")) + 2
     pieces["Args"] = "\n".join(lines[start:end])
     for banners in REGIONS:

@@ -24,7 +24,6 @@ The studies: `python benchmark/launch.py --preset amigo-paper` (and the CPU pres
 
 import copy
 import importlib.util
-import itertools
 import math
 import os
 import random
@@ -186,13 +185,11 @@ class GridEmbedding(nn.Module):
 def conv_stack(in_channels: int, width: int, height: int) -> tuple[nn.Sequential, int]:
     """AMIGo's student trunk: five [3x3 conv, stride 2, padding 1, 32 channels, ELU] blocks, orthogonal init."""
     layers = []
-    channels = in_channels
-    for _ in range(5):
-        conv = nn.Conv2d(channels, 32, 3, stride=2, padding=1)
+    for i in range(5):
+        conv = nn.Conv2d(32 if i else in_channels, 32, 3, stride=2, padding=1)
         nn.init.orthogonal_(conv.weight, nn.init.calculate_gain("relu"))
         nn.init.zeros_(conv.bias)
         layers += [conv, nn.ELU()]
-        channels = 32
     trunk = nn.Sequential(*layers, nn.Flatten())
     with torch.no_grad():
         out = trunk(torch.zeros(1, in_channels, width, height)).shape[1]
@@ -200,9 +197,8 @@ def conv_stack(in_channels: int, width: int, height: int) -> tuple[nn.Sequential
 
 
 class Student(nn.Module):
-    """AMIGo's student: the conv trunk over the embedded full grid (10 channels, plus the one-hot goal channel when
-    `goal_channel`), the carried object and colour embeddings and the goal embedding, then FC 256 - FC 256 (ReLU), a
-    policy and a baseline head. Without the channel the goal reaches it only through `goal_embedding`."""
+    """AMIGo's student: the conv trunk over the embedded grid (plus the one-hot goal channel when `goal_channel`), the
+    carried object's embeddings and the goal embedding, then FC 256 - FC 256 (ReLU), a policy and a baseline head."""
 
     def __init__(self, width: int, height: int, n_actions: int, goal_channel: bool, embed_dim: int):
         super().__init__()
@@ -218,24 +214,21 @@ class Student(nn.Module):
 
     def forward(self, grids, carried, goals, goal_embedding) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.trunk(self.embedding(grids, goals if self.goal_channel else None))
-        x = torch.cat([x, self.carried_object(carried[:, 0]), self.carried_color(carried[:, 1]), goal_embedding], 1)
-        x = self.fc(x)
+        x = self.fc(torch.cat([x, self.carried_object(carried[:, 0]), self.carried_color(carried[:, 1]), goal_embedding], 1))
         return self.policy(x), self.baseline(x).squeeze(-1)
 
 
 class GoalEncoder(nn.Module):
-    """Embeds a goal from what the student was shown when it was issued: the goal frame and the one-hot goal cell,
-    through the same trunk design as the student's, to an `embed_dim` vector. Under DGRL the vector is split into G
-    factors, each snapped to the nearest code of one shared EMA codebook; for AMIGo (G = 0) it stays continuous."""
+    """A goal from the frame it was issued on and its one-hot cell, through the student's trunk design, to an
+    --embed-dim vector: under DGRL split into G factors snapped to one shared EMA codebook, for AMIGo continuous."""
 
-    def __init__(self, width: int, height: int, embed_dim: int, groups: int, n_embed: int, beta, decay, dead_code_steps):
+    def __init__(self, width: int, height: int, args: Args):
         super().__init__()
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(11, width, height)
-        self.head = nn.Linear(trunk_out, embed_dim)
-        self.vq = None
-        if groups > 0:
-            self.vq = VectorQuantizerEMA(embed_dim, n_embed, groups, beta, decay, dead_code_steps=dead_code_steps)  # DGRL
+        self.head = nn.Linear(trunk_out, args.embed_dim)
+        codebook = (args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay)
+        self.vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps) if args.groups else None  # DGRL
 
     def forward(self, frames, goals, update: bool = False):
         """(goal embedding, commitment loss, code indices or None); `update=True` only in learner batches."""
@@ -252,13 +245,8 @@ class Teacher(nn.Module):
     def __init__(self, width: int, height: int):
         super().__init__()
         self.embedding = GridEmbedding()
-        channels = (10, 16, 16, 16, 1)
-        layers = []
-        for i, (cin, cout) in enumerate(itertools.pairwise(channels)):
-            layers.append(nn.Conv2d(cin, cout, 3, stride=1, padding=1))
-            if i < len(channels) - 2:
-                layers.append(nn.ELU())
-        self.net = nn.Sequential(*layers, nn.Flatten())
+        convs = [nn.Conv2d(cin, cout, 3, stride=1, padding=1) for cin, cout in ((10, 16), (16, 16), (16, 16), (16, 1))]
+        self.net = nn.Sequential(convs[0], nn.ELU(), convs[1], nn.ELU(), convs[2], nn.ELU(), convs[3], nn.Flatten())
         self.baseline = nn.Linear(width * height, 1)
 
     def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -268,9 +256,8 @@ class Teacher(nn.Module):
 
 @dataclass
 class Agent:
-    """AMIGo's two learners. The student and the goal encoder share one optimizer (the encoder learns from the student's
-    loss); the teacher has its own. Under DGRL the goal encoder holds the codebook (`goal_encoder.vq`), which moves by
-    EMA in learner batches and is in no optimizer; for AMIGo (G = 0) the same encoder stays continuous (`vq` is None)."""
+    """AMIGo's two learners: the student with the goal encoder (one optimizer: the encoder learns from the student's
+    loss) and the teacher. Under DGRL `goal_encoder.vq` holds the codebook, moved by EMA in learner batches only."""
 
     student: Student
     goal_encoder: GoalEncoder
@@ -278,8 +265,7 @@ class Agent:
     student_optimizer: torch.optim.Optimizer  # the student's and the goal encoder's parameters
     teacher_optimizer: torch.optim.Optimizer
 
-    def state_dicts(self) -> dict[str, dict]:
-        """Every network's state dict, the goal encoder's with its codebook buffers: what evaluation needs."""
+    def state_dicts(self) -> dict[str, dict]:  # the goal encoder's with its codebook buffers
         return {name: getattr(self, name).state_dict() for name in ("student", "goal_encoder", "teacher")}
 
     def load_state_dicts(self, saved: dict) -> None:
@@ -291,8 +277,7 @@ GOAL_CHANNELS = ("auto", "on", "off")  # --goal-channel's choices
 
 
 def resolve_goal_channel(goal_channel: str, groups: int) -> str:
-    """--goal-channel as a run uses and saves it, "on" or "off": "auto" keeps the original student's one-hot goal channel
-    for AMIGo (G = 0) and drops it under DGRL, where the goal reaches the student only through the bottleneck."""
+    """--goal-channel as a run uses and saves it: "auto" keeps AMIGo's one-hot goal channel and drops it under DGRL."""
     if goal_channel not in GOAL_CHANNELS:
         raise ValueError(f"goal_channel must be one of {', '.join(GOAL_CHANNELS)}; got {goal_channel!r}")
     if goal_channel == "auto":
@@ -301,13 +286,10 @@ def resolve_goal_channel(goal_channel: str, groups: int) -> str:
 
 
 def make_agent(width: int, height: int, n_actions: int, args: Args, device) -> Agent:
-    """The student (with the one-hot goal channel when --goal-channel, resolved with --groups, is "on"), the goal encoder
-    (continuous for --groups 0) and the teacher, built in this order (the seeded initial weights depend on it), with
-    their RMSProp optimizers."""
+    """The student, the goal encoder and the teacher (in this order: the seeded weights depend on it) and their RMSProps."""
     channel = resolve_goal_channel(args.goal_channel, args.groups) == "on"
     student = Student(width, height, n_actions, channel, args.embed_dim).to(device)
-    codebook = (args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps)
-    goal_encoder = GoalEncoder(width, height, args.embed_dim, *codebook).to(device)
+    goal_encoder = GoalEncoder(width, height, args).to(device)
     teacher = Teacher(width, height).to(device)
     rmsprop = {"alpha": args.rmsprop_alpha, "eps": args.rmsprop_eps}
     student_params = [*student.parameters(), *goal_encoder.parameters()]  # the goal encoder learns from the student's loss
@@ -319,24 +301,19 @@ def make_agent(width: int, height: int, n_actions: int, args: Args, device) -> A
 # --- Losses and updates -----------------------------------------------------------------------------------------------
 
 
-def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts, rho_bar: float = 1.0, c_bar: float = 1.0):
-    """V-trace targets and policy-gradient advantages (Espeholt et al. 2018), all (T, B) tensors but bootstrap (B,).
-
+def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts):
+    """V-trace targets and policy-gradient advantages (Espeholt et al. 2018), all (T, B) tensors but bootstrap (B,):
     v_s = V(x_s) + sum_t gamma^(t-s) (prod_{i<t} c_i) rho_t (r_t + gamma V(x_{t+1}) - V(x_t)), with truncated importance
-    weights rho = min(rho_bar, pi/mu) and c = min(c_bar, pi/mu). On-policy (pi = mu) v_s is the n-step return.
-    """
+    weights rho = c = min(1, pi/mu) (IMPALA's rho_bar = c_bar = 1). On-policy (pi = mu) v_s is the n-step return."""
     with torch.no_grad():
-        ratios = torch.exp(target_logp - behaviour_logp)
-        rhos = ratios.clamp(max=rho_bar)
-        cs = ratios.clamp(max=c_bar)
+        rhos = torch.exp(target_logp - behaviour_logp).clamp(max=1.0)
         next_values = torch.cat([values[1:], bootstrap[None]], 0)
         deltas = rhos * (rewards + discounts * next_values - values)
-        # corrections_s = sum_{t >= s} traces[s, t] deltas_t with traces[s, t] = prod_{s <= i < t} discounts_i c_i: the
-        # recursion acc_s = deltas_s + discounts_s c_s acc_{s+1}, written as one (T, T, B) product instead of a loop
-        # over time steps (T = 100 steps of ~4 small ops each, which dominated the learner's op count).
+        # the recursion acc_s = deltas_s + discounts_s c_s acc_{s+1} as one (T, T, B) product, traces[s, t] =
+        # prod_{s <= i < t} discounts_i c_i: a loop over T = 100 steps of small ops dominated the learner's op count
         steps = len(values)
         upper = torch.ones(steps, steps, dtype=torch.bool, device=values.device).triu()[..., None]  # i >= s
-        inclusive = torch.where(upper, (discounts * cs)[None], 1.0).cumprod(1)  # [s, i]: prod_{s <= j <= i}
+        inclusive = torch.where(upper, (discounts * rhos)[None], 1.0).cumprod(1)  # [s, i]: prod_{s <= j <= i}
         traces = torch.cat([torch.ones_like(inclusive[:, :1]), inclusive[:, :-1]], 1) * upper  # [s, t]: prod_{s <= j < t}
         vs = values + (traces * deltas[None]).sum(1)
         next_vs = torch.cat([vs[1:], bootstrap[None]], 0)
@@ -355,33 +332,28 @@ def actor_critic_loss(logits, values, actions, vs, advantages, baseline_coef: fl
 
 
 def teacher_tensors(batch: dict, rewards: np.ndarray, device) -> dict[str, torch.Tensor]:
-    """A teacher batch of goal outcomes (numpy, from OutcomeBuffer.pop) and their rewards as the tensors teacher_loss
-    and teacher_update take: frame, goal, logp (of the proposing teacher), reward (float32)."""
-    frames, goals, logps = tensors(device, batch["frame"], batch["goal"], batch["logp"])
-    rewards_t = torch.as_tensor(rewards, dtype=torch.float32, device=device)
-    return {"frame": frames, "goal": goals, "logp": logps, "reward": rewards_t}
+    """OutcomeBuffer.pop's goal outcomes and their rewards as teacher_update's tensors (logp: the proposing teacher's)."""
+    outcomes = {key: torch.as_tensor(batch[key], device=device) for key in ("frame", "goal", "logp")}
+    return outcomes | {"reward": torch.as_tensor(rewards, dtype=torch.float32, device=device)}
 
 
 def teacher_loss(teacher: Teacher, batch: dict[str, torch.Tensor], *, baseline_coef: float, entropy_coef: float):
     """The teacher's contextual-bandit update (discount 0): V-trace with one step reduces to an importance-weighted
     policy gradient, rho = min(1, pi/mu), with advantage rho * (r - b) and baseline target b + rho * (r - b)."""
     logits, baseline = teacher(batch["frame"])
-    goals, rewards_t, behaviour = batch["goal"], batch["reward"], batch["logp"]
-    log_probs = F.log_softmax(logits, -1)
-    logp = log_probs.gather(1, goals[:, None]).squeeze(1)
-    no_discount = torch.zeros_like(rewards_t)
-    vs, advantages = vtrace(
-        behaviour[None], logp.detach()[None], rewards_t[None], baseline.detach()[None], no_discount, no_discount[None]
-    )
+    goals = batch["goal"]
+    with torch.no_grad():
+        logp = F.log_softmax(logits, -1).gather(1, goals[:, None]).squeeze(1)
+        advantages = torch.exp(logp - batch["logp"]).clamp(max=1.0) * (batch["reward"] - baseline)
+    vs = baseline.detach() + advantages
     total, policy, base, entropy = actor_critic_loss(
-        logits[None], baseline[None], goals[None], vs, advantages, baseline_coef, entropy_coef
+        logits[None], baseline[None], goals[None], vs[None], advantages[None], baseline_coef, entropy_coef
     )
     return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy / len(goals)}
 
 
 def teacher_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict:
-    """One teacher step on teacher_tensors' batch of goal outcomes; tensors in, detached loss tensors out, nothing read
-    back to the host (--fast compiles it whole)."""
+    """One teacher step on teacher_tensors' batch: tensors in, detached loss tensors out, free of host syncs."""
     coefs = {"baseline_coef": args.teacher_baseline_coef, "entropy_coef": args.teacher_entropy_coef}
     losses = teacher_loss(agent.teacher, batch, **coefs)
     learn(agent.teacher_optimizer, losses["loss"], args.max_grad_norm)
@@ -389,9 +361,8 @@ def teacher_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> 
 
 
 def student_batch(rollout: dict, last: dict, device) -> dict[str, torch.Tensor]:
-    """A learner batch as the tensors student_update takes, from `rollout`'s (T, B, ...) arrays (grids, carried,
-    goal_frames, goals, actions, logps of the acting policy, rewards, dones) and `last`, the (B, ...) observation after
-    the rollout: the observations flattened to (T * B + B, ...) with the bootstrap rows last, the rest (T, B)."""
+    """student_update's tensors from `rollout`'s (T, B, ...) arrays and `last`, the (B, ...) observation after it: the
+    observations flattened to (T * B + B, ...) with the bootstrap rows last, the rest (T, B)."""
     T, B = rollout["actions"].shape
     obs = {key: np.concatenate([rollout[key].reshape(T * B, *rollout[key].shape[2:]), last[key]]) for key in last}
     keys = ("actions", "logps", "rewards", "dones")
@@ -399,9 +370,8 @@ def student_batch(rollout: dict, last: dict, device) -> dict[str, torch.Tensor]:
 
 
 def student_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict:
-    """One learner step on student_batch's tensors (the last B observation rows bootstrap). The goal encoder trains
-    through the student's loss, plus the commitment loss under DGRL. Tensors in, detached metric tensors out, nothing
-    read back to the host (--fast compiles it whole)."""
+    """One learner step on student_batch's tensors; the goal encoder trains through the student's loss (plus the
+    commitment loss under DGRL). Tensors in, detached metric tensors out, free of host syncs."""
     T, B = batch["actions"].shape
     goals = batch["goals"]
     embedding, vq_loss, codes = agent.goal_encoder(batch["goal_frames"], goals, update=True)  # DGRL: the codebook moves
@@ -429,17 +399,12 @@ def linear_decay(frames: int, total: int) -> float:
 def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Set every group's learning rate: in place where it is a tensor (learning_rates_as_tensors), as a float otherwise."""
     for group in optimizer.param_groups:
-        if isinstance(group["lr"], torch.Tensor):
-            group["lr"].fill_(lr)
-        else:
-            group["lr"] = lr
+        group["lr"] = group["lr"].fill_(lr) if isinstance(group["lr"], torch.Tensor) else lr
 
 
 def learning_rates_as_tensors(optimizers: list[torch.optim.Optimizer], as_tensors: bool) -> None:
-    """Make each group's learning rate a 0-d float32 tensor on its parameters' device (--fast compile, cudagraphs), or a
-    float (eager). torch.compile bakes a float learning rate into the graph, so a decaying one would recompile it every
-    update; a tensor it reads at each call. Eager RMSprop steps equal with either, but an eager step reads a tensor
-    learning rate back to the host, so eager keeps floats. Called after a resume too (the saved optimizers' rates)."""
+    """Each group's learning rate as a 0-d tensor on its parameters' device (--fast: a float one would be baked into the
+    compiled update, recompiled at every decay step) or a float (eager: a tensor one is read back to the host)."""
     for optimizer in optimizers:
         for group in optimizer.param_groups:
             lr = float(group["lr"])
@@ -454,9 +419,8 @@ def main(args: Args) -> None:
     validate(args)
     args.goal_channel = resolve_goal_channel(args.goal_channel, args.groups)  # saved, matched and resumed as on or off
     saved = load_resume(args) if args.resume is not None else None
-    if saved is None:
-        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    else:
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if saved is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
@@ -473,18 +437,6 @@ def main(args: Args) -> None:
     print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
     t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
     outcomes = OutcomeBuffer()
-
-    # Rollout storage: raw observations and goals (never code indices), the behaviour policy's log-probabilities.
-    rollout = {
-        "grids": np.zeros((T, n_envs, width, height, 3), dtype=np.uint8),
-        "carried": np.zeros((T, n_envs, 2), dtype=np.int64),
-        "goal_frames": np.zeros((T, n_envs, width, height, 3), dtype=np.uint8),
-        "goals": np.zeros((T, n_envs), dtype=np.int64),
-        "actions": np.zeros((T, n_envs), dtype=np.int64),
-        "logps": np.zeros((T, n_envs), dtype=np.float32),
-        "rewards": np.zeros((T, n_envs), dtype=np.float32),
-        "dones": np.zeros((T, n_envs), dtype=np.float32),
-    }
     obs, _ = envs.reset(seed=args.seed)
     book = GoalBook(n_envs, width, height)
     goal_embedding = torch.zeros(n_envs, args.embed_dim, device=device)
@@ -499,29 +451,25 @@ def main(args: Args) -> None:
         print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {loop.step}")
         set_rng_states(saved["rng"])  # last: building the run above drew from them
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-    metrics = {}
     learning_rates_as_tensors([agent.student_optimizer, agent.teacher_optimizer], as_tensors=args.fast != "eager")
     update_student = fast_update(student_update, args.fast, [agent.student_optimizer])
     update_teacher = fast_update(teacher_update, args.fast, [agent.teacher_optimizer])
     progress = Progress(args.total_timesteps, unit="frame", start_step=loop.step)
     while loop.step < args.total_timesteps and not stop:
-        # Collect: T steps of every env; goals are renewed on reaching and at episode ends.
+        # Collect: T steps of every env, storing raw observations and goals (never code indices) and the acting policy's
+        # log-probabilities; goals are renewed on reaching and at episode ends.
         goal_embedding = embed_goals(agent.goal_encoder, book.frame, book.goal, device)  # the encoder changed since
-        for t in range(T):
+        steps = []
+        for _ in range(T):
             goal0 = book.goal[0]
             actions, logps = act(agent.student, loop.obs, book.goal, goal_embedding, device)
-            rollout["grids"][t] = loop.obs["grid"]
-            rollout["carried"][t] = loop.obs["carried"]
-            rollout["goal_frames"][t] = book.frame
-            rollout["goals"][t] = book.goal
-            rollout["actions"][t] = actions
-            rollout["logps"][t] = logps
+            step = {"grids": loop.obs["grid"], "carried": loop.obs["carried"], "actions": actions, "logps": logps}
+            step |= {"goal_frames": book.frame.copy(), "goals": book.goal.copy()}
             loop.obs, extrinsic, terminated, truncated, info = envs.step(actions)
             reached = book.advance(info["final_grid"])
             done = terminated | truncated
-            intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
-            rollout["rewards"][t] = student_reward(extrinsic, intrinsic)
-            rollout["dones"][t] = done
+            rewards = student_reward(extrinsic, intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef))
+            steps.append(step | {"rewards": rewards.astype(np.float32), "dones": done.astype(np.float32)})
             # One teacher outcome per reached goal, and one per episode end for a goal still pending.
             renew = reached | done
             outcome = {"frame": book.frame, "goal": book.goal, "logp": book.logp, "reached": reached, "steps": book.steps}
@@ -552,15 +500,13 @@ def main(args: Args) -> None:
         # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
         student_lr = args.learning_rate * linear_decay(loop.step - n_envs * T, args.total_timesteps)  # at collection start
         set_learning_rate(agent.student_optimizer, student_lr)
+        rollout = {key: np.stack([step[key] for step in steps]) for key in steps[0]}
         last = {"grids": loop.obs["grid"], "carried": loop.obs["carried"], "goal_frames": book.frame, "goals": book.goal}
         for first in range(0, n_envs, args.batch_envs):
-            envs_slice = slice(first, first + args.batch_envs)
-            learner_batch = student_batch(
-                {key: value[:, envs_slice] for key, value in rollout.items()},
-                {key: value[envs_slice] for key, value in last.items()},
-                device,
-            )
-            metrics = update_student(agent, learner_batch, args)
+            part = slice(first, first + args.batch_envs)
+            rollout_part = {key: value[:, part] for key, value in rollout.items()}
+            last_part = {key: value[part] for key, value in last.items()}
+            metrics = update_student(agent, student_batch(rollout_part, last_part, device), args)
             loop.student_updates += 1
 
         # Teacher: one update per --teacher-batch-size outcomes, rewards under the current t*; then the t* schedule.
@@ -587,9 +533,9 @@ def main(args: Args) -> None:
                 writer.add_scalar(f"losses/{name}", metrics[name].item(), loop.step)
             writer.add_scalar("charts/learning_rate", student_lr, loop.step)
             if args.groups > 0:
-                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL
-                writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), loop.step)  # DGRL
-                writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), loop.step)  # DGRL
+                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)
+                writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), loop.step)
+                writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), loop.step)
 
         # Progress line (and checkpoint), every --progress-frequency frames and at the end.
         if loop.step >= loop.next_progress or loop.step >= args.total_timesteps:
@@ -632,15 +578,6 @@ def tensors(device, *arrays: np.ndarray) -> list[torch.Tensor]:
 
 
 @torch.no_grad()
-def propose_goals(teacher: Teacher, frames: np.ndarray, device) -> tuple[np.ndarray, np.ndarray]:
-    """Sample one goal cell per frame from the teacher; (goals, their log-probabilities)."""
-    logits, _ = teacher(torch.as_tensor(frames, device=device))
-    dist = torch.distributions.Categorical(logits=logits, validate_args=False)  # validation reads values back: a sync
-    goals = dist.sample()
-    return goals.cpu().numpy(), dist.log_prob(goals).cpu().numpy()
-
-
-@torch.no_grad()
 def embed_goals(goal_encoder: GoalEncoder, frames: np.ndarray, goals: np.ndarray, device) -> torch.Tensor:
     """Goal embeddings for acting, computed once per goal."""
     return goal_encoder(*tensors(device, frames, goals), update=False)[0]  # DGRL: acting never moves the codebook
@@ -655,16 +592,19 @@ def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Te
     return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
 
 
+@torch.no_grad()
 def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndarray, goal_embedding: torch.Tensor, device):
-    """New teacher goals for the envs in `mask`, issued on their current frames, and their embeddings."""
-    book.issue(mask, grids[mask], *propose_goals(agent.teacher, grids[mask], device))
+    """New teacher goals for the envs in `mask`, sampled and issued on their current frames, and their embeddings."""
+    logits, _ = agent.teacher(torch.as_tensor(grids[mask], device=device))
+    dist = torch.distributions.Categorical(logits=logits, validate_args=False)  # validation reads values back: a sync
+    goals = dist.sample()
+    book.issue(mask, grids[mask], goals.cpu().numpy(), dist.log_prob(goals).cpu().numpy())
     embeddings = embed_goals(agent.goal_encoder, book.frame[mask], book.goal[mask], device)
     goal_embedding[torch.as_tensor(np.flatnonzero(mask), device=device)] = embeddings  # a boolean index would sync
 
 
 def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.ndarray:
-    """Outline the goal cell in yellow on an rgb_array render of the grid (minigrid draws cell (x, y) at rows y and
-    columns x of `tile` pixels)."""
+    """Outline the goal cell in yellow on a render of the grid (minigrid draws cell (x, y) at rows y, columns x)."""
     frame = frame.copy()
     x, y = divmod(int(goal), height)
     cell = frame[y * tile : (y + 1) * tile, x * tile : (x + 1) * tile]
@@ -754,14 +694,10 @@ def carried(env) -> tuple[int, int]:
 
 class MiniGridVecEnv(gym.vector.VectorEnv):
     """`num_envs` MiniGrid envs stepped in one loop, fully observed, with same-step autoreset: gymnasium's VectorEnv API.
-
-    Observations: "grid", (num_envs, W, H, 3) uint8 ids (`full_grid`), and "carried", (num_envs, 2) int64 (`carried`).
-    `reset(seed=s)` seeds env i with s + i (a list: one seed each). An env whose episode ended is reset in the same step,
-    and info holds "final_grid", every env's grid right after the step, before any reset (dense, unlike gymnasium's
-    "final_obs", so that the goal-reach test runs on all envs at once), and "episode" {"r", "l"} where "_episode" is set
-    (RecordEpisodeStatistics' layout). Every reset generates a new layout (procedural generation). Only env 0 renders
-    (`render_env0`); while `record` is set, `frame0` is its frame after the last step, before any reset.
-    """
+    Observations: "grid" (`full_grid`'s ids) and "carried". `reset(seed=s)` seeds env i with s + i (or a list, one seed
+    each); every reset generates a new layout. info holds "final_grid", every env's grid right after the step, before any
+    reset (dense, unlike "final_obs": the goal test runs on all envs at once), and RecordEpisodeStatistics' "episode" and
+    "_episode". Only env 0 renders (`render_env0`); while `record` is set, `frame0` is its frame after the last step."""
 
     metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
 
@@ -771,12 +707,8 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
         ]
         for env in self.envs:
             env.gen_obs = lambda: None  # the egocentric 7x7 view, 80% of a step's time, unused: both see the full grid
-        self.env_id = env_id
-        self.num_envs = num_envs
-        self.render_mode = "rgb_array" if render_env0 else None
-        self.width = self.envs[0].width
-        self.height = self.envs[0].height
-        self.max_steps = self.envs[0].max_steps
+        self.env_id, self.num_envs, self.render_mode = env_id, num_envs, "rgb_array" if render_env0 else None
+        self.width, self.height, self.max_steps = self.envs[0].width, self.envs[0].height, self.envs[0].max_steps
         self.n_actions = int(self.envs[0].action_space.n)
         highest_id = np.broadcast_to(np.array([N_OBJECTS, N_COLORS, N_STATES]) - 1, (self.width, self.height, 3))
         grid_space = gym.spaces.Box(0, highest_id.astype(np.uint8), dtype=np.uint8)
@@ -790,16 +722,13 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
         self.carried = np.zeros((num_envs, 2), dtype=np.int64)
         self.episode_return = np.zeros(num_envs)
         self.episode_length = np.zeros(num_envs, dtype=np.int64)
-        self.record = False  # while set, `frame0` is env 0's render after each step
-        self.frame0 = None
+        self.record, self.frame0 = False, None  # while `record` is set, `frame0` is env 0's render after each step
 
     def _observe(self, i: int, target: np.ndarray) -> None:
-        env = self.envs[i]
-        grid = full_grid(env)
+        grid = full_grid(self.envs[i])
         if grid.shape != target.shape[1:]:
             raise RuntimeError(f"{self.env_id}: the grid changed size from {target.shape[1:3]} to {grid.shape[:2]}")
-        target[i] = grid
-        self.carried[i] = carried(env)
+        target[i], self.carried[i] = grid, carried(self.envs[i])
 
     def _observation(self) -> dict[str, np.ndarray]:
         return {"grid": self.grids.copy(), "carried": self.carried.copy()}
@@ -809,8 +738,7 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
         for i, env in enumerate(self.envs):
             env.reset(seed=seeds[i], options=options)
             self._observe(i, self.grids)
-        self.episode_return[:] = 0
-        self.episode_length[:] = 0
+        self.episode_return[:], self.episode_length[:] = 0, 0
         return self._observation(), {}
 
     def step(self, actions: np.ndarray):
@@ -834,8 +762,7 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
         for i in np.flatnonzero(done):
             self.envs[i].reset()
             self._observe(i, self.grids)
-        self.episode_return[done] = 0
-        self.episode_length[done] = 0
+        self.episode_return[done], self.episode_length[done] = 0, 0
         return self._observation(), rewards, terminated, truncated, info
 
     def render(self) -> tuple[np.ndarray]:
@@ -846,10 +773,9 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
             env.close()
 
     def get_state(self) -> dict:
-        """A copy of everything the next steps and resets depend on, for --resume: each env's attributes but the renderer's
-        and its spec (grid, agent, carried object, step count, np_random, what an env class adds), the observation and the
-        episode statistics, copied as a whole so that objects shared between attributes stay shared (pickling a gymnasium
-        env instead would rebuild it from its constructor arguments)."""
+        """For --resume, a copy of what the next steps and resets depend on: each env's attributes but NOT_ENV_STATE (grid,
+        agent, carried object, step count, np_random, ...), the observation and the episode statistics, copied as a whole
+        so that objects shared between attributes stay shared (pickling an env would rebuild it from its arguments)."""
         envs = [{key: value for key, value in env.__dict__.items() if key not in NOT_ENV_STATE} for env in self.envs]
         arrays = {key: getattr(self, key) for key in ("grids", "carried", "episode_return", "episode_length")}
         return copy.deepcopy({"envs": envs, **arrays})
@@ -867,8 +793,7 @@ NOT_ENV_STATE = ("window", "clock", "render_mode", "spec", "gen_obs")  # rendere
 
 
 class GoalBook:
-    """Per-env goal bookkeeping in numpy: the goal cell (flat index x * H + y), the frame it was issued on, the
-    teacher's log-probability of it and the steps taken since."""
+    """Per-env goals in numpy: the cell (flat index x * H + y), the frame it was issued on, its log-prob, steps since."""
 
     def __init__(self, num_envs: int, width: int, height: int):
         self.height = height
@@ -884,8 +809,7 @@ class GoalBook:
         x, y = np.divmod(self.goal, self.height)
         return (frames[rows, x, y] != self.frame[rows, x, y]).any(-1)
 
-    def advance(self, after: np.ndarray) -> np.ndarray:
-        """Count the step just taken and test every env's goal on the frame right after it (before any autoreset)."""
+    def advance(self, after: np.ndarray) -> np.ndarray:  # the frame right after the step, before any autoreset
         self.steps += 1
         return self.reached(after)
 
@@ -918,11 +842,7 @@ class TStar:
     (anything lower ends it); a streak of `patience` raises t* by one (up to `maximum`) and starts a new streak."""
 
     def __init__(self, start: int, threshold: float, patience: int, maximum: int):
-        self.value = start
-        self.threshold = threshold
-        self.patience = patience
-        self.maximum = maximum
-        self.streak = 0
+        self.value, self.threshold, self.patience, self.maximum, self.streak = start, threshold, patience, maximum, 0
 
     def update(self, mean_teacher_reward: float) -> int:
         self.streak = self.streak + 1 if mean_teacher_reward >= self.threshold else 0
@@ -936,8 +856,7 @@ class OutcomeBuffer:
     """Goal outcomes waiting for a teacher update: one per reached goal and one per episode end (goal not reached)."""
 
     def __init__(self):
-        self.parts: list[dict[str, np.ndarray]] = []
-        self.size = 0
+        self.parts, self.size = [], 0
 
     def add(self, **columns: np.ndarray) -> None:
         n = len(next(iter(columns.values())))
@@ -973,10 +892,9 @@ class LoopState:
 
 
 def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes, loop: LoopState) -> dict:
-    """Everything a stopped run needs to continue exactly, for runs/{run_name}/resume.pt (save_resume adds the global
-    random states, which acting and goal proposals draw from): the networks with the codebook and its EMA buffers, both
-    optimizers, the envs mid-episode with their generators, the goal book, t* and its streak, the goal outcomes waiting
-    for a teacher update, and the LoopState. Rollout storage is not saved: a run stops between collections."""
+    """Everything a stopped run needs to continue exactly, for resume.pt (save_resume adds the global random states): the
+    networks with the codebook's EMA buffers, the optimizers, the envs mid-episode, the goals, t*, the waiting outcomes
+    and the LoopState. Rollout storage is not saved: a run stops between collections."""
     return {
         "networks": agent.state_dicts(),
         "student_optimizer": agent.student_optimizer.state_dict(),
@@ -1011,7 +929,7 @@ VIDEO_FPS = 8
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1027,9 +945,8 @@ def seed_and_device(args) -> torch.device:
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
     """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
     if args.track:
-        wandb = importlib.import_module("wandb")  # an optional package, needed only here
         options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        wandb.init(**options, sync_tensorboard=True, save_code=True)
+        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -1100,6 +1017,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+    layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1113,10 +1031,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             advice = "start the run afresh without --resume, or put back an older copy of the file"
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
     older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
     if older:  # a flag added since: the file cannot say which value it had
         started = f" was started before {older} existed; continue it with the version that started it"
@@ -1141,7 +1059,7 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
 
 
 def load_resume(args) -> dict:
@@ -1301,21 +1219,9 @@ def exit_on_errors(errors: list[str]) -> None:
 # --- end of the shared checks -----------------------------------------------------------------------------------------
 
 
-def env_error(env_id: str) -> str | None:
-    """Why `env_id` cannot run here (a MiniGrid id whose env fails to build or reset), or None."""
-    try:
-        env = gym.make(env_id).unwrapped
-        env.reset(seed=0)
-        env.close()
-    except Exception as error:
-        return f"--env-id {env_id} fails to build or reset here ({type(error).__name__}: {error}); pick another MiniGrid id"
-    return None
-
-
 def boolean_goal_channel_errors(args: Args) -> list[str]:
-    """--checkpoint's file or --resume's resume.pt written when --goal-channel was a boolean (True: today's on, False:
-    off) can match no value of today's flag: say so, instead of naming a flag spelling that no longer exists. A file
-    that cannot be read is left to load_checkpoint's or load_resume's message."""
+    """Files saved when --goal-channel was a boolean match no value of today's flag: say so, rather than name a spelling
+    that no longer exists (an unreadable file is left to load_checkpoint's message)."""
     errors = []
     resume_file = args.resume and os.path.join(args.resume, RESUME_FILE)
     for flag, path, weights_only in (("--checkpoint", args.checkpoint, True), ("--resume", resume_file, False)):
@@ -1340,8 +1246,14 @@ def validate(args: Args) -> None:
         close = [name for name in ids if key and key in re.sub(r"[^a-z0-9]", "", name.lower())]
         hint = f"did you mean {', '.join(close[:6])}? " if close else ""
         errors.append(f"--env-id {args.env_id!r} is not a MiniGrid id; {hint}choices: {', '.join(ids)}")
-    elif (error := env_error(args.env_id)) is not None:
-        errors.append(error)
+    else:
+        try:  # a MiniGrid id whose env fails to build or reset here
+            env = gym.make(args.env_id).unwrapped
+            env.reset(seed=0)
+            env.close()
+        except Exception as error:
+            cause = f"{type(error).__name__}: {error}"
+            errors.append(f"--env-id {args.env_id} fails to build or reset here ({cause}); pick another MiniGrid id")
     positive_counts = "total_timesteps num_envs num_steps batch_envs teacher_batch_size t_star_patience progress_frequency"
     errors += range_errors(args, f"{positive_counts} video_frequency eval_episodes embed_dim", 1)
     errors += range_errors(args, "learning_rate teacher_learning_rate rmsprop_eps max_grad_norm", 0, low_open=True)
@@ -1349,9 +1261,7 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "gamma", 0, 1, low_open=True)
     errors += range_errors(args, "rmsprop_alpha", 0, 1, high_open=True)
     if args.t_star_threshold > 1:
-        errors.append(
-            f"--t-star-threshold must be <= 1 (teacher rewards are at most 1: t* never rises); got {args.t_star_threshold}"
-        )
+        errors.append(f"--t-star-threshold must be <= 1 (teacher rewards are at most 1); got {args.t_star_threshold}")
     if not 0 <= args.t_star_start <= args.t_star_max:
         errors.append(f"--t-star-start ({args.t_star_start}) must be in [0, --t-star-max ({args.t_star_max})]")
     frames = args.num_envs * args.num_steps

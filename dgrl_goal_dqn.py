@@ -158,8 +158,7 @@ class Args:
 
 
 class Representation(nn.Module):
-    """phi: 80x80x3 uint8 -> R^embed_dim, with the heads of its self-supervised objective and, for DGRL, the bottleneck
-    (`vq`, None for the baseline)."""
+    """phi: 80x80x3 uint8 -> R^embed_dim, with the heads of its self-supervised objective and (DGRL) the bottleneck."""
 
     def __init__(self, embed_dim: int, objective: str, groups: int, n_embed: int, beta: float, decay: float, dead_steps=0):
         super().__init__()
@@ -206,8 +205,7 @@ class QNetwork(nn.Module):
 
 @dataclass
 class Agent:
-    """Everything that learns. The DGRL bottleneck is `rep.vq` (None for --groups 0), inside phi, so that a target copy
-    of phi carries its codebook."""
+    """Everything that learns. The DGRL bottleneck is `rep.vq`, inside phi, so that a target copy of phi carries it."""
 
     rep: Representation  # phi with its pre-training heads and the bottleneck
     q_network: QNetwork
@@ -218,9 +216,7 @@ class Agent:
 
 
 def make_agent(args: Args, device: torch.device) -> Agent:
-    """The agent of the script, the tests and the benchmarks: phi (with the bottleneck for --groups > 0), the Q-network,
-    their targets and the two Adam optimizers. A target of phi exists only with --finetune; copy phi into it once
-    pre-training ends. (The maze's sizes are constants: 80x80x3 images, len(MOVES) actions.)"""
+    """phi (with the bottleneck for --groups > 0), the Q-network, their targets and the two Adam optimizers."""
     dgrl_flags = (args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps)
     rep = Representation(args.embed_dim, args.rep, *dgrl_flags).to(device)  # DGRL: phi with the bottleneck
     q_network = QNetwork(args.embed_dim, args.hidden_dim).to(device)
@@ -238,62 +234,6 @@ def make_agent(args: Args, device: torch.device) -> Agent:
 # --- Losses, data, updates --------------------------------------------------------------------------------------------
 
 
-# The maze's static structure, here rather than with the environment (appendix, below): the annotations of the
-# functions that follow name it, and Python evaluates those when it defines the functions.
-class MazeLayout:
-    """A maze's static structure: its transition table, its clean images, the shortest-path distances."""
-
-    def __init__(self, name: str):
-        rows = LAYOUTS[name]
-        self.name = name
-        self.size = (len(rows) - 1) // 2
-        self.n_cells = self.size * self.size
-        self.next_cell = np.empty((self.n_cells, len(MOVES)), dtype=np.int64)
-        for row in range(self.size):
-            for col in range(self.size):
-                for action, (d_row, d_col) in enumerate(MOVES):
-                    blocked = rows[2 * row + 1 + d_row][2 * col + 1 + d_col] == "#"
-                    target = row * self.size + col if blocked else (row + d_row) * self.size + col + d_col
-                    self.next_cell[row * self.size + col, action] = target
-        wall_chars = np.array([[char == "#" for char in line] for line in rows])
-        side = len(rows) * PIXELS_PER_CHAR + 2 * BORDER
-        self.floor = np.zeros((side, side), dtype=bool)
-        self.floor[BORDER:-BORDER, BORDER:-BORDER] = ~wall_chars.repeat(PIXELS_PER_CHAR, 0).repeat(PIXELS_PER_CHAR, 1)
-        background = np.where(self.floor[..., None], np.array(FLOOR_RGB, np.uint8), np.array(WALL_RGB, np.uint8))
-        self.images = np.repeat(background[None], self.n_cells, axis=0)
-        for cell in range(self.n_cells):
-            top = BORDER + (2 * (cell // self.size) + 1) * PIXELS_PER_CHAR
-            left = BORDER + (2 * (cell % self.size) + 1) * PIXELS_PER_CHAR
-            self.images[cell, top : top + PIXELS_PER_CHAR, left : left + PIXELS_PER_CHAR] = AGENT_RGB
-        self.agent_mask = (self.images != background[None]).any(-1)
-        self.distances = self._all_pairs_distances()
-
-    def _all_pairs_distances(self) -> np.ndarray:
-        """Shortest-path lengths between all pairs of cells, by breadth-first search from every cell."""
-        distances = np.full((self.n_cells, self.n_cells), -1, dtype=np.int64)
-        for source in range(self.n_cells):
-            distances[source, source] = 0
-            frontier = [source]
-            while frontier:
-                following = []
-                for cell in frontier:
-                    for neighbour in self.next_cell[cell]:
-                        if distances[source, neighbour] < 0:
-                            distances[source, neighbour] = distances[source, cell] + 1
-                            following.append(neighbour)
-                frontier = following
-        return distances
-
-    def render(self, cells: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
-        """uint8 images (len(cells), 80, 80, 3) of the agent in `cells`; with noise, fresh random floor pixels."""
-        images = self.images[cells]
-        if noise > 0:
-            floor = self.floor[None] & ~self.agent_mask[cells]
-            speckle = rng.integers(0, int(noise * 255) + 1, size=images.shape, dtype=np.uint8)
-            images = np.where(floor[..., None], images + speckle, images)
-        return images
-
-
 def infonce_loss(anchors: torch.Tensor, positives: torch.Tensor, clip: float = 20.0) -> torch.Tensor:
     """InfoNCE with in-batch negatives: row i of `anchors` must pick row i of `positives` among all rows. Scores are dot
     products over sqrt(dim), soft-clipped to (-clip, clip) by clip * tanh(x / clip), as in DRIML."""
@@ -309,51 +249,28 @@ def intrinsic_bonus(z_state: torch.Tensor, z_goal: torch.Tensor, codes_state: to
     return F.cosine_similarity(z_state, z_goal, dim=-1)
 
 
-def bonus_quality(bonus: np.ndarray, layout: MazeLayout) -> tuple[float, float]:
-    """How well a (cell, goal) bonus matrix tracks the maze: its correlation with minus the shortest-path distance over
-    all pairs of distinct cells, and the fraction of moves one step closer to a goal that strictly raise the bonus."""
-    off_diagonal = ~np.eye(layout.n_cells, dtype=bool)
-    flat_bonus = bonus[off_diagonal]
-    correlation = 0.0 if flat_bonus.std() == 0 else float(np.corrcoef(flat_bonus, -layout.distances[off_diagonal])[0, 1])
-    closer = layout.distances[layout.next_cell] < layout.distances[:, None, :]  # (cell, action, goal)
-    raised = bonus[layout.next_cell] > bonus[:, None, :]
-    return correlation, float(raised[closer].mean())
-
-
-def random_walks(layout: MazeLayout, n_transitions: int, walk_length: int, rng: np.random.Generator):
+def random_walks(layout: "MazeLayout", n_transitions: int, walk_length: int, rng: np.random.Generator):
     """(cells, actions, next cells) of uniform random walks, each from a uniformly random cell, vectorised over walks."""
     n_walks = -(-n_transitions // walk_length)
-    cell = rng.integers(layout.n_cells, size=n_walks)
-    cells, actions, next_cells = [], [], []
+    cells, actions = [rng.integers(layout.n_cells, size=n_walks)], []
     for _ in range(walk_length):
-        action = rng.integers(len(MOVES), size=n_walks)
-        following = layout.next_cell[cell, action]
-        cells.append(cell)
-        actions.append(action)
-        next_cells.append(following)
-        cell = following
-    return tuple(np.stack(column, axis=1).reshape(-1)[:n_transitions] for column in (cells, actions, next_cells))
+        actions.append(rng.integers(len(MOVES), size=n_walks))
+        cells.append(layout.next_cell[cells[-1], actions[-1]])
+    return tuple(np.stack(column, axis=1).reshape(-1)[:n_transitions] for column in (cells[:-1], actions, cells[1:]))
 
 
 class CellEmbedder:
-    """Embeddings of the observations of given cells, computed as cheaply as exactness allows.
+    """Embeddings of the observations of given cells. With --noise 0 an observation is a function of the cell alone, so
+    the encoder runs once on the 36 distinct images and the batch gathers from them (the same values and gradients as
+    encoding the batch, far cheaper); with noise, the batch's images are rendered with fresh noise and encoded."""
 
-    With --noise 0 an observation is a function of the agent's cell alone, so the encoder runs once on the 36 distinct
-    images and the batch gathers from them: the same values and gradients as encoding the batch, at a fraction of the
-    cost. With noise, the batch's images are rendered with fresh noise and encoded.
-    """
-
-    def __init__(self, layout: MazeLayout, noise: float, device: torch.device, rng: np.random.Generator):
-        self.layout = layout
-        self.noise = noise
-        self.device = device
-        self.rng = rng
+    def __init__(self, layout: "MazeLayout", noise: float, device: torch.device, rng: np.random.Generator):
+        self.layout, self.noise, self.device, self.rng = layout, noise, device, rng
         self.all_images = torch.as_tensor(layout.images, device=device)
 
     def inputs(self, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(images, rows) of the observations of `cells`, as embed_images takes them: the 36 images and the cells as
-        their rows without noise; with noise, the batch's images drawn on the host (outside an update: it reads the
-        cells back and draws from the numpy generator)."""
+        """(images, rows) for embed_images: the 36 images and the cells as rows; with noise, the batch's images, drawn on
+        the host (outside an update: it reads the cells back and draws from the numpy generator) and rows None."""
         if self.noise == 0:
             return self.all_images, cells
         images = self.layout.render(cells.cpu().numpy(), self.noise, self.rng)
@@ -364,15 +281,12 @@ class CellEmbedder:
 
 
 def embed_images(rep: Representation, images: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
-    """phi's embeddings of `images`, or of their `rows` (CellEmbedder.inputs' pair)."""
     z = rep.embed(images)
     return z if rows is None else z[rows]
 
 
 @dataclass
-class CellTable:
-    """phi's embeddings, the features the agent sees and (DGRL) the codes of the maze's noiseless cell images."""
-
+class CellTable:  # phi's embeddings, the features the agent sees and (DGRL) the codes of the maze's noiseless cell images
     z: torch.Tensor
     features: torch.Tensor
     codes: torch.Tensor | None  # None for the baseline
@@ -380,15 +294,14 @@ class CellTable:
 
 @torch.no_grad()
 def cell_table(rep: Representation, embedder: CellEmbedder) -> CellTable:
-    """Encode every cell's noiseless image once (the codebook does not update)."""
     z = rep.embed(embedder.all_images)
-    features, _, codes = rep(z)
+    features, _, codes = rep(z)  # the codebook does not update
     return CellTable(z, features, codes)
 
 
 def cell_features(model: Representation, cells: torch.Tensor, table: CellTable | None, observed: tuple | None, update=False):
-    """(features, continuous embedding, commitment loss, codes) of the observations of `cells` under `model`: rows of
-    `table` when there is one (a frozen phi on noiseless images), else the encoded `observed` (CellEmbedder.inputs)."""
+    """(features, embedding, commitment loss, codes) of the observations of `cells`: rows of `table` when there is one
+    (a frozen phi on noiseless images), else `model` on `observed` (CellEmbedder.inputs)."""
     if table is not None:
         codes = None if table.codes is None else table.codes[cells]
         return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
@@ -405,24 +318,20 @@ class Batch(NamedTuple):  # a pytree: CudaGraphUpdate copies its tensors
 
 
 class ReplayBuffer:
-    """Transitions as (cell, next cell, goal cell, action, reward, terminated), stored on the training device. The cells
-    fix the raw images (with --noise, up to the noise), so the replay never stores code indices. The batch's rows are
-    drawn on the host from the run's numpy generator and gathered on the device: one small copy per batch."""
+    """Transitions as (cell, next cell, goal cell, action, reward, terminated) on the training device: the cells fix the
+    raw images (up to the noise), never code indices. Rows are drawn on the host from the run's numpy generator."""
 
     FIELDS = ("cells", "actions", "rewards", "terminated")
 
     def __init__(self, size: int, device: torch.device):
-        self.device = device
+        self.device, self.position, self.count = device, 0, 0
         self.cells = torch.zeros((size, 3), dtype=torch.int64, device=device)
         self.actions = torch.zeros(size, dtype=torch.int64, device=device)
         self.rewards = torch.zeros(size, dtype=torch.float32, device=device)
         self.terminated = torch.zeros(size, dtype=torch.float32, device=device)
-        self.position = 0
-        self.count = 0
 
     def add(self, cell: int, next_cell: int, goal_cell: int, action: int, reward: float, terminated: bool) -> None:
-        """Python numbers written in place: on a GPU, fills launched without a copy from the host or a wait."""
-        row = self.position
+        row = self.position  # Python numbers written in place: on a GPU, fills without a copy from the host or a wait
         self.cells[row, 0], self.cells[row, 1], self.cells[row, 2] = int(cell), int(next_cell), int(goal_cell)
         self.actions[row] = int(action)
         self.rewards[row] = float(reward)
@@ -435,8 +344,7 @@ class ReplayBuffer:
         return Batch(self.cells[rows], self.actions[rows], self.rewards[rows], self.terminated[rows])
 
     def state_dict(self) -> dict:
-        """The stored rows (a copy on the CPU) and the write position. Until the memory wraps, rows [0, count) are the filled
-        ones; after, count is the size: so only the filled part is kept."""
+        """The filled rows [0, count) (a CPU copy) and the write position."""
         stored = {name: getattr(self, name)[: self.count].to("cpu", copy=True) for name in self.FIELDS}
         return stored | {"position": self.position, "count": self.count}
 
@@ -447,9 +355,8 @@ class ReplayBuffer:
 
 
 def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor, objective: str) -> tuple:
-    """pretrain_step's tensors for the random-walk transitions `rows` of `walks` (cells, actions, next cells): the
-    observations of the states then the next states as (images, rows) of embed_images (with --noise, drawn here), the
-    actions, and the clean images of the states (the autoencoder's targets; None for infomax)."""
+    """pretrain_step's tensors for the random-walk transitions `rows`: the states' then the next states' observations as
+    embed_images' (images, rows), the actions, and the states' clean images (the autoencoder's targets)."""
     cells, actions, next_cells = walks
     images, image_rows = embedder.inputs(torch.cat([cells[rows], next_cells[rows]]))
     clean_images = embedder.all_images[cells[rows]] if objective == "autoencoder" else None
@@ -457,9 +364,8 @@ def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], row
 
 
 def pretrain_step(agent: Agent, images: torch.Tensor, image_rows: torch.Tensor | None, actions: torch.Tensor, clean_images):
-    """One Adam step of phi's self-supervised objective on a batch of random-walk transitions (pretrain_inputs), plus,
-    for DGRL, the commitment loss and one EMA update of the codebook. Returns the detached metrics: the objective's
-    loss, the commitment loss and (DGRL) the perplexity of the batch's codes."""
+    """One Adam step of phi's self-supervised objective plus, for DGRL, the commitment loss and one EMA update of the
+    codebook. Returns the detached metrics (the objective's loss, the commitment loss, DGRL's perplexity)."""
     rep = agent.rep
     z = embed_images(rep, images, image_rows)
     _, vq_loss, codes = rep(z, update=True)  # DGRL: one pooled update for s and s', the mean of their commitment losses
@@ -478,9 +384,8 @@ def pretrain_step(agent: Agent, images: torch.Tensor, image_rows: torch.Tensor |
 
 
 def td_inputs(embedder: CellEmbedder, batch: Batch, table: CellTable | None, finetune: bool, double_dqn: bool):
-    """td_update's observations when it has no table, as CellEmbedder.inputs' (images, rows), in the order it encodes
-    them: (next state, goal) for the targets, the same again for the online network's Double DQN choice with --finetune
-    (else None), (state, goal) for the loss. With --noise each draws fresh noise, here on the host."""
+    """td_update's observations when it has no table, in the order it encodes them: (next state, goal) for the targets,
+    again for the online network's Double DQN choice with --finetune (else None), (state, goal) for the loss."""
     if table is not None:
         return None
     next_goal_cells = torch.cat([batch.cells[:, 1], batch.cells[:, 2]])
@@ -491,9 +396,8 @@ def td_inputs(embedder: CellEmbedder, batch: Batch, table: CellTable | None, fin
 
 def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tuple | None, args: Args) -> dict:
     """One DQN step: smooth-L1 between Q(s, g, a) and r + bonus_coef * bonus(s', g) + gamma * Q_target(s', g, a'), a'
-    from the online network (Double DQN) or the target's max. Features are rows of `table` (frozen phi, no noise), else
-    encoded from `observed` (td_inputs). With a target phi (--finetune) the TD loss trains phi's encoder and the codebook
-    updates on the (state, goal) batch. Returns the detached metrics."""
+    from the online network (Double DQN) or the target's max. With a target phi (--finetune) the TD loss trains phi's
+    encoder and the codebook updates on the (state, goal) batch. Returns the detached metrics."""
     finetune = agent.target_rep is not None
     next_goal, online_next_goal, state_goal = (None, None, None) if observed is None else observed
     with torch.no_grad():
@@ -544,15 +448,13 @@ def main(args: Args) -> None:
     agent = make_agent(args, device)
 
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
-
     if args.checkpoint is not None:
         evaluate_checkpoint(args, agent, embedder, layout, goals, optimal_steps)
         return
 
     # A resumed run's TensorBoard drops what the stopped run logged from the first step its resume file has not logged
     # (of the phase it stopped in). Step 0 always stays: a file saved at step 0 follows everything logged at step 0.
-    first_unlogged = None
-    resumed = ""
+    first_unlogged, resumed = None, ""
     if saved is not None:
         phase, step_key = ("DQN", "global_step") if saved["loop"]["dqn_phase"] else ("pre-training", "rep_step")
         first_unlogged = max(saved["loop"][step_key], 1)
@@ -566,8 +468,9 @@ def main(args: Args) -> None:
         torch.as_tensor(column, device=device)
         for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
     )
+    maze = VisualMazeEnv(layout, goals["train"], args.random_start, args.noise)
     envs = gym.vector.SyncVectorEnv(
-        [make_env(layout, goals["train"], args.random_start, args.noise, args.max_episode_steps)],
+        [lambda: gym.wrappers.RecordEpisodeStatistics(gym.wrappers.TimeLimit(maze, args.max_episode_steps))],
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
     envs.action_space.seed(args.seed)
@@ -576,9 +479,7 @@ def main(args: Args) -> None:
     exploration_steps = args.exploration_fraction * args.total_timesteps
     loop = LoopState(observations=observations, infos=infos, next_eval=args.eval_frequency)
 
-    def write_resume() -> None:
-        """runs/{run_name}/resume.pt with the whole training state as it is now. TensorBoard is flushed first: after a
-        kill -9, every point up to the file's step is on disk."""
+    def write_resume() -> None:  # TensorBoard first: after a kill -9, every point up to the file's step is on disk
         writer.flush()
         save_resume(run_name, training_state(agent, rng, envs, replay, loop), args)
 
@@ -590,8 +491,7 @@ def main(args: Args) -> None:
         set_rng_states(saved["rng"])  # last: building the agent drew from the global generators (nothing below does until
         # the loops, and nothing between the two loops draws, so this also holds for a run resumed in the DQN phase)
 
-    # The two updates as --fast asks (eagerly, compiled, or replayed as CUDA graphs), each made once.
-    pretrain = fast_update(pretrain_step, args.fast, [agent.rep_optimizer])
+    pretrain = fast_update(pretrain_step, args.fast, [agent.rep_optimizer])  # as --fast asks, each made once
     td = fast_update(td_update, args.fast, [agent.q_optimizer])
 
     # Phase 1: pre-train phi (and, for DGRL, the codebook on its embeddings) on random-walk transitions.
@@ -617,24 +517,7 @@ def main(args: Args) -> None:
     agent.rep.requires_grad_(args.finetune)
     pretrained = cell_table(agent.rep, embedder)
     if loop.rep_step == args.rep_steps and not loop.dqn_phase:  # pre-training has just ended (a stop skips this)
-        # The codebook's health and how well the bonus tracks maze distance.
-        if dgrl:
-            distinct = len(torch.unique(pretrained.codes, dim=0))  # DGRL
-            add_kept_scalar(writer, loop.pretraining_log, "vq/distinct_cells", distinct, 0)
-            n_active = active_codes(pretrained.codes, args.n_embed).item()  # DGRL
-            add_kept_scalar(writer, loop.pretraining_log, "vq/active_codes", n_active, 0)
-            print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")
-        pairs = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(device)
-        pair_codes = (pretrained.codes[pairs[:, 0]], pretrained.codes[pairs[:, 1]]) if dgrl else (None, None)
-        all_bonus = intrinsic_bonus(pretrained.z[pairs[:, 0]], pretrained.z[pairs[:, 1]], *pair_codes)  # DGRL
-        correlation, step_closer = bonus_quality(all_bonus.view(layout.n_cells, -1).cpu().numpy(), layout)
-        add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_distance_corr", correlation, 0)
-        add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_step_closer", step_closer, 0)
-        loss_text = "not trained" if loop.rep_loss is None else f"loss {loop.rep_loss.item():.3f}"
-        print(
-            f"pre-training: {loop.rep_step} steps, {args.rep} {loss_text}, {time.time() - pretraining.start_time:.1f} s; "
-            f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
-        )
+        report_pretraining(writer, loop, pretrained, layout, args, pretraining.start_time)
         if args.finetune:
             update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
         loop.dqn_phase = True
@@ -666,8 +549,7 @@ def main(args: Args) -> None:
             writer.add_scalar("charts/episodic_return", episode["r"][0], loop.global_step)
             writer.add_scalar("charts/episodic_length", episode["l"][0], loop.global_step)
             writer.add_scalar("charts/success_rate", np.mean(loop.recent_success), loop.global_step)
-        loop.observations = next_observations
-        loop.infos = next_infos
+        loop.observations, loop.infos = next_observations, next_infos
 
         # Learn
         if loop.global_step >= args.learning_starts and loop.global_step % args.train_frequency == 0:
@@ -695,8 +577,7 @@ def main(args: Args) -> None:
         if steps_done >= loop.next_eval or steps_done == args.total_timesteps:
             loop.next_eval += args.eval_frequency
             agent.rep.eval()
-            texts = []
-            frames = []
+            texts, frames = [], []
             for split, cells in goals.items():
                 reached, steps, visited = evaluate(agent.rep, agent.q_network, embedder, layout, cells, args.max_episode_steps)
                 texts.append(evaluation_text(split, reached, steps, optimal_steps[split]))
@@ -719,15 +600,9 @@ def main(args: Args) -> None:
     write_resume()  # stopped or done: --resume runs/{run_name} goes on from here
     if args.save_model:
         path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        entries = {
-            "representation": agent.rep.state_dict(),  # phi, its heads and (DGRL) the codebook with its EMA buffers
-            "q_network": agent.q_network.state_dict(),
-            "train_goals": goals["train"].tolist(),
-            "novel_goals": goals["novel"].tolist(),
-            "pretraining_steps": loop.rep_step,
-            "steps": loop.global_step,
-        }
-        save_checkpoint(path, entries, args)
+        networks = {"representation": agent.rep.state_dict(), "q_network": agent.q_network.state_dict()}  # with the codebook
+        split = {f"{name}_goals": cells.tolist() for name, cells in goals.items()}
+        save_checkpoint(path, networks | split | {"pretraining_steps": loop.rep_step, "steps": loop.global_step}, args)
         print(f"checkpoint: {path}")
     summary = f"{loop.rep_step} pre-training steps, {loop.global_step} DQN steps; {loop.last_evaluation}"
     progress.finish(bool(stop), run_name, summary)
@@ -752,22 +627,19 @@ def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, in
 
 
 @torch.no_grad()
-def evaluate(rep, q_network, embedder, layout: MazeLayout, goal_cells: np.ndarray, max_steps: int):
+def evaluate(rep, q_network, embedder, layout: "MazeLayout", goal_cells: np.ndarray, max_steps: int):
     """Greedy episodes from the start cell to every goal at once. Returns (reached, steps, path) per goal: steps is
     max_steps for a goal not reached; path (time, goal) holds the cells visited, the start cell first."""
     device = embedder.device
     goals = torch.as_tensor(goal_cells, device=device)
     next_cell = torch.as_tensor(layout.next_cell, device=device)
+    table = None
 
     def features(cells: torch.Tensor) -> torch.Tensor:
-        return rep(embedder(rep, cells))[0]
+        return rep(embedder(rep, cells))[0] if table is None else table[cells]
 
     if embedder.noise == 0:  # every observation is one of the maze's distinct images: encode them once, then look up
         table = features(torch.arange(layout.n_cells, device=device))
-
-        def features(cells: torch.Tensor) -> torch.Tensor:
-            return table[cells]
-
     goal_features = features(goals)
     cells = torch.full_like(goals, START_CELL)
     steps = torch.full_like(goals, max_steps)
@@ -789,9 +661,8 @@ def evaluation_text(tag: str, reached: np.ndarray, steps: np.ndarray, optimal: i
     return f"{tag} {reached.mean():.2f} success, {steps.sum()} total steps (optimal {optimal})"
 
 
-def episode_frames(layout: MazeLayout, path: np.ndarray, steps: np.ndarray, goal_cells: np.ndarray) -> list[np.ndarray]:
-    """Video frames of evaluate()'s greedy episodes, one goal after another: the observation (noiseless) on the left,
-    the goal image on the right, upscaled 2x."""
+def episode_frames(layout: "MazeLayout", path: np.ndarray, steps: np.ndarray, goal_cells: np.ndarray) -> list[np.ndarray]:
+    """Video frames of evaluate()'s episodes, one goal after another: the noiseless observation beside the goal, 2x."""
     gap = np.full((layout.images.shape[1], 2, 3), 255, dtype=np.uint8)
     frames = []
     for index, goal in enumerate(goal_cells):
@@ -801,17 +672,46 @@ def episode_frames(layout: MazeLayout, path: np.ndarray, steps: np.ndarray, goal
     return frames
 
 
-def evaluate_checkpoint(args: Args, agent: Agent, embedder: CellEmbedder, layout: MazeLayout, goals: dict, optimal: dict):
+def bonus_quality(bonus: np.ndarray, layout: "MazeLayout") -> tuple[float, float]:
+    """How well a (cell, goal) bonus matrix tracks the maze: its correlation with minus the shortest-path distance over
+    all pairs of distinct cells, and the fraction of moves one step closer to a goal that strictly raise the bonus."""
+    off_diagonal = ~np.eye(layout.n_cells, dtype=bool)
+    flat_bonus = bonus[off_diagonal]
+    correlation = 0.0 if flat_bonus.std() == 0 else float(np.corrcoef(flat_bonus, -layout.distances[off_diagonal])[0, 1])
+    closer = layout.distances[layout.next_cell] < layout.distances[:, None, :]  # (cell, action, goal)
+    raised = bonus[layout.next_cell] > bonus[:, None, :]
+    return correlation, float(raised[closer].mean())
+
+
+def report_pretraining(writer, loop: "LoopState", table: CellTable, layout: "MazeLayout", args: Args, start_time: float):
+    """Log and print, once pre-training ends, the codebook's health and how well the bonus tracks maze distance."""
+    if table.codes is not None:
+        distinct = len(torch.unique(table.codes, dim=0))  # DGRL
+        add_kept_scalar(writer, loop.pretraining_log, "vq/distinct_cells", distinct, 0)
+        n_active = active_codes(table.codes, args.n_embed).item()  # DGRL
+        add_kept_scalar(writer, loop.pretraining_log, "vq/active_codes", n_active, 0)
+        print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")
+    rows, columns = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(table.z.device).T
+    pair_codes = (None, None) if table.codes is None else (table.codes[rows], table.codes[columns])
+    all_bonus = intrinsic_bonus(table.z[rows], table.z[columns], *pair_codes)  # DGRL
+    correlation, step_closer = bonus_quality(all_bonus.view(layout.n_cells, -1).cpu().numpy(), layout)
+    add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_distance_corr", correlation, 0)
+    add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_step_closer", step_closer, 0)
+    loss_text = "not trained" if loop.rep_loss is None else f"loss {loop.rep_loss.item():.3f}"
+    print(
+        f"pre-training: {loop.rep_step} steps, {args.rep} {loss_text}, {time.time() - start_time:.1f} s; "
+        f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
+    )
+
+
+def evaluate_checkpoint(args: Args, agent: Agent, embedder: CellEmbedder, layout: "MazeLayout", goals: dict, optimal: dict):
     """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the train and novel goals, print."""
     saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, embedder.device)
-    split = {f"{name}_goals": cells.tolist() for name, cells in goals.items()}
-    if any(saved.get(key) != cells for key, cells in split.items()):
-        saved_split = {key: saved.get(key) for key in split}
-        print(
-            f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} was trained on the goal split {saved_split}, "
-            f"but these flags give {split}",
-            file=sys.stderr,
-        )
+    wanted = {f"{name}_goals": cells.tolist() for name, cells in goals.items()}
+    saved_split = {key: saved.get(key) for key in wanted}
+    if saved_split != wanted:
+        refusal = f"--checkpoint {args.checkpoint} was trained on the goal split {saved_split}, but these flags give {wanted}"
+        print(f"{os.path.basename(__file__)}: {refusal}", file=sys.stderr)
         raise SystemExit(2)
     agent.rep.load_state_dict(saved["representation"])
     agent.q_network.load_state_dict(saved["q_network"])
@@ -862,6 +762,51 @@ START_CELL = 0  # the top-left corner: one end of the spiral, a corner of the lo
 N_NOVEL_GOALS = 4  # the paper's test set: 4 goals never trained on
 
 
+class MazeLayout:
+    """A maze's static structure: its transition table, its clean images, the shortest-path distances."""
+
+    def __init__(self, name: str):
+        rows = LAYOUTS[name]
+        self.size = (len(rows) - 1) // 2
+        self.n_cells = self.size * self.size
+        self.next_cell = np.empty((self.n_cells, len(MOVES)), dtype=np.int64)
+        for row in range(self.size):
+            for col in range(self.size):
+                for action, (d_row, d_col) in enumerate(MOVES):
+                    blocked = rows[2 * row + 1 + d_row][2 * col + 1 + d_col] == "#"
+                    target = row * self.size + col if blocked else (row + d_row) * self.size + col + d_col
+                    self.next_cell[row * self.size + col, action] = target
+        wall_chars = np.array([[char == "#" for char in line] for line in rows])
+        side = len(rows) * PIXELS_PER_CHAR + 2 * BORDER
+        self.floor = np.zeros((side, side), dtype=bool)
+        self.floor[BORDER:-BORDER, BORDER:-BORDER] = ~wall_chars.repeat(PIXELS_PER_CHAR, 0).repeat(PIXELS_PER_CHAR, 1)
+        background = np.where(self.floor[..., None], np.array(FLOOR_RGB, np.uint8), np.array(WALL_RGB, np.uint8))
+        self.images = np.repeat(background[None], self.n_cells, axis=0)
+        for cell in range(self.n_cells):
+            top = BORDER + (2 * (cell // self.size) + 1) * PIXELS_PER_CHAR
+            left = BORDER + (2 * (cell % self.size) + 1) * PIXELS_PER_CHAR
+            self.images[cell, top : top + PIXELS_PER_CHAR, left : left + PIXELS_PER_CHAR] = AGENT_RGB
+        self.agent_mask = (self.images != background[None]).any(-1)
+        # Shortest-path lengths between all pairs of cells (-1: unreachable): breadth-first, from every cell at once.
+        adjacent = np.zeros((self.n_cells, self.n_cells), dtype=bool)
+        adjacent[np.arange(self.n_cells)[:, None], self.next_cell] = True
+        reached = np.eye(self.n_cells, dtype=bool)
+        self.distances = np.where(reached, 0, -1)
+        for step in range(1, self.n_cells):
+            frontier = (reached @ adjacent) & ~reached
+            self.distances[frontier] = step
+            reached |= frontier
+
+    def render(self, cells: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+        """uint8 images (len(cells), 80, 80, 3) of the agent in `cells`; with noise, fresh random floor pixels."""
+        images = self.images[cells]
+        if noise > 0:
+            floor = self.floor[None] & ~self.agent_mask[cells]
+            speckle = rng.integers(0, int(noise * 255) + 1, size=images.shape, dtype=np.uint8)
+            images = np.where(floor[..., None], images + speckle, images)
+        return images
+
+
 def goal_split(layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS) -> tuple[np.ndarray, ...]:
     """Disjoint (train, novel) goal cells, never the start cell. The novel cells depend only on goal_seed, and the train
     cells are the first n_train of one seeded order, so K=4 goals are a subset of K=8, which are a subset of K=16."""
@@ -878,11 +823,8 @@ class VisualMazeEnv(gym.Env):
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 8}
 
     def __init__(self, layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, render_mode=None):
-        self.layout = layout
-        self.goal_cells = np.asarray(goal_cells)
-        self.random_start = random_start
-        self.noise = noise
-        self.render_mode = render_mode
+        self.layout, self.goal_cells, self.random_start = layout, np.asarray(goal_cells), random_start
+        self.noise, self.render_mode = noise, render_mode
         image_space = gym.spaces.Box(0, 255, layout.images.shape[1:], np.uint8)
         self.observation_space = gym.spaces.Dict({"observation": image_space, "desired_goal": image_space})
         self.action_space = gym.spaces.Discrete(len(MOVES))
@@ -910,15 +852,6 @@ class VisualMazeEnv(gym.Env):
         return self._frame.repeat(4, 0).repeat(4, 1)
 
 
-def make_env(layout: MazeLayout, goal_cells: np.ndarray, random_start: bool, noise: float, max_episode_steps: int):
-    def thunk():
-        env = VisualMazeEnv(layout, goal_cells, random_start, noise)
-        env = gym.wrappers.TimeLimit(env, max_episode_steps)
-        return gym.wrappers.RecordEpisodeStatistics(env)
-
-    return thunk
-
-
 # --- Resume: the whole training state (--resume) ----------------------------------------------------------------------
 
 
@@ -942,28 +875,22 @@ class LoopState:
 
 
 def add_kept_scalar(writer: SummaryWriter, kept: list, tag: str, value: float, step: int) -> None:
-    """writer.add_scalar, keeping (tag, value, step) in `kept`. Pre-training's scalars share TensorBoard's steps with the
-    DQN phase's, and a run resumed in the DQN phase purges every tag from its first unlogged step on: it logs again the
-    kept ones the purge dropped."""
+    """writer.add_scalar, keeping (tag, value, step) in `kept`: a run resumed in the DQN phase purges every tag from its
+    first unlogged step on, pre-training's too (the phases share TensorBoard's steps), and logs the kept ones again."""
     writer.add_scalar(tag, value, step)
     kept.append((tag, value, step))
 
 
 def agent_networks(agent: Agent) -> dict[str, nn.Module]:
-    """The agent's networks by name; their state dicts hold the codebook and its EMA buffers (DGRL)."""
+    """The agent's networks by name (their state dicts hold the codebook and its EMA buffers)."""
     networks = {"rep": agent.rep, "q_network": agent.q_network, "target_q_network": agent.target_q_network}
-    if agent.target_rep is not None:
-        networks["target_rep"] = agent.target_rep
-    return networks
+    return networks | ({} if agent.target_rep is None else {"target_rep": agent.target_rep})
 
 
 def env_state(envs: gym.vector.SyncVectorEnv) -> dict:
-    """The maze env's state inside its wrappers (RecordEpisodeStatistics(TimeLimit(VisualMazeEnv))), and the vector
-    env's: enough to go on with the episode in progress. The vector env's observation buffers are rewritten by every step
-    (same-step autoreset), so the loop's current observation is saved with the loop's variables instead."""
+    """What the maze env in its wrappers and the vector env need to go on with the episode in progress."""
     statistics = envs.envs[0]
-    time_limit = statistics.env
-    maze = time_limit.env
+    time_limit, maze = statistics.env, statistics.env.env
     return {
         "cell": maze.cell,
         "goal_cell": maze.goal_cell,
@@ -982,8 +909,7 @@ def env_state(envs: gym.vector.SyncVectorEnv) -> dict:
 
 def restore_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
     statistics = envs.envs[0]
-    time_limit = statistics.env
-    maze = time_limit.env
+    time_limit, maze = statistics.env, statistics.env.env
     maze.cell, maze.goal_cell, maze._frame = state["cell"], state["goal_cell"], state["frame"]
     maze.np_random.bit_generator.state = state["generator"]
     time_limit._elapsed_steps = state["elapsed_steps"]
@@ -995,25 +921,19 @@ def restore_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
     envs.action_space.np_random.bit_generator.state = state["action_generator"]
 
 
-def training_state(
-    agent: Agent, rng: np.random.Generator, envs: gym.vector.SyncVectorEnv, replay: ReplayBuffer, loop: LoopState
-) -> dict:
-    """Everything a stopped run needs to continue exactly, for save_resume (which adds the global Python and torch
-    random states): the networks with their targets and the codebook's buffers, both optimizers, the numpy generator
-    (random walks, replay batches, image noise), the env, the replay memory, and `loop`, the training loop's variables."""
+def training_state(agent: Agent, rng: np.random.Generator, envs, replay: ReplayBuffer, loop: LoopState) -> dict:
+    """Everything a stopped run needs to continue exactly, but the global random states (save_resume adds them)."""
     return {
         "networks": {name: network.state_dict() for name, network in agent_networks(agent).items()},
         "optimizers": {"rep": agent.rep_optimizer.state_dict(), "q": agent.q_optimizer.state_dict()},
-        "generator": rng.bit_generator.state,
+        "generator": rng.bit_generator.state,  # random walks, replay batches, image noise
         "env": env_state(envs),
         "replay": replay.state_dict(),
         "loop": copy.deepcopy(vars(loop)),  # a plain dict: a run started as __main__ resumes when imported too
     }
 
 
-def restore_training_state(
-    saved: dict, agent: Agent, rng: np.random.Generator, envs: gym.vector.SyncVectorEnv, replay: ReplayBuffer
-) -> LoopState:
+def restore_training_state(saved: dict, agent: Agent, rng: np.random.Generator, envs, replay: ReplayBuffer) -> LoopState:
     """Put back what training_state saved into objects built as a new run builds them; returns the loop's variables."""
     for name, network in agent_networks(agent).items():
         network.load_state_dict(saved["networks"][name])
@@ -1034,7 +954,7 @@ MUST_MATCH = tuple("env_id n_train_goals goal_seed noise max_episode_steps rep e
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1050,9 +970,8 @@ def seed_and_device(args) -> torch.device:
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
     """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
     if args.track:
-        wandb = importlib.import_module("wandb")  # an optional package, needed only here
         options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        wandb.init(**options, sync_tensorboard=True, save_code=True)
+        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -1123,6 +1042,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+    layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1136,10 +1056,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             advice = "start the run afresh without --resume, or put back an older copy of the file"
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
     older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
     if older:  # a flag added since: the file cannot say which value it had
         started = f" was started before {older} existed; continue it with the version that started it"
@@ -1164,7 +1084,7 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
 
 
 def load_resume(args) -> dict:
@@ -1327,24 +1247,19 @@ def exit_on_errors(errors: list[str]) -> None:
 def validate(args: Args) -> None:
     """Refuse bad flags before any work (exit status 2), naming each flag and what it accepts."""
     errors = common_errors(args)
-    errors += range_errors(args, "total_timesteps buffer_size batch_size max_episode_steps eval_frequency", 1)
-    errors += range_errors(args, "target_network_frequency train_frequency rep_transitions rep_batch_size", 1)
-    errors += range_errors(args, "embed_dim hidden_dim", 1)
+    errors += range_errors(args, "total_timesteps buffer_size batch_size max_episode_steps eval_frequency embed_dim", 1)
+    errors += range_errors(args, "target_network_frequency train_frequency rep_transitions rep_batch_size hidden_dim", 1)
     errors += range_errors(args, "goal_seed learning_starts rep_steps bonus_coef", 0)
     errors += range_errors(args, "learning_rate rep_learning_rate", 0, low_open=True)
     errors += range_errors(args, "gamma exploration_fraction", 0, 1, low_open=True)
     errors += range_errors(args, "start_e end_e noise", 0, 1)
+    errors += range_errors(args, "n_train_goals", 1, (len(LAYOUTS[args.env_id]) // 2) ** 2 - 1 - N_NOVEL_GOALS)  # free cells
     if args.start_e < args.end_e:
         errors.append(f"--start-e {args.start_e} must be >= --end-e {args.end_e}: epsilon decays from one to the other")
     if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # 0 is the baseline
         divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        groups_wanted = f"0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}"
-        errors.append(f"--groups must be {groups_wanted}; got {args.groups}")
-    n_free = (len(LAYOUTS[args.env_id]) // 2) ** 2 - 1 - N_NOVEL_GOALS
-    if not 1 <= args.n_train_goals <= n_free:
         errors.append(
-            f"--n-train-goals must be in [1, {n_free}] (cells other than the start and the {N_NOVEL_GOALS} novel goals); "
-            f"got {args.n_train_goals}"
+            f"--groups must be 0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
         )
     if args.batch_size > args.buffer_size:
         errors.append(f"--batch-size {args.batch_size} must be <= --buffer-size {args.buffer_size}")
@@ -1357,8 +1272,7 @@ def validate(args: Args) -> None:
         if first_update >= args.total_timesteps:
             errors.append(
                 f"--total-timesteps {args.total_timesteps} must exceed --learning-starts {args.learning_starts} (the first "
-                f"training step is at step {first_update} with --train-frequency {args.train_frequency}): no DQN update "
-                "would run"
+                f"update is at step {first_update} with --train-frequency {args.train_frequency}): no DQN update would run"
             )
     exit_on_errors(errors)
 

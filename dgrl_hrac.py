@@ -188,7 +188,7 @@ class Actor(nn.Module):
         super().__init__()
         self.net = mlp(state_dim + goal_dim, hidden_dim, action_dim)
         self.register_buffer("max_action", torch.as_tensor(max_action, dtype=torch.float32))  # a float or one per dim
-        self.max_action_numpy = np.asarray(max_action, dtype=np.float32)
+        self.max_action_numpy = np.asarray(max_action, dtype=np.float64)  # for clipping noisy actions on the host
 
     def forward(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         return self.max_action * torch.tanh(self.net(torch.cat([states, goals], -1)))
@@ -219,10 +219,8 @@ class AdjacencyNet(nn.Module):
 
 
 class SubgoalEncoder(nn.Module):  # DGRL
-    """DGRL's bottleneck on the manager's output: a relative subgoal (divided by the subgoal bounds `scale`) -> MLP
-    encoder -> the shared-codebook quantizer of vq.py -> z_q, the discrete subgoal embedding that the controller's actor
-    and critic see instead of the raw subgoal. The decoder maps z_q back to the subgoal; its reconstruction loss keeps
-    the codes informative about where the subgoal points."""
+    """DGRL's bottleneck on the manager's output: subgoal / bounds -> MLP -> the shared-codebook quantizer of vq.py -> z_q,
+    which the controller sees instead of the subgoal; the decoder's loss keeps the codes informative about the subgoal."""
 
     def __init__(self, scale: np.ndarray, args: Args):
         super().__init__()
@@ -260,61 +258,37 @@ class Agent:
     adjacency_optimizer: torch.optim.Optimizer
     encoder: SubgoalEncoder | None
 
-    def networks(self) -> dict[str, nn.Module]:
-        """What a checkpoint holds, what evaluation needs: both levels' actors and critics (targets excluded), the
-        adjacency network and (DGRL) the subgoal encoder with its codebook buffers."""
-        networks = {"manager_actor": self.manager.actor, "manager_critic": self.manager.critic}
-        networks |= {"controller_actor": self.controller.actor, "controller_critic": self.controller.critic}
-        networks["adjacency"] = self.adjacency
-        return networks if self.encoder is None else networks | {"subgoal_encoder": self.encoder}
+    def parts(self, training: bool = False) -> dict:
+        """A checkpoint's networks: both levels' actors and critics, the adjacency network and (DGRL) the encoder with its
+        codebook buffers; with `training` (for --resume) also the target networks and every optimizer."""
+        names = ["actor", "critic"]
+        names += ["actor_target", "critic_target", "actor_optimizer", "critic_optimizer"] if training else []
+        levels = {"manager": self.manager, "controller": self.controller}
+        parts = {f"{level_name}_{name}": getattr(level, name) for level_name, level in levels.items() for name in names}
+        parts |= {"adjacency": self.adjacency} | ({} if self.encoder is None else {"subgoal_encoder": self.encoder})
+        return parts | ({"adjacency_optimizer": self.adjacency_optimizer} if training else {})
 
-    def training_parts(self) -> dict:
-        """For --resume, everything that learns: the checkpoint's networks, both levels' target networks and every
-        optimizer (the encoder's Adam moments are a parameter group of the controller's critic optimizer)."""
-        parts = self.networks()
-        for name, level in (("manager", self.manager), ("controller", self.controller)):
-            parts[f"{name}_actor_target"], parts[f"{name}_critic_target"] = level.actor_target, level.critic_target
-            parts[f"{name}_actor_optimizer"], parts[f"{name}_critic_optimizer"] = level.actor_optimizer, level.critic_optimizer
-        return parts | {"adjacency_optimizer": self.adjacency_optimizer}
+    def state_dicts(self, training: bool = False) -> dict[str, dict]:
+        return {name: part.state_dict() for name, part in self.parts(training).items()}
 
-    def state_dicts(self) -> dict[str, dict]:
-        return {name: network.state_dict() for name, network in self.networks().items()}
-
-    def load_state_dicts(self, entries: dict[str, dict]) -> None:
-        for name, network in self.networks().items():
-            network.load_state_dict(entries[name])
-
-    def training_state_dicts(self) -> dict[str, dict]:
-        return {name: part.state_dict() for name, part in self.training_parts().items()}
-
-    def load_training_state_dicts(self, entries: dict[str, dict]) -> None:
-        for name, part in self.training_parts().items():
+    def load_state_dicts(self, entries: dict[str, dict], training: bool = False) -> None:
+        for name, part in self.parts(training).items():
             part.load_state_dict(entries[name])
 
 
-def make_level(
-    actor: Actor, critic: TwinCritic, actor_lr: float, critic_lr: float, critic_weight_decay: float, extra_critic_groups=()
-) -> Level:
+def make_level(actor: Actor, critic: TwinCritic, args: Args, extra_critic_groups=()) -> Level:
     """A level from its networks: target copies, Adam for the actor, Adam with weight decay for the critics (plus any
-    extra parameter groups, which keep their own settings). Fused Adam: one kernel per step on CPU and GPU."""
+    extra parameter groups, with their own settings). Fused Adam: one kernel per step on CPU and GPU."""
     fused = next(actor.parameters()).device.type in ("cpu", "cuda")
-    critic_groups = [{"params": critic.parameters(), "weight_decay": critic_weight_decay}, *extra_critic_groups]
-    return Level(
-        actor=actor,
-        critic=critic,
-        actor_target=make_target(actor),
-        critic_target=make_target(critic),
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=actor_lr, fused=fused),
-        critic_optimizer=torch.optim.Adam(critic_groups, lr=critic_lr, fused=fused),
-    )
+    critic_groups = [{"params": critic.parameters(), "weight_decay": args.critic_weight_decay}, *extra_critic_groups]
+    actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused)
+    critic_optimizer = torch.optim.Adam(critic_groups, lr=args.critic_lr, fused=fused)
+    return Level(actor, critic, make_target(actor), make_target(critic), actor_optimizer, critic_optimizer)
 
 
 def make_agent(state_dim: int, action_dim: int, args: Args, device: torch.device) -> Agent:
-    """The agent for a state of `state_dim` and `action_dim` torques of at most 30 on --env-id's task: subgoals within
-    subgoal_bounds, the manager's goal of MANAGER_GOAL_DIMS. The manager sees (state, goal); the controller (state,
-    subgoal), or under DGRL (state, z_q(subgoal)). The encoder trains with the controller's critic (lr --encoder-lr, no
-    weight decay); its codebook moves by EMA, in no optimizer. The networks are built in a fixed order, so a seed gives
-    the same agent."""
+    """The agent for --env-id's task, built in a fixed order (a seed gives the same agent). The encoder trains with the
+    controller's critic optimizer (lr --encoder-lr, no weight decay); its codebook moves by EMA, in no optimizer."""
     bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
     goal_dim, man_goal_dim, hidden = len(bounds), MANAGER_GOAL_DIMS[args.env_id], args.hidden_dim
     ctrl_goal_dim = args.embed_dim if args.groups else goal_dim  # DGRL: the controller takes z_q(g) instead of g
@@ -325,53 +299,40 @@ def make_agent(state_dim: int, action_dim: int, args: Args, device: torch.device
     adjacency = AdjacencyNet(2).to(device)  # over xy cells at every env (AntFall's z is not part of the grid)
     encoder = SubgoalEncoder(bounds, args).to(device) if args.groups else None  # DGRL
     encoder_groups = () if encoder is None else ({"params": encoder.parameters(), "lr": args.encoder_lr, "weight_decay": 0.0},)
-    lrs = (args.actor_lr, args.critic_lr, args.critic_weight_decay)
-    return Agent(
-        manager=make_level(manager_actor, manager_critic, *lrs),
-        controller=make_level(controller_actor, controller_critic, *lrs, encoder_groups),
-        adjacency=adjacency,
-        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=device.type in ("cpu", "cuda")),
-        encoder=encoder,
-    )
+    manager = make_level(manager_actor, manager_critic, args)
+    controller = make_level(controller_actor, controller_critic, args, encoder_groups)
+    adjacency_optimizer = torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=device.type in ("cpu", "cuda"))
+    return Agent(manager, controller, adjacency, adjacency_optimizer, encoder)
 
 
 # --- HRAC's computations ----------------------------------------------------------------------------------------------
 
 
 def controller_input(states: np.ndarray | torch.Tensor):
-    """The controller's view of a state: xy zeroed (HRAC's controller is blind to where it is, only to where its
-    relative subgoal points)."""
+    """The controller's view of a state: xy zeroed (HRAC's controller sees only where its relative subgoal points)."""
     masked = states.clone() if isinstance(states, torch.Tensor) else states.copy()
     masked[..., :2] = 0
     return masked
 
 
 def subgoal_transition(states, subgoals, next_states):
-    """The relative subgoal re-targeted after a step, so that it keeps pointing at the same place:
-    g' = s[:d] + g - s'[:d] (d = the goal space's size)."""
+    """The relative subgoal re-targeted after a step, to keep pointing at the same place: g' = s[:d] + g - s'[:d]."""
     d = subgoals.shape[-1]
     return states[..., :d] + subgoals - next_states[..., :d]
 
 
 def controller_reward(states, subgoals, next_states):
     """HRAC's low-level reward: -||s[:d] + g - s'[:d]||, the distance of the step's end from the subgoal's target."""
-    d = subgoals.shape[-1]
-    offset = states[..., :d] + subgoals - next_states[..., :d]
+    offset = subgoal_transition(states, subgoals, next_states)
     return -np.linalg.norm(offset, axis=-1) if isinstance(offset, np.ndarray) else -offset.norm(dim=-1)
 
 
 @torch.no_grad()
-def off_policy_correction(
-    controller: Actor, states, actions, subgoals, scale: torch.Tensor, noise, goal_encoder: SubgoalEncoder | None = None
-) -> torch.Tensor:
-    """HIRO's relabelling of stored manager transitions. `states` (B, k + 1, S), `actions` (B, k, A), `subgoals` (B, d):
-    the candidates are the stored subgoal, the achieved offset s_k - s_0 and the draws of N(s_k - s_0, (0.5 scale)^2)
-    clipped to +-scale, s_k - s_0 + `noise` ((B, n_samples, d) of N(0, (0.5 scale)^2), drawn by correction_noise); each
-    is rolled through the k stored states with the subgoal transition, and the one under which the current controller
-    is most likely to have taken the stored actions, argmax of -0.5 sum_t ||pi(s_t, g_t) - a_t||^2, replaces the stored
-    subgoal. Returns (B, d) in the candidates' precision (float64 with float64 noise, as the numpy version computed
-    them). All on the tensors' device, without a host sync. Under DGRL the controller sees each candidate through
-    `goal_encoder` (its discrete embedding), as it does when acting."""
+def off_policy_correction(controller: Actor, states, actions, subgoals, scale, noise, goal_encoder=None) -> torch.Tensor:
+    """HIRO's relabelling of stored manager transitions (`states` (B, k + 1, S), `actions` (B, k, A), `subgoals` (B, d)):
+    of the stored subgoal, the achieved offset s_k - s_0 and s_k - s_0 + `noise` clipped to +-scale, each rolled through
+    the k states by the subgoal transition, the one under which the current controller (DGRL: through `goal_encoder`)
+    most likely took the stored actions, argmax -0.5 sum_t ||pi(s_t, g_t) - a_t||^2. In the candidates' precision."""
     batch, k = actions.shape[:2]
     d = subgoals.shape[-1]
     achieved = states[:, -1, :d] - states[:, 0, :d]
@@ -389,14 +350,12 @@ def off_policy_correction(
 
 
 def correction_noise(rng: np.random.Generator, batch: int, n_samples: int, scale: np.ndarray) -> np.ndarray:
-    """The off-policy correction's Gaussian draws, N(0, (0.5 scale)^2) of shape (batch, n_samples, d), from the run's
-    numpy generator on the host (drawn after the sample's indices, so a seed gives the same numbers as ever)."""
+    """The off-policy correction's draws, N(0, (0.5 scale)^2) of shape (batch, n_samples, d), from the run's generator
+    on the host (after the sample's indices, so a seed gives the same numbers as ever)."""
     return rng.normal(0.0, 0.5 * scale, (batch, n_samples, len(scale)))
 
 
-def contrastive_loss(
-    emb_a: torch.Tensor, emb_b: torch.Tensor, labels: torch.Tensor, margin_pos: float = 1.0, margin_neg: float = 1.2
-) -> torch.Tensor:
+def contrastive_loss(emb_a, emb_b, labels: torch.Tensor, margin_pos: float = 1.0, margin_neg: float = 1.2) -> torch.Tensor:
     """HRAC's adjacency loss: mean(l * max(0, d - m+)) + mean((1 - l) * max(0, m- - d)), d = ||phi_a - phi_b||."""
     distances = torch.sqrt((emb_a - emb_b).pow(2).sum(-1) + 1e-12)
     positive = (labels * (distances - margin_pos).clamp(min=0)).mean()
@@ -415,16 +374,11 @@ class AdjacencyMemory:
     1 <= j <= k - 1. The matrix persists over the run and grows as new cells are visited."""
 
     def __init__(self, k: int = 10):
-        self.k, self.index, self.edges = k, {}, set()
-
-    def cell_ids(self, positions: np.ndarray) -> np.ndarray:
-        ids = []
-        for cell in map(tuple, np.round(positions[:, :2]).astype(np.int64)):
-            ids.append(self.index.setdefault(cell, len(self.index)))
-        return np.array(ids, dtype=np.int64)
+        self.k, self.index, self.edges = k, {}, set()  # index: cell -> id, in the order of the ids
 
     def add_trajectory(self, positions: np.ndarray) -> None:
-        ids = self.cell_ids(positions)
+        cells = map(tuple, np.round(positions[:, :2]).astype(np.int64))
+        ids = np.array([self.index.setdefault(cell, len(self.index)) for cell in cells], dtype=np.int64)
         for offset in range(1, min(self.k, len(ids))):
             for a, b in zip(ids[:-offset], ids[offset:], strict=True):
                 if a != b:
@@ -432,14 +386,14 @@ class AdjacencyMemory:
 
     def labelled_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(cells_a (P, 2), cells_b (P, 2), labels (P,)) over every pair of distinct visited cells."""
-        cells = np.array(sorted(self.index, key=self.index.get), dtype=np.float32).reshape(-1, 2)
+        cells = np.array(list(self.index), dtype=np.float32).reshape(-1, 2)
         first, second = np.triu_indices(len(cells), 1)
         labels = np.array([(a, b) in self.edges for a, b in zip(first, second, strict=True)], dtype=np.float32)
         return cells[first], cells[second], labels
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The visited cells in the order of their ids (C, 2) and the adjacent pairs of ids (E, 2), for --resume."""
-        cells = np.array(sorted(self.index, key=self.index.get), dtype=np.int64).reshape(-1, 2)
+        cells = np.array(list(self.index), dtype=np.int64).reshape(-1, 2)
         return {"cells": cells, "edges": np.array(sorted(self.edges), dtype=np.int64).reshape(-1, 2)}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
@@ -465,8 +419,7 @@ class Replay:
         return {name: array[index] for name, array in self.fields.items()}
 
     def state_dict(self) -> dict:
-        """The ring's size and position and the filled part of every field (float32 tensors sharing the arrays' memory,
-        so that saving copies nothing), for --resume."""
+        """For --resume: the size, the position and the filled part of every field (tensors sharing the arrays' memory)."""
         filled = {name: torch.from_numpy(array[: self.size]) for name, array in self.fields.items()}
         return {"size": self.size, "position": self.position, "fields": filled}
 
@@ -476,26 +429,13 @@ class Replay:
             array[: self.size] = state["fields"][name].numpy()
 
 
-def td3_update(
-    level: Level,
-    batch: dict,
-    *,
-    gamma: float,
-    tau: float,
-    policy_noise: float,
-    noise_clip: float,
-    actor_extra=None,
-    critic_extra=0.0,
-) -> dict[str, torch.Tensor]:
-    """One TD3 step as HRAC runs it at both levels: target actions with clipped Gaussian noise, the min of the target
-    critics, a Huber critic loss (the critic optimizer carries the weight decay), the actor updated at every step (no
-    policy delay) to maximise Q1, plus `actor_extra(actions)` if given (the manager's adjacency term), then Polyak
-    targets. `batch`: states, goals, actions, rewards, next_states, next_goals, dones. `critic_extra` is added to the
-    critic loss before its backward pass (DGRL: the subgoal encoder's losses, its parameters in the critic optimizer,
-    with `goals` carrying the encoder's graph); the actor sees the goals detached."""
+def td3_update(level: Level, batch: dict, gamma: float, args: Args, actor_extra=None, critic_extra=0.0) -> dict:
+    """One TD3 step as HRAC runs it at both levels: clipped target-action noise, the min of the target critics, a Huber
+    critic loss plus `critic_extra` (DGRL: the encoder's losses, `goals` carrying its graph), the actor updated at every
+    step (no policy delay) to maximise Q1 plus `actor_extra(actions)` (the manager's adjacency term), Polyak targets."""
     max_action = level.actor.max_action
     with torch.no_grad():
-        noise = (torch.randn_like(batch["actions"]) * policy_noise).clamp(-noise_clip, noise_clip)
+        noise = (torch.randn_like(batch["actions"]) * args.policy_noise).clamp(-args.noise_clip, args.noise_clip)
         next_actions = (level.actor_target(batch["next_states"], batch["next_goals"]) + noise).clamp(-max_action, max_action)
         target_q = torch.min(*level.critic_target(batch["next_states"], batch["next_goals"], next_actions))
         target = batch["rewards"] + gamma * (1.0 - batch["dones"]) * target_q
@@ -508,8 +448,8 @@ def td3_update(
     if actor_extra is not None:
         actor_loss = actor_loss + actor_extra(actions)
     learn(level.actor_optimizer, actor_loss)
-    update_target(level.actor_target, level.actor, tau)
-    update_target(level.critic_target, level.critic, tau)
+    update_target(level.actor_target, level.actor, args.tau)
+    update_target(level.critic_target, level.critic, args.tau)
     metrics = {"critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(), "q": q1.detach().mean()}
     return metrics | {"target_q": target_q.mean()}
 
@@ -531,26 +471,19 @@ def manager_goal(env: "HiroAntEnv") -> np.ndarray:
 
 
 def controller_goal_input(goal_encoder: SubgoalEncoder | None, subgoals: torch.Tensor) -> torch.Tensor:
-    """What the controller sees of its subgoal: the relative subgoal (HRAC) or its discrete embedding z_q (DGRL),
-    codebook untouched."""
+    """What the controller sees of its subgoal: the subgoal (HRAC) or its z_q (DGRL), codebook untouched."""
     return subgoals if goal_encoder is None else goal_encoder(subgoals)[0]  # DGRL
 
 
 def as_tensors(sample: dict[str, np.ndarray], device: torch.device | str) -> dict[str, torch.Tensor]:
-    """A replay sample (numpy arrays by field) as tensors on `device`."""
     return {name: torch.as_tensor(value, device=device) for name, value in sample.items()}
 
 
-def controller_update(agent: Agent, batch: dict[str, torch.Tensor], **td3_flags) -> dict[str, torch.Tensor]:
-    """One controller TD3 step on a replay sample (`batch`: as_tensors of it, on the agent's device; `td3_flags`:
-    td3_update's gamma, tau, policy_noise, noise_clip). DGRL: the batch's
-    subgoals and re-targeted next subgoals go through the encoder and the quantizer in one call (one EMA step of the
-    codebook); the controller's critic and actor see z_q; the critic loss reaches the encoder through the
-    straight-through estimator, with the reconstruction loss and the commitment loss (the mean over the subgoals and the
-    next subgoals) added. Free of host syncs: --fast compiles it into one graph."""
+def controller_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict[str, torch.Tensor]:
+    """One controller TD3 step. DGRL: the subgoals and next subgoals go through the encoder and quantizer in one call (one
+    EMA step of the codebook); the critic loss reaches the encoder by the straight-through estimator. No host sync."""
     encoder = agent.encoder
-    extra = 0.0  # under DGRL the encoder's losses, added to the critic loss
-    metrics = {}
+    extra, metrics = 0.0, {}  # under DGRL the encoder's losses, added to the critic loss
     if encoder is not None:  # DGRL
         n = len(batch["goals"])
         z_q, vq_loss, codes = encoder(torch.cat([batch["goals"], batch["next_goals"]]), update=True)  # DGRL
@@ -558,7 +491,7 @@ def controller_update(agent: Agent, batch: dict[str, torch.Tensor], **td3_flags)
         batch = batch | {"goals": z_q[:n], "next_goals": z_q[n:].detach()}  # DGRL
         extra = reconstruction + vq_loss  # DGRL
         metrics = {"reconstruction_loss": reconstruction.detach(), "vq_loss": vq_loss.detach(), "codes": codes}
-    return metrics | td3_update(agent.controller, batch, **td3_flags, critic_extra=extra)
+    return metrics | td3_update(agent.controller, batch, gamma=args.ctrl_gamma, args=args, critic_extra=extra)
 
 
 def manager_batch(sample: dict, rng: np.random.Generator, *, bounds: np.ndarray, correction_samples: int, device) -> dict:
@@ -567,57 +500,46 @@ def manager_batch(sample: dict, rng: np.random.Generator, *, bounds: np.ndarray,
     return as_tensors(sample | {"noise": noise}, device)
 
 
-def manager_update(
-    agent: Agent, batch: dict, *, bounds: torch.Tensor, adj_weight: float, adj_threshold: float, **td3_flags
-) -> dict[str, torch.Tensor]:
-    """One manager TD3 step on `batch` (manager_batch: a replay sample with the correction's noise; `bounds`, the subgoal
-    bounds as a float64 tensor on the same device; `td3_flags`: td3_update's gamma, tau, policy_noise, noise_clip): the
-    sample's subgoals are relabelled by HIRO's off-policy correction under the current controller, and the actor loss
-    adds adj_weight x the adjacency loss of its subgoals (on their xy part). Free of host syncs: --fast compiles it,
-    correction included, into one graph."""
+def manager_update(agent: Agent, batch: dict, args: Args, bounds: torch.Tensor) -> dict[str, torch.Tensor]:
+    """One manager TD3 step on a manager_batch, its subgoals relabelled by the off-policy correction (`bounds`: float64
+    on its device), its actor loss plus --adj-weight x the adjacency loss of the subgoals' xy. No host sync."""
     stored = (batch["state_seq"], batch["action_seq"], batch["actions"])
-    # Under DGRL the controller sees the candidates through the encoder, as it does when acting.
     actions = off_policy_correction(agent.controller.actor, *stored, bounds, batch["noise"], goal_encoder=agent.encoder)
     names = ("states", "goals", "rewards", "next_states", "dones")
     batch = {name: batch[name] for name in names} | {"actions": actions.float(), "next_goals": batch["goals"]}
+    threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
 
     def adjacency_term(subgoals: torch.Tensor) -> torch.Tensor:
-        return adj_weight * adjacency_loss(agent.adjacency, batch["states"][:, :2], subgoals[:, :2], adj_threshold)
+        return args.adj_weight * adjacency_loss(agent.adjacency, batch["states"][:, :2], subgoals[:, :2], threshold)
 
-    metrics = td3_update(agent.manager, batch, **td3_flags, actor_extra=adjacency_term)
+    metrics = td3_update(agent.manager, batch, gamma=args.man_gamma, args=args, actor_extra=adjacency_term)
     with torch.no_grad():
-        positions, corrected = batch["states"][:, :2], batch["actions"][:, :2]
-        metrics["adjacency_loss"] = adjacency_loss(agent.adjacency, positions, corrected, adj_threshold)
+        metrics["adjacency_loss"] = adjacency_loss(agent.adjacency, batch["states"][:, :2], batch["actions"][:, :2], threshold)
     return metrics
 
 
-def train_adjacency(
-    anet, optimizer, memory, rng, *, epochs: int, batch_size: int, margin_pos: float, margin_neg: float, device, stop=()
-) -> tuple[int, float, float]:
-    """Train the adjacency network `epochs` epochs over every pair of visited cells with the contrastive loss, polling
-    `stop` before each epoch. Returns (epochs run, mean loss of the last epoch, accuracy of the embedding distances
-    against the labels with the threshold halfway between the margins). A stop request ends the training early, with
-    fewer epochs run (a resumed run runs the rest) and NaN figures, as a memory without any pair gives."""
+def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, device, stop=()) -> tuple[int, float, float]:
+    """`epochs` epochs over every pair of visited cells: (epochs run, the last epoch's mean loss, the accuracy of the
+    distances against the labels at the margins' midpoint). A stop request, polled before each epoch, ends it early with
+    NaN figures (--resume runs the rest), as a memory without any pair does."""
     cells_a, cells_b, labels = (torch.as_tensor(x, device=device) for x in memory.labelled_pairs())
     if len(labels) == 0:
         return epochs, float("nan"), float("nan")
-    losses = []
+    margins = (args.adj_margin_pos, args.adj_margin_neg)
     for epoch in range(epochs):
         if stop:
             return epoch, float("nan"), float("nan")
         order = torch.as_tensor(rng.permutation(len(labels)), device=device)
         losses = []
-        for start in range(0, len(labels), batch_size):
-            index = order[start : start + batch_size]
-            loss = contrastive_loss(anet(cells_a[index]), anet(cells_b[index]), labels[index], margin_pos, margin_neg)
+        for start in range(0, len(labels), args.adj_batch_size):
+            index = order[start : start + args.adj_batch_size]
+            loss = contrastive_loss(anet(cells_a[index]), anet(cells_b[index]), labels[index], *margins)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             losses.append(loss.detach())
-    if not losses:
-        return epochs, float("nan"), float("nan")
     with torch.no_grad():
-        predicted = (anet(cells_a) - anet(cells_b)).norm(dim=-1) < (margin_pos + margin_neg) / 2
+        predicted = (anet(cells_a) - anet(cells_b)).norm(dim=-1) < sum(margins) / 2
         accuracy = (predicted.float() == labels).float().mean().item()
     return epochs, torch.stack(losses).mean().item(), accuracy
 
@@ -630,10 +552,8 @@ def main(args: Args) -> None:
     validate(args)
     saved = load_resume(args) if args.resume is not None else None
     man_reward_scale = args.man_reward_scale or (1.0 if args.env_id in ("AntMazeSparse", "AntGather") else 0.1)
-    if saved is None:
-        run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    else:
-        run_name = os.path.basename(os.path.normpath(args.resume))
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_name = run_name if saved is None else os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)
     # The critics' weight decay drives the weights of dead ReLU units into subnormal floats, which slow a CPU's matrix
@@ -647,9 +567,8 @@ def main(args: Args) -> None:
         try:
             eval_env.render()
         except Exception as error:
-            gl = os.environ.get("MUJOCO_GL")
             advice = "set MUJOCO_GL=egl or osmesa, or run without --capture-video"
-            exit_on_errors([f"--capture-video cannot render with MUJOCO_GL={gl} ({error}); {advice}"])
+            exit_on_errors([f"--capture-video cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')} ({error}); {advice}"])
     state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
     goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
@@ -657,104 +576,70 @@ def main(args: Args) -> None:
     stop = stop_on_signals()
 
     if args.checkpoint is not None:
-        evaluate_checkpoint(args, agent, eval_env, bounds, rng, stop, device, run_name)
+        evaluate_checkpoint(args, agent, eval_env, rng, stop, device, run_name)
         return
 
     # A resumed run logs from the step after its resume file's on (TensorBoard drops what the stopped run logged later).
     writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
-    print(
-        f"{run_name}: state {state_dim}-d, subgoal {goal_dim}-d (bounds {bounds.tolist()}), manager goal {man_goal_dim}-d, "
-        f"{args.total_timesteps} steps, device {device}"
-    )
+    dims = f"state {state_dim}-d, subgoal {goal_dim}-d (bounds {bounds.tolist()}), manager goal {man_goal_dim}-d"
+    print(f"{run_name}: {dims}, {args.total_timesteps} steps, device {device}")
     if args.adj_frequency > args.total_timesteps:
         print(f"note: the adjacency network is never trained (--adj-frequency {args.adj_frequency} > --total-timesteps)")
-    ctrl_replay = Replay(
-        args.buffer_size, states=(state_dim,), goals=(goal_dim,), actions=(action_dim,), rewards=(), next_states=(state_dim,),
-        next_goals=(goal_dim,), dones=(),
-    )  # fmt: skip
-    man_replay = Replay(
-        args.buffer_size, states=(state_dim,), goals=(man_goal_dim,), actions=(goal_dim,), rewards=(),
-        next_states=(state_dim,), dones=(), state_seq=(args.k + 1, state_dim), action_seq=(args.k, action_dim),
-    )  # fmt: skip
+    step_shapes = {"states": (state_dim,), "rewards": (), "next_states": (state_dim,), "dones": ()}
+    ctrl_replay = Replay(args.buffer_size, **step_shapes, goals=(goal_dim,), actions=(action_dim,), next_goals=(goal_dim,))
+    segment_shapes = {"state_seq": (args.k + 1, state_dim), "action_seq": (args.k, action_dim)}
+    man_replay = Replay(args.buffer_size, **step_shapes, goals=(man_goal_dim,), actions=(goal_dim,), **segment_shapes)
     memory = AdjacencyMemory(args.k)
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     state, _ = env.reset(seed=args.seed)
-    loop = LoopState(
-        next_eval=args.eval_frequency,
-        next_adjacency=args.adj_frequency,
-        state=state,
-        seg_states=np.zeros((args.k + 1, state_dim)),
-        seg_actions=np.zeros((args.k, action_dim)),
-    )
-    stores = (agent, ctrl_replay, man_replay, memory, env, eval_env, rng)  # what learns or draws, besides the loop
+    empty_segment = {"seg_states": np.zeros((args.k + 1, state_dim)), "seg_actions": np.zeros((args.k, action_dim))}
+    loop = LoopState(next_eval=args.eval_frequency, next_adjacency=args.adj_frequency, state=state, **empty_segment)
+    stores = {"ctrl_replay": ctrl_replay, "man_replay": man_replay, "memory": memory, "env": env, "eval_env": eval_env}
     if saved is not None:  # continue where the stopped run left off, mid-episode and mid-segment included
-        loop = restore_training_state(saved, *stores)
+        loop = restore_training_state(saved, agent, stores, rng)
         print(f"resuming at step {loop.step}: {loop.episodes} episodes done, {loop.episode_steps} steps into the current one")
-    # --fast: each level's TD3 update (the manager's with its off-policy correction) compiled into one graph, after a
-    # resumed run's optimizer states are loaded (a fresh run's are created here). The adjacency training stays eager.
-    level_optimizers = lambda level: [level.critic_optimizer, level.actor_optimizer]  # noqa: E731
-    update_controller = fast_update(controller_update, args.fast, level_optimizers(agent.controller))
-    update_manager = fast_update(manager_update, args.fast, level_optimizers(agent.manager))
-    td3_flags = {"tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
-    ctrl_flags = td3_flags | {"gamma": args.ctrl_gamma}
-    adj_threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
-    man_flags = td3_flags | {"gamma": args.man_gamma, "adj_weight": args.adj_weight, "adj_threshold": adj_threshold}
-    man_flags["bounds"] = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
-    adj_flags = {"batch_size": args.adj_batch_size, "margin_pos": args.adj_margin_pos, "margin_neg": args.adj_margin_neg}
+    # --fast wraps each level's update after a resumed run's optimizer states are loaded; adjacency training stays eager.
+    controller, manager = agent.controller, agent.manager
+    update_controller = fast_update(controller_update, args.fast, [controller.critic_optimizer, controller.actor_optimizer])
+    update_manager = fast_update(manager_update, args.fast, [manager.critic_optimizer, manager.actor_optimizer])
+    bounds_tensor = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
     progress = Progress(args.total_timesteps, start_step=loop.step)
     # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps (an
     # episode end's updates finish first), or between two epochs of an adjacency training.
     while not stop:
-        # Adjacency network: retrained every adj_frequency steps (after an episode end) on the labels gathered so far. A
-        # stop request ends the training between epochs; the loop then ends, and --resume runs the epochs left.
+        # Adjacency network: retrained every adj_frequency steps (after an episode end) on the labels gathered so far.
         if loop.adjacency_due:
             began = time.time()
             epochs_left = args.adj_epochs - loop.adjacency_epochs
             epochs_run, adj_loss, adj_accuracy = train_adjacency(
-                agent.adjacency,
-                agent.adjacency_optimizer,
-                memory,
-                rng,
-                epochs=epochs_left,
-                **adj_flags,
-                device=device,
-                stop=stop,
+                agent.adjacency, agent.adjacency_optimizer, memory, rng, args, epochs=epochs_left, device=device, stop=stop
             )
             loop.adjacency_epochs += epochs_run
             if loop.adjacency_epochs < args.adj_epochs:
-                continue  # stopped between two epochs: the loop ends, the training still due
+                continue  # stopped between two epochs: the loop ends, the training still due (--resume runs the rest)
             loop.adjacency_due, loop.adjacency_epochs = False, 0
             figures = {"loss": adj_loss, "accuracy": adj_accuracy, "cells": len(memory.index), "edges": len(memory.edges)}
             for name, value in figures.items():
                 writer.add_scalar(f"adjacency/{name}", value, loop.step)
-            print(
-                f"step {loop.step:>9}: adjacency network trained on {len(memory.index)} cells, {len(memory.edges)} adjacent "
-                f"pairs: loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)",
-                flush=True,
-            )
+            trained = f"{len(memory.index)} cells, {len(memory.edges)} adjacent pairs"
+            quality = f"loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)"
+            print(f"step {loop.step:>9}: adjacency network trained on {trained}: {quality}", flush=True)
 
         # Evaluate (deterministic; AntMaze on its fixed evaluation goal), print progress, save the checkpoint.
         if loop.eval_due:
             loop.eval_due = False
             video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
-            loop.result = evaluate(
-                eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video
-            )
+            loop.result = result = evaluate(eval_env, agent, k=args.k, rng=rng, episodes=args.eval_episodes, frames=video)
             loop.evaluations += 1
             for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
-                writer.add_scalar(f"eval/{tag}", loop.result[name], loop.step)
+                writer.add_scalar(f"eval/{tag}", result[name], loop.step)
             writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
             summary = {name: float(np.mean(values)) if values else float("nan") for name, values in loop.recent.items()}
             loop.recent = {name: [] for name in loop.recent}
-            if args.env_id == "AntGather":
-                task = f"return {loop.result['return']:6.2f}"
-            else:
-                task = f"success {loop.result['success']:4.0%} distance {loop.result['distance']:5.2f}"
-            progress.line(
-                loop.step,
-                f"eval {task}  train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}  "
-                f"subgoal distance {summary['subgoal_distance']:5.2f}",
-            )
+            task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
+            task = f"return {result['return']:6.2f}" if args.env_id == "AntGather" else task
+            train = f"train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}"
+            progress.line(loop.step, f"eval {task}  {train}  subgoal distance {summary['subgoal_distance']:5.2f}")
             if video:
                 write_video(f"videos/{run_name}/eval_{loop.step}.mp4", video, HiroAntEnv.metadata["render_fps"])
             if args.save_model:
@@ -773,12 +658,12 @@ def main(args: Args) -> None:
             loop.ctrl_rewards = 0.0
         t = loop.episode_steps % args.k
         if t == 0:
-            loop.subgoal = propose_subgoal(agent, loop.state, loop.goal, bounds=bounds, noise=args.man_noise, rng=rng)
+            loop.subgoal = act(agent, loop.state, loop.goal, manager=True, noise=args.man_noise, rng=rng)
             loop.proposed = loop.subgoal
             loop.seg_states[0] = loop.state
             loop.seg_reward = 0.0
         state, subgoal = loop.state, loop.subgoal
-        action = controller_action(agent, state, subgoal, noise=args.ctrl_noise, rng=rng)
+        action = act(agent, state, subgoal, manager=False, noise=args.ctrl_noise, rng=rng)
         next_state, reward, terminated, truncated, info = env.step(action)
         loop.step += 1
         loop.episode_steps += 1
@@ -789,20 +674,18 @@ def main(args: Args) -> None:
         next_subgoal = subgoal_transition(state, subgoal, next_state)
         ctrl_reward = controller_reward(state, subgoal, next_state)
         loop.ctrl_rewards += ctrl_reward
-        ctrl_replay.add(
-            states=controller_input(state), goals=subgoal, actions=action, rewards=ctrl_reward,
-            next_states=controller_input(next_state), next_goals=next_subgoal, dones=0.0,
-        )  # fmt: skip
+        transition = {"states": controller_input(state), "goals": subgoal, "actions": action, "rewards": ctrl_reward}
+        ctrl_replay.add(**transition, next_states=controller_input(next_state), next_goals=next_subgoal, dones=0.0)
         loop.seg_states[t + 1] = next_state
         loop.seg_actions[t] = action
         loop.positions.append(next_state[:2])
         loop.state = next_state
         loop.subgoal = next_subgoal
         if t == args.k - 1:
+            segment = {"states": loop.seg_states[0], "goals": loop.goal, "actions": loop.proposed, "rewards": loop.seg_reward}
             man_replay.add(
-                states=loop.seg_states[0], goals=loop.goal, actions=loop.proposed, rewards=loop.seg_reward,
-                next_states=next_state, dones=0.0, state_seq=loop.seg_states, action_seq=loop.seg_actions,
-            )  # fmt: skip
+                **segment, next_states=next_state, dones=0.0, state_seq=loop.seg_states, action_seq=loop.seg_actions
+            )
             loop.remaining.append(np.linalg.norm(next_subgoal[:2]))
             loop.proposals.append(np.linalg.norm(loop.proposed[:2]))
         progress.heartbeat(loop.step, f"{loop.episodes} episodes")
@@ -825,25 +708,20 @@ def main(args: Args) -> None:
                 writer.add_scalar("charts/success_rate", float(info["success"]), loop.step)
             ctrl_metrics, man_metrics = {}, {}
             for _ in range(args.ctrl_updates or loop.episode_steps):
-                batch = as_tensors(ctrl_replay.sample(args.batch_size, rng), device)
-                ctrl_metrics = update_controller(agent, batch, **ctrl_flags)
+                ctrl_metrics = update_controller(agent, as_tensors(ctrl_replay.sample(args.batch_size, rng), device), args)
             for _ in range((args.man_updates or -(-loop.episode_steps // args.k)) if man_replay.size else 0):
                 sample = man_replay.sample(args.batch_size, rng)  # then the correction's noise, from the same generator
                 batch = manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device)
-                man_metrics = update_manager(agent, batch, **man_flags)
-            for name in ("critic_loss", "actor_loss", "q"):
-                if ctrl_metrics:
-                    writer.add_scalar(f"losses/controller_{name}", ctrl_metrics[name].item(), loop.step)
-                if man_metrics:
-                    writer.add_scalar(f"losses/manager_{name}", man_metrics[name].item(), loop.step)
-            if man_metrics:
-                writer.add_scalar("losses/manager_adjacency_loss", man_metrics["adjacency_loss"].item(), loop.step)
+                man_metrics = update_manager(agent, batch, args, bounds_tensor)
+            for level, metrics in (("controller", ctrl_metrics), ("manager", man_metrics)):
+                for name in ("critic_loss", "actor_loss", "q", "adjacency_loss"):  # the manager's adjacency term too
+                    if name in metrics:
+                        writer.add_scalar(f"losses/{level}_{name}", metrics[name].item(), loop.step)
             if args.groups and ctrl_metrics:
-                writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), loop.step)  # DGRL
-                writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), loop.step)  # DGRL
-                codes = ctrl_metrics["codes"]
-                writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), loop.step)  # DGRL
-                writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), loop.step)  # DGRL
+                writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), loop.step)
+                writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), loop.step)
+                writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), loop.step)
+                writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), loop.step)
 
             # What the episode end calls for; both come first in the next iteration, where a stop can end the training.
             loop.adjacency_due = loop.step >= loop.next_adjacency
@@ -857,20 +735,17 @@ def main(args: Args) -> None:
         work_pending = loop.adjacency_due or loop.eval_due
         if not work_pending and progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # the logs up to this step on disk before the state that continues after them (a kill -9)
-            save_resume(run_name, training_state(loop, *stores), args)
+            save_resume(run_name, training_state(loop, agent, stores, rng), args)
 
     writer.flush()
-    save_resume(run_name, training_state(loop, *stores), args)  # stopped or done: a stopped run continues with --resume
+    save_resume(run_name, training_state(loop, agent, stores, rng), args)  # stopped or done: --resume continues it
     if args.save_model:
         save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         print(f"checkpoint: {checkpoint_path}")
     result = loop.result
-    progress.finish(
-        loop.step < args.total_timesteps or loop.adjacency_due or loop.eval_due,
-        run_name,
-        f"{loop.step} steps, {loop.episodes} episodes, last eval success {result['success']:.0%} distance "
-        f"{result['distance']:.2f} return {result['return']:.2f}",
-    )
+    last = f"last eval success {result['success']:.0%} distance {result['distance']:.2f} return {result['return']:.2f}"
+    stopped = loop.step < args.total_timesteps or loop.adjacency_due or loop.eval_due
+    progress.finish(stopped, run_name, f"{loop.step} steps, {loop.episodes} episodes, {last}")
     env.close()
     eval_env.close()
     writer.close()
@@ -880,31 +755,15 @@ def main(args: Args) -> None:
 
 
 @torch.no_grad()
-def propose_subgoal(
-    agent: Agent, state: np.ndarray, goal: np.ndarray, *, bounds: np.ndarray, noise: float, rng: np.random.Generator
-) -> np.ndarray:
-    """The manager's relative subgoal, with Gaussian exploration noise (std `noise`, metres) clipped to the bounds."""
-    actor = agent.manager.actor
+def act(agent: Agent, state: np.ndarray, goal: np.ndarray, *, manager: bool, noise: float, rng: np.random.Generator):
+    """The manager's subgoal for (state, task goal) or the controller's torques for (xy-masked state, subgoal; DGRL: its
+    z_q, codebook untouched), plus Gaussian noise of std `noise` clipped to the actor's range (subgoal bounds, or 30)."""
+    actor = agent.manager.actor if manager else agent.controller.actor
     device = actor.max_action.device
-    inputs = [torch.as_tensor(x, dtype=torch.float32, device=device)[None] for x in (state, goal)]
-    subgoal = actor(*inputs)[0].cpu().numpy().astype(np.float64)
-    if noise > 0:
-        subgoal = np.clip(subgoal + rng.normal(0.0, noise, subgoal.shape), -bounds, bounds)
-    return subgoal
-
-
-@torch.no_grad()
-def controller_action(
-    agent: Agent, state: np.ndarray, subgoal: np.ndarray, *, noise: float, rng: np.random.Generator
-) -> np.ndarray:
-    """The controller's torques for the xy-masked state and its subgoal, with Gaussian noise (std `noise`) clipped to
-    +-30."""
-    actor = agent.controller.actor
-    device = actor.max_action.device
-    masked_state = torch.as_tensor(controller_input(state), dtype=torch.float32, device=device)[None]
-    goal_input = torch.as_tensor(subgoal, dtype=torch.float32, device=device)[None]
-    goal_input = controller_goal_input(agent.encoder, goal_input)  # DGRL: z_q of the subgoal
-    action = actor(masked_state, goal_input)[0].cpu().numpy()
+    state = torch.as_tensor(state if manager else controller_input(state), dtype=torch.float32, device=device)[None]
+    goal = torch.as_tensor(goal, dtype=torch.float32, device=device)[None]
+    goal = goal if manager else controller_goal_input(agent.encoder, goal)  # DGRL: z_q of the subgoal
+    action = actor(state, goal)[0].cpu().numpy().astype(np.float64)
     if noise > 0:
         limit = actor.max_action_numpy  # on the host: reading the device buffer back every step would be a sync
         action = np.clip(action + rng.normal(0.0, noise, action.shape), -limit, limit)
@@ -912,13 +771,10 @@ def controller_action(
 
 
 @torch.no_grad()
-def evaluate(
-    env: "HiroAntEnv", agent: Agent, *, k: int, bounds: np.ndarray, rng, episodes: int, frames: list | None = None, stop=()
-) -> dict[str, float]:
-    """HRAC's evaluation: deterministic actions at both levels; an episode ends at the first step that passes the env's
-    success test (distance < 5, AntMazeSparse reward > 0) or after 500 steps. Returns the success rate, the mean
-    distance to the goal when the episodes ended, the mean return (AntGather's metric) and the number of episodes
-    (fewer than `episodes` if `stop` was set: at least one runs). `frames` collects the first episode's renders."""
+def evaluate(env: "HiroAntEnv", agent: Agent, *, k: int, rng, episodes: int, frames: list | None = None, stop=()) -> dict:
+    """HRAC's evaluation, deterministic: an episode ends at its first success (AntMazeSparse: reward > 0) or after 500
+    steps. The success rate, mean final distance, mean return (AntGather's metric) and the episodes run (at least one,
+    fewer than `episodes` after a stop request); `frames` collects the first episode's renders."""
     successes, distances, returns = [], [], []
     for episode in range(episodes):
         if stop and successes:
@@ -928,8 +784,8 @@ def evaluate(
         total = 0.0
         for t in range(EPISODE_STEPS):
             if t % k == 0:
-                subgoal = propose_subgoal(agent, state, goal, bounds=bounds, noise=0.0, rng=rng)
-            action = controller_action(agent, state, subgoal, noise=0.0, rng=rng)
+                subgoal = act(agent, state, goal, manager=True, noise=0.0, rng=rng)
+            action = act(agent, state, subgoal, manager=False, noise=0.0, rng=rng)
             next_state, reward, terminated, truncated, info = env.step(action)
             subgoal = subgoal_transition(state, subgoal, next_state)
             state = next_state
@@ -946,21 +802,16 @@ def evaluate(
     return means | {"episodes": len(successes)}
 
 
-def evaluate_checkpoint(
-    args: Args, agent: Agent, eval_env: "HiroAntEnv", bounds, rng, stop: list[int], device: torch.device, run_name: str
-) -> None:
-    """--checkpoint: load the saved agent, evaluate it over --eval-episodes episodes, print the result (and write a
-    video with --capture-video)."""
+def evaluate_checkpoint(args: Args, agent: Agent, eval_env: "HiroAntEnv", rng, stop: list[int], device, run_name: str) -> None:
+    """--checkpoint: evaluate the saved agent over --eval-episodes episodes, print the result (and write a video)."""
     must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups else ())  # HRAC has no codebook to match
     agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
     episodes = f"{args.eval_episodes} episodes"
     print(f"evaluating {args.checkpoint} over {episodes} (Ctrl-C ends it after the current one)", flush=True)
     video = [] if args.capture_video else None
-    result = evaluate(eval_env, agent, k=args.k, bounds=bounds, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop)
-    print(
-        f"{result['episodes']} evaluation episodes: success {result['success']:.0%}, distance {result['distance']:.2f}, "
-        f"return {result['return']:.2f}"
-    )
+    result = evaluate(eval_env, agent, k=args.k, rng=rng, episodes=args.eval_episodes, frames=video, stop=stop)
+    figures = f"success {result['success']:.0%}, distance {result['distance']:.2f}, return {result['return']:.2f}"
+    print(f"{result['episodes']} evaluation episodes: {figures}")
     if video:
         write_video(f"videos/{run_name}/checkpoint.mp4", video, HiroAntEnv.metadata["render_fps"])
         print(f"video: videos/{run_name}/checkpoint.mp4")
@@ -978,31 +829,24 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 
 # HIRO's structures, rows top to bottom: 1 fixed block, 0 free, r robot start (the first one is the origin; AntMazeSparse
 # starts uniformly over all of them), XY a block sliding in x and y, YZ a block sliding in y and z, -1 a chasm.
-SPARSE_ROWS = (
-    "1 1 1 1 1 1 1 1 1 1", "1 r r r r r r r r 1", "1 r r r r r r r r 1", "1 1 1 1 1 1 1 r r 1", "1 0 r r r r r r r 1",
-    "1 0 r r r r r r r 1", "1 1 1 1 1 1 1 r r 1", "1 r r r r r r r r 1", "1 r r r r r r r r 1", "1 1 1 1 1 1 1 1 1 1",
-)  # fmt: skip
+SPARSE_ROWS = "1111111111 1rrrrrrrr1 1rrrrrrrr1 1111111rr1 10rrrrrrr1 10rrrrrrr1 1111111rr1 1rrrrrrrr1 1rrrrrrrr1 1111111111"
 STRUCTURES = {
     "AntMaze": (8.0, ((1, 1, 1, 1, 1), (1, "r", 0, 0, 1), (1, 1, 1, 0, 1), (1, 0, 0, 0, 1), (1, 1, 1, 1, 1))),
     "AntPush": (8.0, ((1, 1, 1, 1, 1), (1, 0, "r", 1, 1), (1, 0, "XY", 0, 1), (1, 1, 0, 1, 1), (1, 1, 1, 1, 1))),
     "AntFall": (8.0, ((1, 1, 1, 1), (1, "r", 0, 1), (1, 0, "YZ", 1), (1, -1, -1, 1), (1, 0, 0, 1), (1, 1, 1, 1))),
-    "AntMazeSparse": (2.0, tuple(tuple(int(c) if c in "01" else c for c in row.split()) for row in SPARSE_ROWS)),
+    "AntMazeSparse": (2.0, tuple(tuple(int(c) if c in "01" else c for c in row) for row in SPARSE_ROWS.split())),
 }
 MAZE_HEIGHT = 0.5  # walls are MAZE_HEIGHT * scaling tall
 SOLID = {"conaffinity": "1", "contype": "1"}  # a block's collision flags
 EVAL_GOALS = {"AntMaze": (0.0, 16.0), "AntMazeSparse": (2.0, 9.0), "AntPush": (0.0, 19.0), "AntFall": (0.0, 27.0, 4.5)}
 SUCCESS_DISTANCE = {"AntMaze": 5.0, "AntMazeSparse": 1.0, "AntPush": 5.0, "AntFall": 5.0}
 EPISODE_STEPS = 500
-GATHER = {"apples": 8, "bombs": 8, "half_width": 10, "wall": 11.0, "catch": 1.0, "bins": 10, "range": 6.0, "span": 2 * np.pi}
+GATHER = {"apples": 8, "bombs": 8, "wall": 11.0, "catch": 1.0, "bins": 10, "range": 6.0, "span": 2 * np.pi}
 
 
 def structure_origin(structure) -> tuple[int, int]:
     """(row, column) of the first robot cell: the world origin, where the ant starts."""
-    for i, row in enumerate(structure):
-        for j, cell in enumerate(row):
-            if cell == "r":
-                return i, j
-    raise ValueError("structure without a robot cell")
+    return next((i, j) for i, row in enumerate(structure) for j, cell in enumerate(row) if cell == "r")
 
 
 def cell_centre(i: int, j: int, scaling: float, origin: tuple[int, int]) -> tuple[float, float]:
@@ -1011,28 +855,25 @@ def cell_centre(i: int, j: int, scaling: float, origin: tuple[int, int]) -> tupl
 
 
 def structure_blocks(env_id: str) -> list[dict]:
-    """The blocks of an env's structure as MuJoCo boxes: name, centre (x, y, z), half-sizes, the axes it slides along
-    ("" for a fixed block) and its mass (movable blocks only). An elevated structure (one with a chasm) adds a platform
-    under every non-chasm cell, and everything else sits on it."""
+    """An env's blocks as MuJoCo boxes: name, centre, half-sizes, the axes it slides along ("" if fixed), a movable one's
+    mass. A structure with a chasm is elevated: a platform under every other cell carries the rest."""
     scaling, structure = STRUCTURES[env_id]
     origin = structure_origin(structure)
     elevated = any(cell == -1 for row in structure for cell in row)
     offset = MAZE_HEIGHT * scaling if elevated else 0.0
-    half = 0.5 * scaling
-    wall_half_height = 0.5 * MAZE_HEIGHT * scaling
+    half, wall_half_height = 0.5 * scaling, 0.5 * MAZE_HEIGHT * scaling
     blocks = []
     for i, row in enumerate(structure):
         for j, cell in enumerate(row):
             x, y = cell_centre(i, j, scaling, origin)
             if elevated and cell != -1:
                 blocks.append(dict(name=f"platform_{i}_{j}", pos=(x, y, offset / 2), size=(half, half, offset / 2), axes=""))
+            pos = (x, y, offset + wall_half_height)
             if cell == 1:
-                pos, size = (x, y, offset + wall_half_height), (half, half, wall_half_height)
-                blocks.append(dict(name=f"block_{i}_{j}", pos=pos, size=size, axes=""))
+                blocks.append(dict(name=f"block_{i}_{j}", pos=pos, size=(half, half, wall_half_height), axes=""))
             elif cell in ("XY", "YZ"):
-                shrink = 0.99 if "Z" in cell else 1.0  # the falling block fits through the chasm's gap
-                mass = 0.001 if "Z" in cell else 0.0002
-                pos, size = (x, y, offset + wall_half_height), (half * shrink, half * shrink, wall_half_height)
+                shrink, mass = (0.99, 0.001) if "Z" in cell else (1.0, 0.0002)  # the falling block fits through the chasm
+                size = (half * shrink, half * shrink, wall_half_height)
                 blocks.append(dict(name=f"movable_{i}_{j}", pos=pos, size=size, axes=cell.lower(), mass=mass))
     return blocks
 
@@ -1061,24 +902,16 @@ def hiro_ant_xml(env_id: str) -> str:
         ET.SubElement(body, "geom", **geom, rgba="0.9 0.1 0.1 1", solimp="0.995 0.995 0.01")
         for axis in block["axes"]:
             direction = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}[axis]
-            joint = dict(
-                name=f"{block['name']}_{axis}", type="slide", axis=direction, pos="0 0 0", armature="0", damping="0.0"
-            )
-            if axis == "z":  # the falling block drops at most the platform's height
-                joint.update(limited="true", range=f"{-MAZE_HEIGHT * scaling} 0")
-            elif "z" in block["axes"]:
-                joint.update(limited="true", range=f"{-scaling} {scaling}")
-            else:
-                joint.update(limited="false")
-            ET.SubElement(body, "joint", **joint)
-    if blocks:  # a camera over the middle of the structure that sees all of it (45-degree field of view)
-        xs = [b["pos"][0] for b in blocks]
-        ys = [b["pos"][1] for b in blocks]
-        centre_x, centre_y = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
-        extent = max(max(xs) - min(xs), max(ys) - min(ys)) + scaling
-    else:
-        centre_x, centre_y, extent = 0.0, 0.0, 2 * GATHER["wall"] + 1
-    ET.SubElement(world, "camera", name="top", pos=f"{centre_x} {centre_y} {1.25 * extent}", xyaxes="1 0 0 0 1 0")
+            joint = ET.SubElement(body, "joint", name=f"{block['name']}_{axis}", type="slide", axis=direction, pos="0 0 0")
+            joint.attrib |= {"armature": "0", "damping": "0.0", "limited": "false"}
+            if "z" in block["axes"]:  # the falling block drops at most the platform's height
+                span = f"{-MAZE_HEIGHT * scaling} 0" if axis == "z" else f"{-scaling} {scaling}"
+                joint.attrib |= {"limited": "true", "range": span}
+    # A camera over the middle of the structure that sees all of it (45-degree field of view).
+    xs, ys = [b["pos"][0] for b in blocks] or [0.0], [b["pos"][1] for b in blocks] or [0.0]
+    extent = max(max(xs) - min(xs), max(ys) - min(ys)) + scaling if blocks else 2 * GATHER["wall"] + 1
+    camera = f"{(min(xs) + max(xs)) / 2} {(min(ys) + max(ys)) / 2} {1.25 * extent}"
+    ET.SubElement(world, "camera", name="top", pos=camera, xyaxes="1 0 0 0 1 0")
     if env_id == "AntGather":
         w = GATHER["wall"]
         walls = {"north": (0, w, w, 0.5), "south": (0, -w, w, 0.5), "east": (w, 0, 0.5, w), "west": (-w, 0, 0.5, w)}
@@ -1102,16 +935,12 @@ def gather_readings(xy: np.ndarray, yaw: float, objects: np.ndarray) -> np.ndarr
 
 
 class HiroAntEnv(gym.Env):
-    """One env of the HIRO Ant suite on the modern `mujoco` bindings.
-
-    Observation: qpos[:15] + qvel[:14] of the ant and the time feature t * 0.001 (30-d); AntGather adds 10 apple and 10
-    bomb range readings. Action: 8 motor torques in [-30, 30]. Reset: the model's initial state with qpos + U(-0.1,
-    0.1) and qvel + 0.1 N(0, 1); AntMazeSparse starts on a uniformly drawn robot cell. Goals: AntMaze trains on
-    U([-4, -4], [20, 20]) and evaluates on (0, 16); the others use their fixed goal (`goal`, None for AntGather).
-    Reward: -||xy - g|| (AntFall: xyz), AntMazeSparse 1 within 1 of the goal, AntGather apples - bombs caught. Episodes
-    are truncated after 500 steps; `info["success"]` applies the env's success test, `info["distance"]` is the distance
-    to the goal (not for AntGather).
-    """
+    """One env of the HIRO Ant suite on the `mujoco` bindings. Observation: the ant's qpos[:15], qvel[:14], t * 0.001
+    (30-d; AntGather: the first 29, 10 apple and 10 bomb range readings, t * 0.01). Action: 8 torques in [-30, 30]. Reset:
+    qpos + U(-0.1, 0.1), qvel + 0.1 N(0, 1); AntMazeSparse starts on a random robot cell. Goal: AntMaze trains on
+    U([-4, -4], [20, 20]) and evaluates on (0, 16); the others have a fixed one (AntGather none). Reward: -||xy - g||
+    (AntFall xyz), AntMazeSparse 1 within 1 of the goal, AntGather apples - bombs caught. Truncated after 500 steps;
+    info: "success" (the env's success test), "distance" to the goal (not AntGather)."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
     frame_skip = 5
@@ -1120,8 +949,7 @@ class HiroAntEnv(gym.Env):
         self.env_id, self.evaluate, self.render_mode = env_id, evaluate, render_mode
         self.model = mujoco.MjModel.from_xml_string(hiro_ant_xml(env_id))
         self.data = mujoco.MjData(self.model)
-        size = 50 if env_id == "AntGather" else 30
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (size,), np.float64)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (50 if env_id == "AntGather" else 30,), np.float64)
         self.action_space = gym.spaces.Box(-30.0, 30.0, (8,), np.float32)
         self.goal = None if env_id == "AntGather" else np.array(EVAL_GOALS[env_id])
         self.steps = 0
@@ -1171,20 +999,15 @@ class HiroAntEnv(gym.Env):
         xy = self.data.qpos[:2].copy()
         if self.env_id == "AntGather":
             caught = np.linalg.norm(self.objects - xy, axis=1) < GATHER["catch"]
-            reward = float(self.kinds[caught].sum())
+            reward, info = float(self.kinds[caught].sum()), {"success": False}
             self.objects, self.kinds = self.objects[~caught], self.kinds[~caught]
-            success = False
         else:
             position = self.data.qpos[:3] if self.env_id == "AntFall" else xy
             distance = float(np.linalg.norm(position - self.goal))
-            if self.env_id == "AntMazeSparse":
-                reward = float(distance < SUCCESS_DISTANCE[self.env_id])
-            else:
-                reward = -distance
             success = distance < SUCCESS_DISTANCE[self.env_id]
-        truncated = self.steps >= EPISODE_STEPS
-        info = {"success": success} if self.env_id == "AntGather" else {"success": success, "distance": distance}
-        return self._observe(), reward, False, truncated, info
+            reward = float(success) if self.env_id == "AntMazeSparse" else -distance
+            info = {"success": success, "distance": distance}
+        return self._observe(), reward, False, self.steps >= EPISODE_STEPS, info
 
     def state_dict(self) -> dict:
         """What a resumed run needs to continue this env exactly: MuJoCo's integration state (time, qpos, qvel, warm
@@ -1208,22 +1031,20 @@ class HiroAntEnv(gym.Env):
             self._renderer = mujoco.Renderer(self.model, 240, 240)
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._renderer.update_scene(self.data, camera="top")
-        # Markers drawn into the scene only (no bodies, so no physics): AntGather's apples (green) and bombs (red); the
-        # goal of the other envs (a translucent green disc of the success radius, at the goal's height for AntFall).
+        # Markers drawn into the scene only (no bodies, so no physics): AntGather's apples (green) and bombs (red) as
+        # spheres; the other envs' goal as a translucent green disc of the success radius (at AntFall's goal height).
         if self.env_id == "AntGather":
-            markers = [
-                ((x, y, 0.5), 0.5, (0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1))
-                for (x, y), kind in zip(self.objects, self.kinds, strict=True)
-            ]
+            shape = mujoco.mjtGeom.mjGEOM_SPHERE
+            colours = [(0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1) for kind in self.kinds]
+            markers = [((x, y, 0.5), (0.5, 0.5, 0.5), colour) for (x, y), colour in zip(self.objects, colours, strict=True)]
         else:
+            shape, radius = mujoco.mjtGeom.mjGEOM_CYLINDER, SUCCESS_DISTANCE[self.env_id]
             z = self.goal[2] if len(self.goal) == 3 else 0.05
-            markers = [((*self.goal[:2], z), SUCCESS_DISTANCE[self.env_id], (0.1, 0.8, 0.1, 0.35))]
+            markers = [((*self.goal[:2], z), (radius, 0.05, 0.0), (0.1, 0.8, 0.1, 0.35))]
         scene = self._renderer.scene
-        for pos, radius, rgba in markers[: scene.maxgeom - scene.ngeom]:
-            shape = mujoco.mjtGeom.mjGEOM_SPHERE if self.env_id == "AntGather" else mujoco.mjtGeom.mjGEOM_CYLINDER
-            size = np.array([radius, radius, radius]) if self.env_id == "AntGather" else np.array([radius, 0.05, 0])
-            where = (np.array(pos, dtype=np.float64), np.eye(3).ravel())
-            mujoco.mjv_initGeom(scene.geoms[scene.ngeom], shape, size, *where, np.array(rgba, dtype=np.float32))
+        for pos, size, rgba in markers[: scene.maxgeom - scene.ngeom]:
+            geom = (np.array(size, dtype=np.float64), np.array(pos, dtype=np.float64), np.eye(3).ravel())
+            mujoco.mjv_initGeom(scene.geoms[scene.ngeom], shape, *geom, np.array(rgba, dtype=np.float32))
             scene.ngeom += 1
         return self._renderer.render()
 
@@ -1265,29 +1086,17 @@ class LoopState:
     seg_reward: float = 0.0
 
 
-def training_state(loop: LoopState, agent: Agent, ctrl_replay, man_replay, memory, env, eval_env, rng) -> dict:
-    """Everything a resumed run needs (save_resume adds the global random states): the agent with its targets and
-    optimizers, both replays, the adjacency memory, both envs, the numpy generator and the loop's variables."""
-    return {
-        "agent": agent.training_state_dicts(),
-        "ctrl_replay": ctrl_replay.state_dict(),
-        "man_replay": man_replay.state_dict(),
-        "memory": memory.state_dict(),
-        "env": env.state_dict(),
-        "eval_env": eval_env.state_dict(),
-        "numpy_rng": rng.bit_generator.state,
-        "loop": copy.deepcopy(vars(loop)),
-    }
+def training_state(loop: LoopState, agent: Agent, stores: dict, rng: np.random.Generator) -> dict:
+    """Everything a resumed run needs but the global random states (save_resume adds them)."""
+    state = {"agent": agent.state_dicts(training=True)} | {name: store.state_dict() for name, store in stores.items()}
+    return state | {"numpy_rng": rng.bit_generator.state, "loop": copy.deepcopy(vars(loop))}
 
 
-def restore_training_state(saved: dict, agent: Agent, ctrl_replay, man_replay, memory, env, eval_env, rng) -> LoopState:
-    """Load what training_state saved into the agent, replays, memory, envs and generators; return the loop's state."""
-    agent.load_training_state_dicts(saved["agent"])
-    ctrl_replay.load_state_dict(saved["ctrl_replay"])
-    man_replay.load_state_dict(saved["man_replay"])
-    memory.load_state_dict(saved["memory"])
-    env.load_state_dict(saved["env"])
-    eval_env.load_state_dict(saved["eval_env"])
+def restore_training_state(saved: dict, agent: Agent, stores: dict, rng: np.random.Generator) -> LoopState:
+    """Load what training_state saved into the agent, the stores and the generators; return the loop's state."""
+    agent.load_state_dicts(saved["agent"], training=True)
+    for name, store in stores.items():
+        store.load_state_dict(saved[name])
     rng.bit_generator.state = saved["numpy_rng"]
     set_rng_states(saved["rng"])  # last: building the agent and the envs drew from them
     return LoopState(**saved["loop"])
@@ -1303,7 +1112,7 @@ DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1319,9 +1128,8 @@ def seed_and_device(args) -> torch.device:
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
     """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
     if args.track:
-        wandb = importlib.import_module("wandb")  # an optional package, needed only here
         options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        wandb.init(**options, sync_tensorboard=True, save_code=True)
+        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -1392,6 +1200,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+    layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1405,10 +1214,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             advice = "start the run afresh without --resume, or put back an older copy of the file"
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
     older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
     if older:  # a flag added since: the file cannot say which value it had
         started = f" was started before {older} existed; continue it with the version that started it"
@@ -1433,7 +1242,7 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
 
 
 def load_resume(args) -> dict:
@@ -1605,26 +1414,21 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "ctrl_updates man_updates correction_samples adj_weight critic_weight_decay", 0)
     errors += range_errors(args, "man_reward_scale policy_noise noise_clip ctrl_noise man_noise", 0)
     errors += range_errors(args, "total_timesteps buffer_size batch_size hidden_dim adj_frequency adj_epochs", 1)
-    errors += range_errors(args, "adj_batch_size eval_frequency eval_episodes", 1)
+    errors += range_errors(args, "adj_batch_size eval_frequency eval_episodes embed_dim encoder_hidden_dim", 1)
     errors += range_errors(args, "k", 2)  # a segment of one step has no pair of cells k - 1 steps apart to label adjacent
-    errors += range_errors(args, "actor_lr critic_lr adj_lr adj_margin_pos adj_margin_neg", 0, low_open=True)
+    errors += range_errors(args, "actor_lr critic_lr encoder_lr adj_lr adj_margin_pos adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "subgoal_scale", 0, 100, low_open=True)  # metres; the largest arena is 48 m across
     errors += range_errors(args, "tau", 0, 1, low_open=True)
-    errors += range_errors(args, "embed_dim encoder_hidden_dim", 1)
-    errors += range_errors(args, "encoder_lr", 0, low_open=True)
-    for flag in ("ctrl_gamma", "man_gamma"):
-        if not 0 < getattr(args, flag) < 1:  # the envs never terminate: at 1 the values would grow without bound
-            value = getattr(args, flag)
-            errors.append(f"--{flag.replace('_', '-')} must be in (0, 1) (episodes end by time limit only); got {value}")
+    # The envs never terminate (episodes end by time limit only): at a discount of 1 the values would grow without bound.
+    errors += range_errors(args, "ctrl_gamma man_gamma", 0, 1, low_open=True, high_open=True)
     if args.k >= 1 and EPISODE_STEPS % args.k:
         divisors = [k for k in range(2, EPISODE_STEPS + 1) if EPISODE_STEPS % k == 0]
         errors.append(f"--k must divide the episode length {EPISODE_STEPS} (whole segments): one of {divisors}; got {args.k}")
     if args.adj_margin_neg < args.adj_margin_pos:
         errors.append(f"--adj-margin-neg ({args.adj_margin_neg}) must be >= --adj-margin-pos ({args.adj_margin_pos})")
     if args.k >= 1 and args.total_timesteps < args.k:
-        errors.append(
-            f"--total-timesteps ({args.total_timesteps}) must be >= --k ({args.k}): the manager learns from whole segments"
-        )
+        wanted = f">= --k ({args.k}): the manager learns from whole segments"
+        errors.append(f"--total-timesteps ({args.total_timesteps}) must be {wanted}")
     if args.batch_size > args.buffer_size:
         errors.append(f"--batch-size ({args.batch_size}) must be <= --buffer-size ({args.buffer_size})")
     if args.checkpoint is not None and args.save_model:

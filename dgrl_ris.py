@@ -190,8 +190,7 @@ class TwinCritic(nn.Module):
 
     def __init__(self, state_dim: int, goal_input_dim: int, action_dim: int, hidden_dim: int):
         super().__init__()
-        self.q1 = mlp(state_dim + action_dim + goal_input_dim, hidden_dim, 1)
-        self.q2 = mlp(state_dim + action_dim + goal_input_dim, hidden_dim, 1)
+        self.q1, self.q2 = (mlp(state_dim + action_dim + goal_input_dim, hidden_dim, 1) for _ in range(2))
 
     def forward(self, states: torch.Tensor, actions: torch.Tensor, goal_inputs: torch.Tensor) -> torch.Tensor:
         inputs = torch.cat((states, actions, goal_inputs), -1)
@@ -211,11 +210,8 @@ class HighLevelPolicy(nn.Module):
 
 
 class GoalEncoder(nn.Module):  # DGRL
-    """MLP encoder -> shared-codebook bottleneck -> MLP decoder, on points of the goal space (paper snippet, Ant branch).
-
-    Goals, subgoals and states (through their goal-space projection) share it. The decoder only serves the autoencoder
-    loss that shapes the encoder; the agent consumes the discrete embedding z_q.
-    """
+    """MLP encoder -> shared-codebook bottleneck -> MLP decoder on goal-space points (paper snippet, Ant branch), shared
+    by goals, subgoals and states' projections. The decoder only serves the autoencoder loss; the agent sees z_q."""
 
     def __init__(self, goal_dim: int, args: Args):
         super().__init__()
@@ -230,13 +226,9 @@ class GoalEncoder(nn.Module):  # DGRL
         return self.vq(self.encoder(goals), update=update)  # DGRL
 
 
-VQ_LOSS_REDUCTIONS = ("mean", "sum")  # --vq-loss-reduction's choices
-
-
 def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
-    """The commitment losses of n equal-sized embeddings quantized in one call, from that call's loss (their mean): the
-    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet adds
-    the VQ losses of state, next state, goal and subgoal)."""
+    """Combine the commitment losses of n equal-sized embeddings from the loss of their one pooled call (their mean): the
+    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet)."""
     return pooled if reduction == "mean" else n_embeddings * pooled  # DGRL
 
 
@@ -259,10 +251,9 @@ class Agent:
     critic_optimizer: torch.optim.Optimizer
     high_optimizer: torch.optim.Optimizer
 
-    EVALUATED = ("actor", "critic", "high", "goal_encoder")  # what a --save-model checkpoint holds
+    EVALUATED = ("actor", "critic", "high", "goal_encoder")  # what a --save-model checkpoint holds (with the codebook)
 
     def state_dicts(self) -> dict:
-        """What evaluation needs, as state dicts: the goal encoder's include its codebook and EMA buffers."""
         return {name: None if getattr(self, name) is None else getattr(self, name).state_dict() for name in self.EVALUATED}
 
     def load_state_dicts(self, saved: dict) -> None:
@@ -290,12 +281,9 @@ def make_agent(state_dim: int, goal_dim: int, action_dim: int, args: Args, devic
 
 
 class EpisodeReplay:
-    """A ring of transitions written one whole episode at a time, on the training device.
-
-    Each transition stores the index of its episode's last transition, so a future state of the same episode is one
-    random integer away. Episodes are written contiguously (a write that would cross the end starts again at 0), so
-    whatever survives of an overwritten episode is a suffix of it and its stored end index stays valid.
-    """
+    """A ring of transitions on the training device, written one whole episode at a time and contiguously (a write that
+    would cross the end starts again at 0), so what survives of an overwritten episode is a suffix of it and the index of
+    its last transition, stored with each transition, stays valid: a future state is one random integer away."""
 
     STORED = ("states", "actions", "next_states", "goals", "episode_end")
 
@@ -313,15 +301,14 @@ class EpisodeReplay:
         if self.position + length > self.capacity:
             self.position = 0
         rows = slice(self.position, self.position + length)
-        stored = (self.states, self.actions, self.next_states, self.goals)
-        for storage, values in zip(stored, (states, actions, next_states, goals), strict=True):
-            storage[rows] = torch.as_tensor(values, device=self.device)
+        for name, values in zip(self.STORED[:4], (states, actions, next_states, goals), strict=True):
+            getattr(self, name)[rows] = torch.as_tensor(values, device=self.device)
         self.episode_end[rows] = self.position + length - 1
         self.position += length
         self.size = max(self.size, self.position)
 
     def state_dict(self) -> dict:
-        """The filled rows (copied to the CPU, so the file holds only them) and the write position."""
+        """The filled rows (copies on the CPU, so the file holds only them) and the write position."""
         rows = {name: getattr(self, name)[: self.size].to("cpu", copy=True) for name in self.STORED}
         return {"position": self.position, "size": self.size, **rows}
 
@@ -331,20 +318,15 @@ class EpisodeReplay:
             getattr(self, name)[: self.size] = saved[name].to(self.device)
 
     def sample(self, batch_size: int, goal_dim: int, threshold: float, goal_frac: float, random_frac: float):
-        """A HER batch: (s, a, s', g, r, done, s_g), with g relabelled and r, done recomputed.
-
-        The first `goal_frac` of the batch keeps the rollout goal, the next `random_frac` gets the goal projection of a
-        random replay state, the rest a future state of the same episode, uniform over s'_i..s'_end. Rewards are -1 and
-        done marks s' within `threshold` (xy) of the goal. s_g: random replay states, the high level's subgoal candidates.
-        """
+        """A HER batch (s, a, s', g, r, done, s_g): the first `goal_frac` keeps the rollout goal, the next `random_frac`
+        gets a random replay state's goal projection, the rest a future state of the episode, uniform over s'_i..s'_end.
+        r = -1; done: s' within `threshold` (xy) of g. s_g: random replay states, the high level's subgoal candidates."""
         index = torch.randint(self.size, (batch_size,), device=self.device)
         n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
         future = index[n_keep + n_random :]
         offset = (torch.rand(len(future), device=self.device) * (self.episode_end[future] - future + 1)).long()
-        random_states = self.states[torch.randint(self.size, (n_random,), device=self.device)]
-        goals = torch.cat(
-            (self.goals[index[:n_keep]], random_states[:, :goal_dim], self.next_states[future + offset, :goal_dim])
-        )
+        random_goals = self.states[torch.randint(self.size, (n_random,), device=self.device), :goal_dim]
+        goals = torch.cat((self.goals[index[:n_keep]], random_goals, self.next_states[future + offset, :goal_dim]))
         next_states = self.next_states[index]
         done = (torch.linalg.vector_norm(next_states[:, :2] - goals[:, :2], dim=-1) < threshold).float()
         subgoals = self.states[torch.randint(self.size, (batch_size,), device=self.device)]
@@ -355,8 +337,7 @@ class EpisodeReplay:
 
 
 def advantage_weights(distance_proposed: torch.Tensor, distance_candidates: torch.Tensor, temperature: float) -> torch.Tensor:
-    """softmax over the batch of (D(proposed subgoal) - D(candidate)) / lambda: candidates better than the proposal
-    (a smaller cost to go through them) get the larger weights."""
+    """softmax over the batch of (D(proposed subgoal) - D(candidate)) / lambda: the cheaper candidates weigh more."""
     return F.softmax((distance_proposed - distance_candidates) / temperature, dim=0)
 
 
@@ -366,28 +347,19 @@ def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Ten
 
 
 def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float) -> torch.Tensor:
-    """Single-sample KL(pi || prior) at u: log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon).
-
-    u: (B, A); mean, std: (B, A); prior_mean, prior_std: (K, B, A) from the target actor at K imagined subgoals. The
-    log of the mixture density plus epsilon is computed with logsumexp, so a density of 1e-40 does not underflow to 0.
-    """
-    log_policy = torch.distributions.Normal(mean, std, validate_args=False).log_prob(actions_pre_tanh).sum(-1)
-    log_prior_k = (
-        torch.distributions.Normal(prior_mean, prior_std, validate_args=False).log_prob(actions_pre_tanh.unsqueeze(0)).sum(-1)
-    )
-    n_subgoals = log_prior_k.shape[0]
-    log_terms = torch.cat((log_prior_k - math.log(n_subgoals), torch.full_like(log_prior_k[:1], math.log(epsilon))))
+    """Single-sample KL(pi || prior) at u (B, A): log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon), the
+    prior's (K, B, A) from the target actor at K imagined subgoals; logsumexp keeps a density of 1e-40 from reaching 0."""
+    normal = partial(torch.distributions.Normal, validate_args=False)
+    log_policy = normal(mean, std).log_prob(actions_pre_tanh).sum(-1)
+    log_prior_k = normal(prior_mean, prior_std).log_prob(actions_pre_tanh[None]).sum(-1)
+    log_terms = torch.cat((log_prior_k - math.log(len(log_prior_k)), torch.full_like(log_prior_k[:1], math.log(epsilon))))
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
 def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor]:
-    """One RIS update (critic, high level, actor, targets) with the DGRL representation loss; returns detached metrics.
-
-    `batch` is EpisodeReplay.sample's (s, a, s', g, r, done, s_g); the goal-space projection of a state is its first
-    goal_dim entries. The flags read from `args` are constants of the run (what --fast compile guards on).
-    """
-    actor, critic, high = agent.actor, agent.critic, agent.high
-    goal_encoder = agent.goal_encoder
+    """One RIS update (critic, high level, actor, targets) with DGRL's representation loss, on EpisodeReplay.sample's
+    batch (a state's goal-space projection: its first goal_dim entries); returns detached metrics."""
+    actor, critic, high, goal_encoder = agent.actor, agent.critic, agent.high, agent.goal_encoder
     states, actions, next_states, goals, rewards, done, subgoals = batch
     batch_size, goal_dim = goals.shape
     metrics = {}
@@ -398,12 +370,10 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
         z_q, vq_loss, codes = goal_encoder(points, update=True)  # DGRL: one pooled EMA step over the four embeddings
         reconstruction_loss = F.mse_loss(goal_encoder.decoder(z_q[:batch_size]), points[:batch_size])  # DGRL
         goal_z = z_q[2 * batch_size : 3 * batch_size]  # DGRL: straight-through, so the critic loss shapes the encoder
-        commitment_loss = combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL: from the four's mean
-        representation_loss = reconstruction_loss + commitment_loss  # DGRL
+        representation_loss = reconstruction_loss + combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL
         metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)
     else:
-        goal_z = goals
-        representation_loss = 0.0
+        goal_z, representation_loss = goals, 0.0
     with torch.no_grad():
         next_actions = actor.sample(next_states, goal_z.detach())
         next_q = agent.critic_target(next_states, next_actions, goal_z.detach()).min(0).values
@@ -440,15 +410,9 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
 
     update_target(agent.critic_target, critic, args.tau)
     update_target(agent.actor_target, actor, args.tau)
-    metrics.update(
-        critic_loss=critic_loss,
-        high_loss=high_loss,
-        actor_loss=actor_loss,
-        kl=kl.mean(),
-        q_values=q_values.mean(),
-        high_weight_max=weights.max(),
-        subgoal_distance=torch.linalg.vector_norm(proposed[:, :2] - states[:, :2], dim=-1).mean(),
-    )
+    subgoal_distance = torch.linalg.vector_norm(proposed[:, :2] - states[:, :2], dim=-1).mean()
+    metrics |= dict(critic_loss=critic_loss, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean())
+    metrics |= dict(q_values=q_values.mean(), high_weight_max=weights.max(), subgoal_distance=subgoal_distance)
     return {name: value.detach() for name, value in metrics.items()}
 
 
@@ -461,7 +425,7 @@ def main(args: Args) -> None:
     args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
     saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:  # the stopped run's name, folder and videos
+    if saved is not None:  # the stopped run's folder and videos
         run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
 
@@ -470,8 +434,7 @@ def main(args: Args) -> None:
     envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, *limits)
     eval_envs = make_vector_env(args.env_id, args.eval_episodes, args.seed + 10_000, True, *limits, render=args.capture_video)
     eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
-    state_dim = envs.single_observation_space["state"].shape[0]
-    goal_dim = envs.single_observation_space["goal"].shape[0]
+    state_dim, goal_dim = (envs.single_observation_space[key].shape[0] for key in ("state", "goal"))
     action_dim = envs.single_action_space.shape[0]
     if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
         exit_on_errors([f"--env-id {args.env_id}: RIS's tanh policy expects actions in [-1, 1]"])
@@ -500,8 +463,7 @@ def main(args: Args) -> None:
     if saved is not None:
         print(f"resumed at step {loop.step} ({loop.updates} updates) from {args.resume}/{RESUME_FILE}")
     if device.type == "cpu" and args.batch_size >= 1024:
-        preset = "the CPU preset is in docs/dgrl_ris.md"
-        print(f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; {preset}")
+        print(f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; see docs/dgrl_ris.md's CPU preset")
     update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
     progress = Progress(args.total_timesteps, start_step=loop.step)
     if saved is not None:
@@ -518,12 +480,10 @@ def main(args: Args) -> None:
         # Stage each env's transitions; a finished episode goes to the replay whole (the true last state: final_obs).
         for env in range(args.num_envs):
             ended = terminations[env] or truncations[env]
-            loop.episode["states"][env].append(loop.observations["state"][env])
-            loop.episode["actions"][env].append(actions[env])
-            loop.episode["next_states"][env].append(
-                infos["final_obs"][env]["state"] if ended else next_observations["state"][env]
-            )
-            loop.episode["goals"][env].append(loop.observations["goal"][env])
+            next_state = infos["final_obs"][env]["state"] if ended else next_observations["state"][env]
+            row = loop.observations["state"][env], actions[env], next_state, loop.observations["goal"][env]
+            for key, value in zip(EPISODE_KEYS, row, strict=True):
+                loop.episode[key][env].append(value)
             if ended:
                 replay.add_episode(*(np.stack(loop.episode[key][env]) for key in EPISODE_KEYS))
                 for key in EPISODE_KEYS:
@@ -547,12 +507,11 @@ def main(args: Args) -> None:
                     writer.add_scalar(f"losses/{name}", value, loop.step)
                 writer.add_scalar("losses/high_weight_max", metrics["high_weight_max"].item(), loop.step)
                 writer.add_scalar("charts/subgoal_distance", metrics["subgoal_distance"].item(), loop.step)
-                if args.groups:
-                    codes = metrics["codes"]
-                    writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), loop.step)  # DGRL
-                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL
-                    writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), loop.step)  # DGRL
-                    writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), loop.step)  # DGRL
+                if args.groups:  # the representation and the codebook (DGRL)
+                    writer.add_scalar("losses/reconstruction", metrics["reconstruction_loss"].item(), loop.step)
+                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)
+                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), loop.step)
+                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), loop.step)
                 diverged = not all(map(math.isfinite, losses.values()))
                 if diverged:  # every later update would be NaN too: stop rather than train garbage
                     advice = "lower the learning rates or --alpha"
@@ -560,8 +519,7 @@ def main(args: Args) -> None:
                     break
         progress.heartbeat(loop.step, f"{loop.updates} updates")
 
-        # Evaluate on the test configuration, log, print progress, checkpoint. A stop signal lets the evaluation finish
-        # (seconds), so that the resume file holds whole steps.
+        # Evaluate on the test configuration, log, print progress, checkpoint (a stop signal waits for the evaluation).
         if loop.step >= loop.next_eval or loop.step >= args.total_timesteps:
             loop.next_eval += args.eval_frequency
             video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
@@ -572,10 +530,8 @@ def main(args: Args) -> None:
             writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
             train_success = f"{np.mean(loop.recent_success):4.0%}" if loop.recent_success else "   -"  # none ended since
             loop.recent_success = []
-            figures = (
-                f"eval success {loop.eval_success:4.0%} distance {loop.eval_distance:5.2f}  train success {train_success}"
-            )
-            progress.line(loop.step, figures)
+            eval_figures = f"eval success {loop.eval_success:4.0%} distance {loop.eval_distance:5.2f}"
+            progress.line(loop.step, f"{eval_figures}  train success {train_success}")
             if video:
                 write_video(f"videos/{run_name}/eval_{loop.step}.mp4", video, fps=15)
             if args.save_model:
@@ -605,9 +561,8 @@ def main(args: Args) -> None:
 def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
     states = torch.as_tensor(observations["state"], device=device)
     goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: quantized, no update
-    if deterministic:
-        return torch.tanh(actor(states, goal_z)[0]).cpu().numpy()
-    return actor.sample(states, goal_z).cpu().numpy()
+    actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)
+    return actions.cpu().numpy()
 
 
 def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=None) -> tuple | None:
@@ -615,8 +570,7 @@ def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | Non
     go to `frames` if given; a signal in `stop` (from stop_on_signals) ends the evaluation early, returning None."""
     observations, _ = envs.reset()
     finished = np.zeros(envs.num_envs, dtype=bool)
-    success = np.zeros(envs.num_envs)
-    distance = np.zeros(envs.num_envs)
+    success, distance = np.zeros(envs.num_envs), np.zeros(envs.num_envs)
     while not finished.all():
         if stop:
             return None
@@ -635,8 +589,7 @@ def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | Non
 
 def evaluate_checkpoint(args: Args, agent: Agent, eval_envs, device: torch.device, stop: list[int]) -> None:
     """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the test configuration, print."""
-    saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-    agent.load_state_dicts(saved)
+    agent.load_state_dicts(load_checkpoint(args.checkpoint, args, MUST_MATCH, device))
     result = evaluate(eval_envs, agent, device, args.eval_deterministic, stop=stop)
     if result is None:
         print("stopped: the evaluation was interrupted")
@@ -709,17 +662,6 @@ def wall_distance(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.maximum(gap, 0.0), axis=-1).min(1)
 
 
-def sample_free_xy(name: str, rng: np.random.Generator, clearance: float = WALL_CLEARANCE) -> np.ndarray:
-    """Uniform over the interior, rejecting points closer than `clearance` to any wall."""
-    (x0, x1), (y0, y1) = ANT_MAZES[name]["interior"]
-    boxes = maze_boxes(name)
-    while True:
-        points = rng.uniform((x0, y0), (x1, y1), size=(64, 2))
-        free = points[wall_distance(points, boxes) >= clearance]
-        if len(free):
-            return free[0]
-
-
 def quat_to_euler(quat: np.ndarray) -> np.ndarray:
     """(w, x, y, z) unit quaternion to (roll, pitch, yaw)."""
     w, x, y, z = quat
@@ -768,24 +710,17 @@ def ant_maze_xml(name: str) -> str:
 
 
 class AntMazeEnv(gym.Env):
-    """One of RIS's four Ant mazes (as in its multiworld code) on the modern `mujoco` bindings.
-
-    Observation: Dict(state = the 31-d ant state, goal = a 31-d goal state). Action: 8 motor commands in [-1, 1].
-    Physics: timestep 0.03 with RK4, frame_skip 5 (0.15 s per step), gear 10. The reward is -1 per step (RIS recomputes
-    it after relabelling anyway); the episode terminates when the torso's xy is within `threshold` of the goal's.
-    Training resets (`test=False`) draw the start and the goal uniformly over the free space with 0.75 clearance from
-    every wall; test resets draw them from the maze's fixed start and goal boxes. Yaws come from {0, pi, +-pi/2}.
-    """
+    """One of RIS's four Ant mazes (its multiworld code) on the `mujoco` bindings: Dict(state, goal) of 31-d ant states,
+    8 motor commands in [-1, 1], 0.15 s per step (frame_skip 5), reward -1 (RIS recomputes it after relabelling); the
+    episode ends when the torso's xy is within `threshold` of the goal's. Training resets draw start and goal over the
+    free space (0.75 from every wall), test resets from the maze's fixed boxes; yaws from {0, pi, +-pi/2}."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 7}
     frame_skip = 5
 
     def __init__(self, name: str, test: bool = False, threshold: float = ANT_THRESHOLD, render_mode: str | None = None):
-        self.name = name
-        self.test = test
-        self.threshold = threshold
-        self.render_mode = render_mode
-        self.model = mujoco.MjModel.from_xml_string(ant_maze_xml(name))
+        self.name, self.test, self.threshold, self.render_mode = name, test, threshold, render_mode
+        self.model, self.walls = mujoco.MjModel.from_xml_string(ant_maze_xml(name)), maze_boxes(name)
         self.data = mujoco.MjData(self.model)
         box = gym.spaces.Box(-np.inf, np.inf, (31,), np.float32)
         self.observation_space = gym.spaces.Dict(state=box, goal=box)
@@ -794,10 +729,16 @@ class AntMazeEnv(gym.Env):
         self._renderer = None
 
     def _draw_xy(self, box_key: str) -> np.ndarray:
+        """Uniform over a test box, or over the interior without the points within WALL_CLEARANCE of a wall."""
         if self.test:
             (x0, x1), (y0, y1) = ANT_MAZES[self.name][box_key]
             return self.np_random.uniform((x0, y0), (x1, y1))
-        return sample_free_xy(self.name, self.np_random)
+        (x0, x1), (y0, y1) = ANT_MAZES[self.name]["interior"]
+        while True:
+            points = self.np_random.uniform((x0, y0), (x1, y1), size=(64, 2))
+            free = points[wall_distance(points, self.walls) >= WALL_CLEARANCE]
+            if len(free):
+                return free[0]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -828,12 +769,9 @@ class AntMazeEnv(gym.Env):
 
 
 class RoboticsMaze(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """A gymnasium-robotics maze env seen as Dict(state, goal): state = (achieved xy, observation), goal = desired xy.
-
-    Episodes end on success (`continuing_task=False`). Test resets of the U mazes put the start and the goal at the two
-    ends of the U, the analogue of RIS's test configuration; other maps keep their own reset distribution. Recording its
-    constructor arguments (as gymnasium's own wrappers do) lets gymnasium re-create the wrapped env from its spec.
-    """
+    """A gymnasium-robotics maze as Dict(state = (achieved xy, observation), goal = desired xy); test resets of the U
+    mazes start and end at the two ends of the U (RIS's test configuration), other maps keep their own. Recording its
+    constructor arguments (as gymnasium's wrappers do) lets gymnasium re-create the wrapped env from its spec."""
 
     def __init__(self, env: gym.Env, test: bool):
         gym.utils.RecordConstructorArgs.__init__(self, test=test)
@@ -870,26 +808,21 @@ def robotics_ids() -> list[str]:
 
 def episode_limit(env_id: str, max_episode_steps: int) -> int:
     """The episode step limit a run uses: --max-episode-steps, else 600 (Ant mazes) or the id's registered limit."""
-    if max_episode_steps:
-        return max_episode_steps
-    if env_id in ANT_MAZES:
-        return ANT_EPISODE_STEPS
-    robotics_ids()
+    if max_episode_steps or env_id in ANT_MAZES:
+        return max_episode_steps or ANT_EPISODE_STEPS
+    robotics_ids()  # registers the ids
     return gym.spec(env_id).max_episode_steps
 
 
 def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False):
     def thunk():
-        render_mode = "rgb_array" if render else None
+        render_mode, limit = "rgb_array" if render else None, episode_limit(env_id, max_episode_steps)
         if env_id in ANT_MAZES:
-            env = AntMazeEnv(env_id, test, threshold, render_mode)
-            env = gym.wrappers.TimeLimit(env, max_episode_steps or ANT_EPISODE_STEPS)
+            env = gym.wrappers.TimeLimit(AntMazeEnv(env_id, test, threshold, render_mode), limit)
         else:
-            robotics_ids()
             kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
-            if max_episode_steps:
-                kwargs["max_episode_steps"] = max_episode_steps
-            env = RoboticsMaze(gym.make(env_id, continuing_task=False, render_mode=render_mode, **kwargs), test)
+            env = gym.make(env_id, continuing_task=False, render_mode=render_mode, max_episode_steps=limit, **kwargs)
+            env = RoboticsMaze(env, test)
         env = gym.wrappers.RecordEpisodeStatistics(env)
         env.action_space.seed(seed)
         return env
@@ -922,8 +855,7 @@ def env_layers(env: gym.Env) -> list:
 
 
 def env_state(env: gym.Env) -> dict:
-    """One env's state as plain values: ENV_CARRIED layer by layer, MuJoCo's integration state (and the robotics
-    maze's target marker, a model field) and the action space's generator."""
+    """One env's state: ENV_CARRIED by layer, MuJoCo's state (with the target marker, a model field), the action rng."""
     layers = []
     for layer in env_layers(env):
         carried = {name: copy.deepcopy(value) for name, value in vars(layer).items() if name in ENV_CARRIED}
@@ -967,10 +899,9 @@ class LoopState:
 
 
 def training_state(agent: Agent, replay: EpisodeReplay, envs, eval_envs, loop: LoopState) -> dict:
-    """Everything a run needs to continue exactly, for save_resume (which adds the global random states): every network,
-    target and optimizer of the agent (the goal encoder's state dict holds its codebook and EMA buffers), the filled part
-    of the replay, both vector envs (the evaluation stream continues across evaluations; the batched action space's
-    generator draws the warm-up's random actions), and the loop's variables as a plain dict."""
+    """What a run needs to continue exactly (save_resume adds the random states): the agent's every part (the encoder's
+    with its codebook), the filled replay, both vector envs (the evaluation stream continues; the batched action space
+    draws the warm-up's actions) and the loop's variables as a plain dict."""
     return {
         "agent": {name: part.state_dict() for name, part in vars(agent).items() if part is not None},
         "replay": replay.state_dict(),
@@ -1002,7 +933,7 @@ LOSS_LOG_UPDATES = 1000  # losses and codebook statistics are logged every this 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1018,9 +949,8 @@ def seed_and_device(args) -> torch.device:
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
     """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
     if args.track:
-        wandb = importlib.import_module("wandb")  # an optional package, needed only here
         options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        wandb.init(**options, sync_tensorboard=True, save_code=True)
+        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -1091,6 +1021,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+    layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1104,10 +1035,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             advice = "start the run afresh without --resume, or put back an older copy of the file"
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
     older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
     if older:  # a flag added since: the file cannot say which value it had
         started = f" was started before {older} existed; continue it with the version that started it"
@@ -1132,7 +1063,7 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
 
 
 def load_resume(args) -> dict:
@@ -1296,10 +1227,8 @@ def validate(args: Args) -> None:
     """Reject bad flags before any work, naming the flag and the valid choices; exit with status 2."""
     errors = common_errors(args)
     if args.env_id not in ANT_MAZES and not args.env_id.startswith(ROBOTICS_PREFIXES):
-        errors.append(
-            f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ANT_MAZES)} or a gymnasium-robotics maze id "
-            "(AntMaze_* or PointMaze_*, e.g. PointMaze_UMaze-v3, AntMaze_UMaze-v5)"
-        )
+        robotics = "a gymnasium-robotics maze id (AntMaze_* or PointMaze_*, e.g. PointMaze_UMaze-v3, AntMaze_UMaze-v5)"
+        errors.append(f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ANT_MAZES)} or {robotics}")
     elif args.env_id not in ANT_MAZES and args.env_id not in (ids := robotics_ids()):
         errors.append(f"--env-id {args.env_id!r} is not a registered gymnasium-robotics maze id; choices: {', '.join(ids)}")
     if args.groups < 0 or (args.groups and args.embed_dim > 0 and args.embed_dim % args.groups):
@@ -1310,38 +1239,31 @@ def validate(args: Args) -> None:
     errors += range_errors(args, counts + " embed_dim", 1)
     errors += range_errors(args, "max_episode_steps start_timesteps goal_threshold", 0)
     errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr encoder_lr", 0, low_open=True)
-    if args.vq_loss_reduction not in VQ_LOSS_REDUCTIONS:
+    if args.vq_loss_reduction not in ("mean", "sum"):
         choices = "mean (the paper's text) or sum (the paper's snippet)"
         errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
-    if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
-        errors.append(
-            f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
-            "sum <= 1 (the rest are future goals)"
-        )
+    errors += range_errors(args, "her_goal_frac her_random_frac", 0)
+    if args.her_goal_frac + args.her_random_frac > 1:
+        fracs = f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac})"
+        errors.append(f"{fracs} must sum to <= 1 (the rest are future goals)")
     if args.buffer_size < args.batch_size:
         errors.append(f"--buffer-size ({args.buffer_size}) must be >= --batch-size ({args.batch_size})")
     if args.total_timesteps <= max(args.start_timesteps, args.batch_size):
-        errors.append(
-            f"--total-timesteps ({args.total_timesteps}) must exceed --start-timesteps ({args.start_timesteps}) and "
-            f"--batch-size ({args.batch_size}): updates start after both, so no update would run"
-        )
+        first = f"--start-timesteps ({args.start_timesteps}) and --batch-size ({args.batch_size})"
+        errors.append(f"--total-timesteps ({args.total_timesteps}) must exceed {first}: updates start after both")
     if not errors:  # the replay is written one whole episode at a time: an episode, and a batch of them, must fit
         limit = episode_limit(args.env_id, args.max_episode_steps)
         warm_up = max(args.start_timesteps, args.batch_size + args.num_envs * (limit - 1))
         if args.buffer_size < limit:
             errors.append(f"--buffer-size ({args.buffer_size}) must hold one whole episode: >= {limit} (--max-episode-steps)")
         elif args.buffer_size // limit * limit < args.batch_size:
-            errors.append(
-                f"--buffer-size ({args.buffer_size}) holds {args.buffer_size // limit} whole {limit}-step episodes, fewer "
-                f"transitions than --batch-size ({args.batch_size}): the replay may never hold a batch; raise --buffer-size"
-            )
+            held = f"holds {args.buffer_size // limit} whole {limit}-step episodes, fewer transitions than --batch-size"
+            errors.append(f"--buffer-size ({args.buffer_size}) {held} ({args.batch_size}): raise --buffer-size")
         elif args.total_timesteps <= warm_up:
-            errors.append(
-                f"--total-timesteps ({args.total_timesteps}) must exceed {warm_up}: the first update also waits for "
-                f"--batch-size ({args.batch_size}) transitions of finished episodes, which {limit}-step episodes "
-                f"(--max-episode-steps) and --num-envs {args.num_envs} only guarantee after {warm_up} steps"
-            )
+            needed = f"--total-timesteps ({args.total_timesteps}) must exceed {warm_up}"
+            wait = f"the first update waits for --batch-size ({args.batch_size}) transitions of whole {limit}-step episodes"
+            errors.append(f"{needed}: {wait}, with --num-envs {args.num_envs}")
     exit_on_errors(errors)
 
 

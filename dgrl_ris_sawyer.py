@@ -41,8 +41,8 @@ import shutil
 import signal
 import sys
 import time
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
+from functools import partial
 from typing import ClassVar
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
@@ -180,12 +180,13 @@ def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
     )
 
 
-class Actor(nn.Module):
-    """pi(a | z_s, z_g): a Gaussian over pre-tanh actions; the action is tanh(u)."""
+class Policy(nn.Module):
+    """The location and scale of a distribution on (z_s, z_g): the actor's Gaussian over pre-tanh actions u (the action is
+    tanh(u)), or the high level's Laplace over subgoal features (on the continuous state and goal features)."""
 
-    def __init__(self, feature_dim: int, action_dim: int, hidden_dim: int):
+    def __init__(self, feature_dim: int, out_dim: int, hidden_dim: int):
         super().__init__()
-        self.net = mlp(2 * feature_dim, hidden_dim, 2 * action_dim)
+        self.net = mlp(2 * feature_dim, hidden_dim, 2 * out_dim)
 
     def forward(self, states: torch.Tensor, goal_inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mean, log_std = self.net(torch.cat((states, goal_inputs), -1)).chunk(2, -1)
@@ -194,6 +195,9 @@ class Actor(nn.Module):
     def sample(self, states: torch.Tensor, goal_inputs: torch.Tensor) -> torch.Tensor:
         mean, std = self(states, goal_inputs)
         return torch.tanh(mean + std * torch.randn_like(mean))
+
+    def laplace(self, states: torch.Tensor, goals: torch.Tensor) -> torch.distributions.Laplace:
+        return torch.distributions.Laplace(*self(states, goals), validate_args=False)
 
 
 class TwinCritic(nn.Module):
@@ -207,31 +211,6 @@ class TwinCritic(nn.Module):
     def forward(self, states: torch.Tensor, actions: torch.Tensor, goal_inputs: torch.Tensor) -> torch.Tensor:
         inputs = torch.cat((states, actions, goal_inputs), -1)
         return torch.stack((self.q1(inputs).squeeze(-1), self.q2(inputs).squeeze(-1)))
-
-
-class HighLevelPolicy(nn.Module):
-    """pi_H(z_sg | z_s, z_g): a Laplace distribution over subgoal features, on the (continuous) state and goal features."""
-
-    def __init__(self, feature_dim: int, hidden_dim: int):
-        super().__init__()
-        self.net = mlp(2 * feature_dim, hidden_dim, 2 * feature_dim)
-
-    def forward(self, states: torch.Tensor, goals: torch.Tensor) -> torch.distributions.Laplace:
-        loc, log_scale = self.net(torch.cat((states, goals), -1)).chunk(2, -1)
-        return torch.distributions.Laplace(loc, log_scale.clamp(LOG_STD_MIN, LOG_STD_MAX).exp(), validate_args=False)
-
-
-def orthogonal_init(module: nn.Module) -> None:
-    """Delta-orthogonal convolutions (an orthogonal matrix at the kernel's centre, zeros elsewhere, ReLU gain), orthogonal
-    linear layers, zero biases."""
-    if isinstance(module, nn.Conv2d):
-        nn.init.zeros_(module.weight)
-        middle = module.kernel_size[0] // 2
-        nn.init.orthogonal_(module.weight.data[:, :, middle, middle], nn.init.calculate_gain("relu"))
-        nn.init.zeros_(module.bias)
-    elif isinstance(module, nn.Linear):
-        nn.init.orthogonal_(module.weight)
-        nn.init.zeros_(module.bias)
 
 
 IMAGE_SIZE = 84  # the environment's square RGB images; defined here because ImageEncoder's default argument reads it
@@ -251,7 +230,14 @@ class ImageEncoder(nn.Module):
             in_channels, side = self.channels, (side - 3) // stride + 1
         self.convs = nn.Sequential(*layers)
         self.linear = nn.Linear(self.channels * side * side, feature_dim)
-        self.apply(orthogonal_init)
+        for module in self.modules():  # delta-orthogonal convolutions (ReLU gain), an orthogonal linear layer, zero biases
+            if isinstance(module, nn.Conv2d):
+                nn.init.zeros_(module.weight)
+                nn.init.orthogonal_(module.weight.data[:, :, 1, 1], nn.init.calculate_gain("relu"))  # the kernel's centre
+                nn.init.zeros_(module.bias)
+            elif isinstance(module, nn.Linear):
+                nn.init.orthogonal_(module.weight)
+                nn.init.zeros_(module.bias)
 
     def conv_map(self, images: torch.Tensor) -> torch.Tensor:
         return self.convs(images)
@@ -264,8 +250,7 @@ class ImageEncoder(nn.Module):
 
 
 class DrimlHeads(nn.Module):
-    """The DRIML loss's projections to a common size: local (one position of s_t's conv map, with a_t) and global (the
-    features of s_t+1)."""
+    """DRIML's projections: local (one position of s_t's conv map, with a_t) and global (the features of s_t+1)."""
 
     def __init__(self, channels: int, action_dim: int, feature_dim: int, dim: int):
         super().__init__()
@@ -274,15 +259,13 @@ class DrimlHeads(nn.Module):
 
 
 def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
-    """The commitment losses of n equal-sized embeddings quantized in one call, from that call's loss (their mean): the
-    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet adds
-    the VQ losses of state, next state, goal and subgoal)."""
+    """From one call's loss (the mean over n embeddings): the mean (the paper's text: "the mean of the commitment loss across
+    all z_e vectors") or the sum (the paper's snippet adds the VQ losses of state, next state, goal and subgoal)."""
     return pooled if reduction == "mean" else n_embeddings * pooled
 
 
 def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.Tensor:
-    """What the actor and critics see of a goal or subgoal: its features (RIS) or their discrete embedding (DGRL), with the
-    codebook untouched."""
+    """What the actor and critics see of a goal or subgoal: its features (RIS) or their discrete embedding (DGRL)."""
     return features if vq is None else vq(features, update=False)[0]  # DGRL
 
 
@@ -295,9 +278,8 @@ def image_batch(images: np.ndarray | torch.Tensor, device) -> torch.Tensor:
 
 
 def translate(images: torch.Tensor, shifts: torch.Tensor) -> torch.Tensor:
-    """Move the content of each (N, H, W, 3) uint8 image by its (rows, columns) offset in `shifts` (N, 2), filling the
-    uncovered border with the edge pixels: padding with edge replication and cropping back, in one gather. Returns (N, 3,
-    H, W) floats in [0, 1] like image_batch."""
+    """Shift each (N, H, W, 3) uint8 image by its (rows, columns) in `shifts` (N, 2), repeating the edge pixels (pad with
+    edge replication and crop back, in one gather); returns image_batch's floats."""
     n, height, width, _ = images.shape
     rows = (torch.arange(height, device=images.device) - shifts[:, :1]).clamp(0, height - 1)  # output row i reads i - dy
     columns = (torch.arange(width, device=images.device) - shifts[:, 1:]).clamp(0, width - 1)
@@ -313,14 +295,11 @@ def random_translate(images: torch.Tensor, pad: int) -> torch.Tensor:
 class ImageEpisodeReplay:
     """Whole episodes of uint8 images and 4-d states in one ring of rows, on the training device.
 
-    An episode of L transitions takes L + 2 consecutive rows: its observations o_0..o_L (image and state), then its goal
-    (image and state). Transition t lives in the row of o_t, which also holds a_t, the row of the episode's last transition
-    and the row of its goal; s_t+1 is the next row. So every image is stored once: 21 KB a row, 2.1 GB for 1e5 rows.
-    Episodes are written contiguously (a write that would cross the end starts again at row 0), goal last, so whatever
-    survives of an overwritten episode is a suffix of it with its goal and its stored rows intact.
-
-    Images, states and actions are tensors on `device`, where a batch is gathered; the rows' bookkeeping (episode_end,
-    goal_row, is_transition) stays in host arrays, where the sampling generator (numpy) picks the rows."""
+    An episode of L transitions takes L + 2 consecutive rows: o_0..o_L, then its goal. Transition t lives in the row of
+    o_t, which also holds a_t, the row of the episode's last transition and that of its goal; s_t+1 is the next row, so
+    every image is stored once (21 KB a row). Episodes are written whole (one that would cross the end starts again at row
+    0), goal last, so what survives of an overwritten episode is a suffix with its goal. Images, states and actions live on
+    `device`, where batches are gathered; the rows' bookkeeping stays in host arrays, where numpy picks the rows."""
 
     ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")  # what --resume saves
     ON_DEVICE = ("images", "states", "actions")
@@ -336,9 +315,7 @@ class ImageEpisodeReplay:
         self.is_transition = np.zeros(capacity, bool)  # False for the o_L and goal rows
         self.position, self.size = 0, 0
 
-    def add_episode(
-        self, images: np.ndarray, states: np.ndarray, actions: np.ndarray, goal_image: np.ndarray, goal_state: np.ndarray
-    ) -> None:
+    def add_episode(self, images: np.ndarray, states: np.ndarray, actions: np.ndarray, goal_image, goal_state) -> None:
         """images, states: o_0..o_L (L + 1 rows); actions: a_0..a_L-1."""
         length = len(actions)
         if self.position + length + 2 > self.capacity:
@@ -356,24 +333,17 @@ class ImageEpisodeReplay:
         self.size = max(self.size, self.position)
 
     def state(self) -> dict:
-        """For --resume: the filled rows, as host tensors of their own storage (torch.save writes just those rows, uint8
-        images as uint8, with no pickled copy; on the CPU they share the replay's memory), and where the next episode
-        goes."""
-        filled = {}
-        for name in self.ARRAYS:
-            rows = getattr(self, name)[: self.size]
-            if isinstance(rows, torch.Tensor):  # a slice's storage is all the rows: a host view of the filled ones only
-                rows = rows.numpy() if rows.device.type == "cpu" else rows.cpu().numpy()
-            filled[name] = torch.from_numpy(rows)
+        """For --resume: the filled rows as host tensors of their own storage (torch.save writes those rows alone, uint8
+        images as uint8), and where the next episode goes."""
+        rows = {name: getattr(self, name)[: self.size] for name in self.ARRAYS}
+        filled = {name: torch.from_numpy(row.cpu().numpy() if name in self.ON_DEVICE else row) for name, row in rows.items()}
         return filled | {"position": self.position, "size": self.size}
 
     def load_state(self, state: dict) -> None:
         self.position, self.size = state["position"], state["size"]
         for name in self.ARRAYS:
-            if name in self.ON_DEVICE:
-                getattr(self, name)[: self.size] = state[name].to(self.device)
-            else:
-                getattr(self, name)[: self.size] = state[name].numpy()
+            rows = state[name].to(self.device) if name in self.ON_DEVICE else state[name].numpy()
+            getattr(self, name)[: self.size] = rows
 
     def transitions(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """Rows of n transitions, uniform over the stored ones."""
@@ -383,14 +353,10 @@ class ImageEpisodeReplay:
         return rows
 
     def sample(self, batch_size: int, goal_frac: float, random_frac: float, rng: np.random.Generator) -> dict:
-        """A HER batch of tensors on the replay's device: images of (s, s', g, s_g) stacked in one (4B, H, W, 3) uint8
-        tensor, actions, and the 4-d states of s, s' and g; g relabelled, rewards and done recomputed.
-
-        The first `goal_frac` of the batch keeps the rollout goal, the next `random_frac` gets a random replay state, the
-        rest a future state of the same episode, uniform over s'_t..s'_end. Rewards are -1; done marks the success test
-        between s' and g. s_g: random replay states, the high level's subgoal candidates. The rows are drawn on the host
-        with `rng`; the one copy to the device is their (4B,) row numbers.
-        """
+        """A HER batch on the replay's device: the images of (s, s', g, s_g) in one (4B, H, W, 3) uint8 tensor, actions,
+        the states of s, s' and g, rewards (-1) and done (s' reaches g). The first `goal_frac` of the batch keeps the
+        rollout goal, the next `random_frac` gets a random replay state, the rest a future state of its episode (uniform
+        over s'_t..s'_end); s_g: random replay states, the high level's candidates. Rows are drawn on the host with `rng`."""
         index = self.transitions(batch_size, rng)
         n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
         future = index[n_keep + n_random :]
@@ -399,29 +365,26 @@ class ImageEpisodeReplay:
         subgoal_rows = self.transitions(batch_size, rng)
         rows = torch.from_numpy(np.concatenate((index, index + 1, goal_rows, subgoal_rows))).to(self.device)
         states, next_states, goal_states, _ = self.states[rows].chunk(4)
-        return dict(
-            images=self.images[rows], actions=self.actions[rows[:batch_size]],
-            rewards=torch.full((batch_size,), -1.0, device=self.device), done=reached_tensor(next_states, goal_states),
-            states=states, next_states=next_states, goal_states=goal_states,
-        )  # fmt: skip
+        rewards, done = torch.full((batch_size,), -1.0, device=self.device), reached(next_states, goal_states).float()
+        batch = dict(images=self.images[rows], actions=self.actions[rows[:batch_size]], rewards=rewards, done=done)
+        return batch | dict(states=states, next_states=next_states, goal_states=goal_states)
 
 
-def reached_tensor(states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
-    """reached on tensors, as float32 0/1, computed as numpy's norm does (the sum of the squares, its square root, in
-    float32), so that it agrees with reached bit for bit."""
+def reached(states, goals):
+    """The success test, max(hand distance, puck distance) < 0.05, on (..., 4) arrays or tensors of (hand xy, puck xy):
+    the norms computed as numpy's norm does (the sum of the squares, then its square root), so both agree bit for bit."""
     difference = states - goals
-    hand = (difference[..., :2] * difference[..., :2]).sum(-1).sqrt()
-    puck = (difference[..., 2:] * difference[..., 2:]).sum(-1).sqrt()
-    return (torch.maximum(hand, puck) < SUCCESS_DISTANCE).float()
+    hand = (difference[..., :2] * difference[..., :2]).sum(-1) ** 0.5
+    puck = (difference[..., 2:] * difference[..., 2:]).sum(-1) ** 0.5
+    return (hand < SUCCESS_DISTANCE) & (puck < SUCCESS_DISTANCE)
 
 
 # --- Losses -----------------------------------------------------------------------------------------------------------
 
 
 def local_global_infonce(local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
-    """InfoNCE between each local vector of sample b (local: (B, P, D)) and the global vectors of the batch (global_: (B,
-    D)): scores are dot products; (b, b) is the positive pair, the B - 1 other samples the negatives; the cross-entropy
-    is averaged over the B samples and P positions. log B when the features say nothing; 0 at best."""
+    """InfoNCE of each local vector of sample b (local: (B, P, D)) against the batch's global vectors (global_: (B, D)):
+    dot-product scores, (b, b) the positive pair; the mean cross-entropy (log B when the features say nothing)."""
     batch, positions, _ = local.shape
     scores = torch.einsum("bpd,kd->bpk", local, global_).reshape(batch * positions, batch)
     return F.cross_entropy(scores, torch.arange(batch, device=local.device).repeat_interleave(positions))
@@ -436,8 +399,7 @@ def driml_loss(heads: DrimlHeads, conv_map: torch.Tensor, actions: torch.Tensor,
 
 
 def advantage_weights(distance_proposed: torch.Tensor, distance_candidates: torch.Tensor, temperature: float) -> torch.Tensor:
-    """softmax over the batch of (D(proposed subgoal) - D(candidate)) / lambda: candidates better than the proposal
-    (a smaller cost to go through them) get the larger weights."""
+    """softmax over the batch of (D(proposed subgoal) - D(candidate)) / lambda: the better candidates weigh more."""
     return F.softmax((distance_proposed - distance_candidates) / temperature, dim=0)
 
 
@@ -447,17 +409,11 @@ def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Ten
 
 
 def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float) -> torch.Tensor:
-    """Single-sample KL(pi || prior) at u: log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon).
-
-    u: (B, A); mean, std: (B, A); prior_mean, prior_std: (K, B, A) from the target actor at K imagined subgoals. The
-    log of the mixture density plus epsilon is computed with logsumexp, so a tiny density does not underflow to 0.
-    """
+    """Single-sample KL(pi || prior) at u (B, A): log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon), the prior
+    (K, B, A) from the target actor at K imagined subgoals; logsumexp, so a tiny density does not underflow to 0."""
     log_policy = torch.distributions.Normal(mean, std, validate_args=False).log_prob(actions_pre_tanh).sum(-1)
-    log_prior_k = (
-        torch.distributions.Normal(prior_mean, prior_std, validate_args=False).log_prob(actions_pre_tanh.unsqueeze(0)).sum(-1)
-    )
-    n_subgoals = log_prior_k.shape[0]
-    log_terms = torch.cat((log_prior_k - math.log(n_subgoals), torch.full_like(log_prior_k[:1], math.log(epsilon))))
+    log_prior = torch.distributions.Normal(prior_mean, prior_std, validate_args=False).log_prob(actions_pre_tanh[None]).sum(-1)
+    log_terms = torch.cat((log_prior - math.log(len(log_prior)), torch.full_like(log_prior[:1], math.log(epsilon))))
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
@@ -470,28 +426,22 @@ class Agent:
 
     encoder: ImageEncoder
     driml_heads: DrimlHeads
-    actor: Actor
+    actor: Policy
     critic: TwinCritic
-    high: HighLevelPolicy
-    actor_target: Actor
+    high: Policy
+    actor_target: Policy
     critic_target: TwinCritic
     critic_optimizer: torch.optim.Adam
     actor_optimizer: torch.optim.Adam
     high_optimizer: torch.optim.Adam
     vq: VectorQuantizerEMA | None  # the DGRL bottleneck; None under --groups 0
 
-    NETWORKS: ClassVar[dict] = {
-        "actor": "actor",
-        "critic": "critic",
-        "high": "high",
-        "encoder": "encoder",
-        "driml": "driml_heads",
-    }
+    NETWORKS: ClassVar = {"actor": "actor", "critic": "critic", "high": "high", "encoder": "encoder", "driml": "driml_heads"}
 
     def state_dicts(self) -> dict[str, dict | None]:
-        """What evaluation needs: the state dicts of the online networks and of the codebook (None under --groups 0)."""
+        """What evaluation needs: the online networks and the codebook with its EMA statistics (None under --groups 0)."""
         networks = {key: getattr(self, name).state_dict() for key, name in self.NETWORKS.items()}
-        return networks | {"vq": None if self.vq is None else self.vq.state_dict()}  # the codebook, its EMA counts and sums
+        return networks | {"vq": None if self.vq is None else self.vq.state_dict()}
 
     def load_state_dicts(self, saved: dict) -> None:
         for key, name in self.NETWORKS.items():
@@ -502,56 +452,40 @@ class Agent:
 
 def make_agent(image_size: int, action_dim: int, args: Args, device: torch.device) -> Agent:
     """The agent of a run (the networks are created in this order, so a seed gives the same weights)."""
-    feature_dim, hidden_dim = args.feature_dim, args.hidden_dim
-    actor = Actor(feature_dim, action_dim, hidden_dim).to(device)
-    critic = TwinCritic(feature_dim, action_dim, hidden_dim).to(device)
-    encoder = ImageEncoder(feature_dim, image_size).to(device)
-    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, feature_dim, args.driml_dim).to(device)
-    high = HighLevelPolicy(feature_dim, hidden_dim).to(device)
+    actor = Policy(args.feature_dim, action_dim, args.hidden_dim).to(device)
+    critic = TwinCritic(args.feature_dim, action_dim, args.hidden_dim).to(device)
+    encoder = ImageEncoder(args.feature_dim, image_size).to(device)
+    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
+    high = Policy(args.feature_dim, args.feature_dim, args.hidden_dim).to(device)  # the high level
     vq = None  # RIS has no bottleneck
-    if args.groups > 0:
-        vq = VectorQuantizerEMA(  # DGRL: the shared-codebook bottleneck on the encoder's features
-            feature_dim, args.n_embed, args.groups, beta=args.vq_beta, decay=args.vq_decay,
-            dead_code_steps=args.vq_dead_code_steps,
-        ).to(device)  # fmt: skip
-    fused = device.type in ("cpu", "cuda")
-    critic_groups = [
-        {"params": [*critic.parameters(), *driml_heads.parameters()], "lr": args.q_lr},
-        {"params": encoder.parameters(), "lr": args.encoder_lr},
-    ]
-    return Agent(
-        encoder=encoder,
-        driml_heads=driml_heads,
-        actor=actor,
-        critic=critic,
-        high=high,
-        actor_target=make_target(actor),
-        critic_target=make_target(critic),
-        critic_optimizer=torch.optim.Adam(critic_groups, fused=fused),
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused),
-        high_optimizer=torch.optim.Adam(high.parameters(), lr=args.h_lr, fused=fused),
-        vq=vq,
-    )
+    if args.groups > 0:  # DGRL: the shared-codebook bottleneck on the encoder's features
+        vq = VectorQuantizerEMA(
+            args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
+        ).to(device)
+    adam = partial(torch.optim.Adam, fused=device.type in ("cpu", "cuda"))
+    critic_parameters = [*critic.parameters(), *driml_heads.parameters()]
+    critic_groups = [{"params": critic_parameters, "lr": args.q_lr}, {"params": encoder.parameters(), "lr": args.encoder_lr}]
+    targets = make_target(actor), make_target(critic)
+    optimizers = adam(critic_groups), adam(actor.parameters(), lr=args.actor_lr), adam(high.parameters(), lr=args.h_lr)
+    return Agent(encoder, driml_heads, actor, critic, high, *targets, *optimizers, vq)
 
 
 def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]:
-    """One RIS update from pixels (encoder + critic with the DRIML loss, high level, actor, targets) with DGRL's bottleneck;
-    returns detached metrics. `batch` is ImageEpisodeReplay.sample's, tensors on the agent's device (the uint8 images
-    become floats here); nothing in it waits for the device, so --fast compiles it into one graph."""
+    """One RIS update from pixels (encoder and critic with the DRIML loss, high level, actor, targets) with DGRL's
+    bottleneck, on ImageEpisodeReplay.sample's batch; free of host syncs; returns detached metrics."""
     actions, rewards, done = batch["actions"], batch["rewards"], batch["done"]
     batch_size = len(actions)
     metrics = {}
 
     # Features of the augmented s, s', g, s_g. RIS passes only s through the encoder with gradient; under DGRL the snippet
-    # also encodes s', g and s_g with gradient, for their commitment losses, and RIS's own losses still see those three
-    # detached. The target critic and the DRIML loss's global side see the online encoder's features of s' (no target
-    # encoder, as in RIS).
+    # also encodes s', g and s_g with gradient, for their commitment losses, while RIS's own losses see them detached. The
+    # target critic and DRIML's global side see the online encoder's features of s' (no target encoder, as in RIS).
     images = random_translate(batch["images"], args.image_pad)
     if agent.vq is not None and args.vq_commitment_grad == "all":  # DGRL: one pass over the four, all with gradient
         conv_maps = agent.encoder.conv_map(images)
         conv_map, features = conv_maps[:batch_size], agent.encoder.head(conv_maps)
         state_z = features[:batch_size]
-        next_z, goal_z, subgoal_z = features[batch_size:].detach().chunk(3)  # RIS's paths see them detached
+        next_z, goal_z, subgoal_z = features[batch_size:].detach().chunk(3)
     else:
         conv_map = agent.encoder.conv_map(images[:batch_size])
         state_z = agent.encoder.head(conv_map)
@@ -564,8 +498,6 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     if agent.vq is not None:
         z_q, vq_loss, codes = agent.vq(features, update=True)  # DGRL: the four embeddings in one call, one EMA step
         goal_in = z_q[2 * batch_size : 3 * batch_size].detach()  # DGRL: the nets see the discrete goal embedding
-        # The call's loss is the mean of the four commitment losses (the paper's text); --vq-loss-reduction sum: their sum
-        # (the paper's snippet adds the VQ losses of state, next state, goal and subgoal).
         commitment_loss = combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL
         representation_loss = representation_loss + commitment_loss  # DGRL: commitment trains the encoder
         metrics.update(vq_loss=vq_loss, codes=codes)
@@ -581,7 +513,7 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     state_z = state_z.detach()
 
     # High level: advantage-weighted regression onto the features of random replay states.
-    subgoal_distribution = agent.high(state_z, goal_z)
+    subgoal_distribution = agent.high.laplace(state_z, goal_z)
     proposed = subgoal_distribution.loc.detach()
     with torch.no_grad():
         value_states = torch.cat((state_z, subgoal_z, state_z, proposed))
@@ -594,7 +526,7 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
 
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
-        imagined = goal_input(agent.vq, agent.high(state_z, goal_z).sample((args.n_subgoals,)))  # DGRL: discrete subgoals
+        imagined = goal_input(agent.vq, agent.high.laplace(state_z, goal_z).sample((args.n_subgoals,)))  # DGRL: quantized
         prior_mean, prior_std = agent.actor_target(state_z.expand(args.n_subgoals, -1, -1), imagined)
     mean, std = agent.actor(state_z, goal_in)
     actions_pre_tanh = mean + std * torch.randn_like(mean)
@@ -605,10 +537,8 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
 
     update_target(agent.critic_target, agent.critic, args.tau)
     update_target(agent.actor_target, agent.actor, args.tau)
-    metrics.update(
-        critic_loss=critic_loss, driml_loss=driml, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean(),
-        q_values=q_values.mean(), high_weight_max=weights.max(),
-    )  # fmt: skip
+    metrics.update(critic_loss=critic_loss, driml_loss=driml, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean())
+    metrics.update(q_values=q_values.mean(), high_weight_max=weights.max())
     return {name: value.detach() for name, value in metrics.items()}
 
 
@@ -641,10 +571,9 @@ def main(args: Args) -> None:
 
     replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim, device)
     observations, _ = envs.reset(seed=args.seed)
-    if resumed is None:
-        loop = LoopState(observations, {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")},
-                         next_eval=args.eval_frequency)  # fmt: skip
-    else:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
+    episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
+    loop = LoopState(observations, episode, next_eval=args.eval_frequency)
+    if resumed is not None:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
         loop = restore_training_state(resumed, agent, replay, envs, eval_envs, rng)
 
     # A resumed run drops whatever the stopped one logged after its resume.pt (every figure of `step` came before it).
@@ -663,14 +592,14 @@ def main(args: Args) -> None:
         # loop so that a run stopped mid-evaluation resumes with it.
         if loop.step >= loop.next_eval or loop.step >= args.total_timesteps:
             video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
-            before_evaluation = vector_env_state(eval_envs), rng_states()
-            evaluation = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
-            if evaluation is None:  # stopped mid-evaluation: nothing logged, and its draws undone for the resumed run
-                set_vector_env_state(eval_envs, before_evaluation[0])
-                set_rng_states(before_evaluation[1])
+            eval_envs_before, rngs_before = vector_env_state(eval_envs), rng_states()
+            result = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
+            if result is None:  # stopped mid-evaluation: nothing logged, and its draws undone for the resumed run
+                set_vector_env_state(eval_envs, eval_envs_before)
+                set_rng_states(rngs_before)
                 break
             loop.next_eval += args.eval_frequency
-            loop.result = result = evaluation
+            loop.result = result
             loop.evaluations += 1
             for name, value in result.items():
                 writer.add_scalar(f"eval/{name}", value, loop.step)
@@ -701,18 +630,17 @@ def main(args: Args) -> None:
         loop.observations, _, terminations, truncations, infos = envs.step(actions)
         loop.step += args.num_envs
 
-        # Stage each env's transitions; a finished episode goes to the replay whole, with its true last observation
-        # (final_obs) and its goal.
+        # Stage each env's transitions; a finished episode goes to the replay whole, with its true last observation and goal.
         for env in range(args.num_envs):
             episode["images"][env].append(observations["image"][env])
             episode["states"][env].append(observations["state"][env])
             episode["actions"][env].append(actions[env])
             if terminations[env] or truncations[env]:
                 last, final_info = infos["final_obs"][env], infos["final_info"]
-                replay.add_episode(
-                    np.stack([*episode["images"][env], last["image"]]), np.stack([*episode["states"][env], last["state"]]),
-                    np.stack(episode["actions"][env]), observations["goal_image"][env], observations["goal"][env],
-                )  # fmt: skip
+                episode["images"][env].append(last["image"])
+                episode["states"][env].append(last["state"])
+                arrays = [np.stack(episode[key][env]) for key in ("images", "states", "actions")]
+                replay.add_episode(*arrays, observations["goal_image"][env], observations["goal"][env])
                 for key in episode:
                     episode[key][env] = []
                 loop.recent_success.append(float(terminations[env]))
@@ -731,11 +659,10 @@ def main(args: Args) -> None:
                 loop.next_log += 100
                 for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
                     writer.add_scalar(f"losses/{name}", metrics[name].item(), loop.step)
-                if agent.vq is not None:
-                    codes = metrics["codes"]
-                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)  # DGRL: codebook statistics
-                    writer.add_scalar("vq/perplexity", perplexity(codes, args.n_embed).item(), loop.step)  # DGRL
-                    writer.add_scalar("vq/active_codes", active_codes(codes, args.n_embed).item(), loop.step)  # DGRL
+                if agent.vq is not None:  # the codebook's statistics
+                    writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)
+                    writer.add_scalar("vq/perplexity", perplexity(metrics["codes"], args.n_embed).item(), loop.step)
+                    writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), loop.step)
         progress.heartbeat(loop.step, f"{loop.updates} updates")
 
     save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, loop), args)
@@ -763,14 +690,7 @@ def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.nda
     return agent.actor.sample(state_z, goal_in).cpu().numpy()
 
 
-def video_frame(image: np.ndarray, goal_image: np.ndarray, scale: int = 3) -> np.ndarray:
-    """The state image beside the goal image, upscaled (nearest neighbour)."""
-    return np.concatenate((image, goal_image), 1).repeat(scale, 0).repeat(scale, 1)
-
-
-def evaluate(
-    envs: gym.vector.SyncVectorEnv, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=()
-) -> dict | None:
+def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=()) -> dict | None:
     """One episode per env on the test configuration: success rate, hand-only success rate (the hand within 0.05 of its
     goal at the end), mean final hand and puck distances to their goals. None if `stop` fills before every episode ends."""
     observations, _ = envs.reset()
@@ -779,8 +699,9 @@ def evaluate(
     while not finished.all():
         if stop:
             return None
-        if frames is not None and not finished[0]:
-            frames.append(video_frame(observations["image"][0], observations["goal_image"][0]))
+        if frames is not None and not finished[0]:  # the state image beside the goal image, upscaled 3x
+            frame = np.concatenate((observations["image"][0], observations["goal_image"][0]), 1)
+            frames.append(frame.repeat(3, 0).repeat(3, 1))
         actions = act(agent, observations, device, deterministic)
         observations, _, terminations, truncations, infos = envs.step(actions)
         ended = (terminations | truncations) & ~finished
@@ -789,15 +710,11 @@ def evaluate(
             puck[env] = infos["final_info"]["puck_distance"][env]
             success[env] = terminations[env]
         finished |= ended
-    return {
-        "success_rate": success.mean(), "hand_success_rate": (hand < SUCCESS_DISTANCE).mean(),
-        "final_hand_distance": hand.mean(), "final_puck_distance": puck.mean(),
-    }  # fmt: skip
+    return dict(zip(EVAL_METRICS, (success.mean(), (hand < SUCCESS_DISTANCE).mean(), hand.mean(), puck.mean()), strict=True))
 
 
 def evaluate_checkpoint(saved: dict, agent: Agent, eval_envs, device, stop: list[int], args: Args, run_name: str) -> None:
-    """--checkpoint: load the saved networks into the agent, run --eval-episodes test episodes, print the results (and
-    write a video with --capture-video)."""
+    """--checkpoint: the saved networks on --eval-episodes test episodes; prints the results (a video: --capture-video)."""
     agent.load_state_dicts(saved)
     video = [] if args.capture_video else None
     result = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
@@ -839,87 +756,73 @@ SUCCESS_DISTANCE = 0.05
 EPISODE_STEPS = 100
 TIMESTEP, FRAME_SKIP = 0.002, 50  # 0.1 s per env step
 CAMERA_HEIGHT = 0.65  # the top camera's height: its 45-degree field of view spans 0.54 m, the arena and its walls
+INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION  # what mj_getState saves for an exact restore
+EPISODE_STATISTICS = ("episode_returns", "episode_lengths", "episode_count")  # RecordEpisodeStatistics' running figures
 
 
 def sawyer_xml() -> str:
-    """The scene: a table plane at z = 0, walls whose inner faces stop the puck's centre at the arena's bounds, a puck
-    with two slide joints, an end effector with two slide joints welded to a mocap body, and a camera over the arena.
-
-    qpos is (hand x, hand y, puck x, puck y): both bodies sit at the world origin in xy, so a slide joint's position is
-    the world coordinate. The puck has no z or tilt freedom (it cannot tip over or fly) and does not touch the table;
-    dry friction on its slide joints (`frictionloss`) stands in for table friction, so it stops when no longer pushed.
-    The end effector is a vertical capsule whose top is at the hand height and whose shaft reaches down to the puck."""
-    root = ET.Element("mujoco", model="sawyer_push_and_reach")
-    ET.SubElement(root, "option", timestep=str(TIMESTEP))
-    visual = ET.SubElement(root, "visual")
-    ET.SubElement(visual, "quality", shadowsize="0")  # no shadows: 3x faster software rendering
-    ET.SubElement(visual, "headlight", ambient="0.5 0.5 0.5", diffuse="0.5 0.5 0.5", specular="0 0 0")
-    # Contacts and the hand's joint limits much stiffer than the hand's weld: the puck yields to the hand, the walls hold
-    # the puck (the default softness let a hand pressing the puck into a wall push its centre 1 cm past the arena), and
-    # the limits hold a hand shoved by a puck that is pressed against a wall.
-    default = ET.SubElement(root, "default")
-    ET.SubElement(default, "geom", solref="0.004 1", solimp="0.99 0.999 0.001")
-    ET.SubElement(default, "joint", solreflimit="0.004 1", solimplimit="0.99 0.999 0.001")
-    world = ET.SubElement(root, "worldbody")
+    """The scene: a table plane at z = 0, four walls whose inner faces stop the puck's centre at the arena's bounds, a puck
+    and an end effector (a vertical capsule reaching down to the puck) on two slide joints each, the hand welded to a mocap
+    body, and a camera over the arena. qpos is (hand x, hand y, puck x, puck y) in world coordinates. The puck cannot tip
+    over or fly and does not touch the table: dry friction on its joints stands in for table friction, so it stops when no
+    longer pushed. Contacts and the hand's joint limits are much stiffer than the weld: the puck yields to the hand, and the
+    walls hold a puck the hand presses on them (the default softness let it 1 cm past the arena). No shadows: 3x faster
+    software rendering. The weld's relpose is given (identity), so the compiler does not take it from the bodies' places."""
     (x0, y0), (x1, y1) = ARENA_LOW, ARENA_HIGH
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     inner_x, inner_y = (x1 - x0) / 2 + PUCK_RADIUS, (y1 - y0) / 2 + PUCK_RADIUS  # half-extents inside the walls
-    ET.SubElement(world, "geom", name="table", type="plane", pos=f"{cx} {cy} 0", size=f"{inner_x + 0.2} {inner_y + 0.2} 0.01",
-                  rgba="0.9 0.88 0.82 1", contype="0", conaffinity="0")  # fmt: skip
-    t, h = WALL_HALF_THICKNESS, WALL_HALF_HEIGHT
-    walls = {
-        "left": (cx - inner_x - t, cy, t, inner_y + 2 * t), "right": (cx + inner_x + t, cy, t, inner_y + 2 * t),
-        "near": (cx, cy - inner_y - t, inner_x, t), "far": (cx, cy + inner_y + t, inner_x, t),
-    }  # fmt: skip
-    for name, (x, y, hx, hy) in walls.items():
-        ET.SubElement(world, "geom", name=f"wall_{name}", type="box", pos=f"{x} {y} {h}", size=f"{hx} {hy} {h}",
-                      rgba="0.45 0.45 0.5 1")  # fmt: skip
-    ET.SubElement(world, "camera", name="top", pos=f"{cx} {cy} {CAMERA_HEIGHT}", xyaxes="1 0 0 0 1 0")
-    ET.SubElement(world, "body", name="hand_target", mocap="true", pos=f"{cx} {cy} {HAND_Z}")
-    hand = ET.SubElement(world, "body", name="hand", pos=f"0 0 {HAND_Z}")
-    for axis, name in enumerate(("hand_x", "hand_y")):
-        ET.SubElement(hand, "joint", name=name, type="slide", axis=("1 0 0", "0 1 0")[axis], limited="true",
-                      range=f"{ARENA_LOW[axis]} {ARENA_HIGH[axis]}")  # fmt: skip
-    ET.SubElement(hand, "geom", name="hand", type="capsule", fromto=f"0 0 {PUCK_HALF_HEIGHT - HAND_Z} 0 0 0",
-                  size=str(HAND_RADIUS), mass="0.1", rgba="0.85 0.1 0.1 1")  # fmt: skip
-    puck = ET.SubElement(world, "body", name="puck", pos=f"0 0 {PUCK_HALF_HEIGHT}")
-    for axis, name in enumerate(("puck_x", "puck_y")):
-        ET.SubElement(puck, "joint", name=name, type="slide", axis=("1 0 0", "0 1 0")[axis], frictionloss="0.3",
-                      damping="0.5")  # fmt: skip
-    ET.SubElement(puck, "geom", name="puck", type="cylinder", size=f"{PUCK_RADIUS} {PUCK_HALF_HEIGHT}", mass="0.1",
-                  rgba="0.1 0.35 0.9 1")  # fmt: skip
-    # relpose is given (identity), so the compiler does not take it from where the two bodies sit in the file
-    ET.SubElement(ET.SubElement(root, "equality"), "weld", name="hand_to_target", body1="hand_target", body2="hand",
-                  relpose="0 0 0 1 0 0 0", solref="0.02 1")  # fmt: skip
-    return ET.tostring(root, encoding="unicode")
+    t, h, grey = WALL_HALF_THICKNESS, WALL_HALF_HEIGHT, "0.45 0.45 0.5 1"
+    return f"""<mujoco model="sawyer_push_and_reach">
+  <option timestep="{TIMESTEP}"/>
+  <visual>
+    <quality shadowsize="0"/>
+    <headlight ambient="0.5 0.5 0.5" diffuse="0.5 0.5 0.5" specular="0 0 0"/>
+  </visual>
+  <default>
+    <geom solref="0.004 1" solimp="0.99 0.999 0.001"/>
+    <joint solreflimit="0.004 1" solimplimit="0.99 0.999 0.001"/>
+  </default>
+  <worldbody>
+    <geom name="table" type="plane" pos="{cx} {cy} 0" size="{inner_x + 0.2} {inner_y + 0.2} 0.01" rgba="0.9 0.88 0.82 1"
+          contype="0" conaffinity="0"/>
+    <geom name="wall_left" type="box" pos="{cx - inner_x - t} {cy} {h}" size="{t} {inner_y + 2 * t} {h}" rgba="{grey}"/>
+    <geom name="wall_right" type="box" pos="{cx + inner_x + t} {cy} {h}" size="{t} {inner_y + 2 * t} {h}" rgba="{grey}"/>
+    <geom name="wall_near" type="box" pos="{cx} {cy - inner_y - t} {h}" size="{inner_x} {t} {h}" rgba="{grey}"/>
+    <geom name="wall_far" type="box" pos="{cx} {cy + inner_y + t} {h}" size="{inner_x} {t} {h}" rgba="{grey}"/>
+    <camera name="top" pos="{cx} {cy} {CAMERA_HEIGHT}" xyaxes="1 0 0 0 1 0"/>
+    <body name="hand_target" mocap="true" pos="{cx} {cy} {HAND_Z}"/>
+    <body name="hand" pos="0 0 {HAND_Z}">
+      <joint name="hand_x" type="slide" axis="1 0 0" limited="true" range="{ARENA_LOW[0]} {ARENA_HIGH[0]}"/>
+      <joint name="hand_y" type="slide" axis="0 1 0" limited="true" range="{ARENA_LOW[1]} {ARENA_HIGH[1]}"/>
+      <geom name="hand" type="capsule" fromto="0 0 {PUCK_HALF_HEIGHT - HAND_Z} 0 0 0" size="{HAND_RADIUS}" mass="0.1"
+            rgba="0.85 0.1 0.1 1"/>
+    </body>
+    <body name="puck" pos="0 0 {PUCK_HALF_HEIGHT}">
+      <joint name="puck_x" type="slide" axis="1 0 0" frictionloss="0.3" damping="0.5"/>
+      <joint name="puck_y" type="slide" axis="0 1 0" frictionloss="0.3" damping="0.5"/>
+      <geom name="puck" type="cylinder" size="{PUCK_RADIUS} {PUCK_HALF_HEIGHT}" mass="0.1" rgba="0.1 0.35 0.9 1"/>
+    </body>
+  </worldbody>
+  <equality>
+    <weld name="hand_to_target" body1="hand_target" body2="hand" relpose="0 0 0 1 0 0 0" solref="0.02 1"/>
+  </equality>
+</mujoco>"""
 
 
 class SawyerPushAndReachEnv(gym.Env):
-    """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings.
+    """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings, the arm replaced by its end effector.
 
-    The Sawyer arm is replaced by its end effector: a capsule of radius 0.015 at the fixed height z = 0.06, on two slide
-    joints, welded to a mocap body; as in the original, an action in [-1, 1]^2 moves the mocap target by
-    action * action_scale (clipped to the arena) and 50 physics steps of 0.002 s follow, so the hand tracks the target
-    and pushes the puck by contact. The puck (radius 0.04, half-height 0.015) slides in x and y inside four walls that
-    keep its centre in the arena x in [-0.2, 0.2], y in [0.5, 0.7]; the clipping and two joint limits keep the hand's
-    centre there too. Camera: the original one (distance 0.26, look-at (0, 0.88, 0.30), elevation -55, azimuth 270, tuned
-    for the Sawyer scene) sees the arena at a slant and, at 84 x 84, cuts off its side walls and corners, so images come
-    from a fixed camera `top` straight above the arena's centre that shows all of it (x to the right, y up).
-
-    Observation: Dict(image = the current state rendered at image_size x image_size (uint8 RGB), state = (hand xy, puck
-    xy), goal_image = the goal configuration rendered the same way (once per reset), goal = the 4-d goal state).
-    Reward -1 per step (RIS); terminated on success, max(||hand - hand goal||, ||puck - puck goal||) < 0.05; truncated
-    after 100 steps. `info` holds `success`, `hand_distance` and `puck_distance`.
-    Training resets (`test=False`): the hand uniform in the arena, the puck at U(0.055, 0.075) from it in a uniform
-    direction (redrawn until its centre lies in the arena); the goal's hand and puck uniform in the arena, redrawn until
-    they are more than 0.055 (puck radius + hand radius) apart. Test resets draw from the fixed boxes of TEST_BOXES.
-    """
+    As in the original, an action in [-1, 1]^2 moves the hand's mocap target by action * action_scale (clipped to the
+    arena) and 50 physics steps of 0.002 s follow: the hand tracks the target and pushes the puck. The original camera
+    (distance 0.26, look-at (0, 0.88, 0.30), elevation -55, azimuth 270) sees the arena at a slant and, at 84 x 84, cuts
+    off its sides, so images come from a camera straight above the arena (x to the right, y up).
+    Observation: Dict(image, state = (hand xy, puck xy), goal_image, goal). Reward -1 per step (RIS); terminated on success
+    (`reached`), truncated after 100 steps. Training resets: the hand uniform in the arena, the puck PUCK_RING from it (in
+    the arena); the goal's hand and puck uniform, GOAL_CLEARANCE apart. Test resets: uniform in the boxes of TEST_BOXES."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(
-        self, test: bool = False, image_size: int = IMAGE_SIZE, action_scale: float = 0.02, render_mode: str | None = None
-    ):
+    def __init__(self, test: bool = False, image_size: int = IMAGE_SIZE, action_scale: float = 0.02, render_mode=None):
         self.test = test
         self.image_size = image_size
         self.action_scale = action_scale
@@ -931,7 +834,6 @@ class SawyerPushAndReachEnv(gym.Env):
         state = gym.spaces.Box(walls[0].astype(np.float32), walls[1].astype(np.float32), (4,), np.float32)
         self.observation_space = gym.spaces.Dict(image=image, state=state, goal_image=image, goal=state)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
-        self._saved = np.empty(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION))
         self.goal = np.zeros(4, np.float32)
         self.goal_image = np.zeros((image_size, image_size, 3), np.uint8)
         self.steps = 0
@@ -945,21 +847,15 @@ class SawyerPushAndReachEnv(gym.Env):
         mujoco.mj_forward(self.model, self.data)
 
     def render_state(self, state4: np.ndarray) -> np.ndarray:
-        """An image of the configuration state4; the simulation state (qpos, qvel, act, mocap, time, warm start) is
-        restored exactly afterwards."""
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        mujoco.mj_getState(self.model, self.data, self._saved, spec)
+        """An image of the configuration state4; the simulation's state is restored exactly afterwards."""
+        snapshot = self.snapshot()
         self.set_state4(state4)
         image = self.render()
-        mujoco.mj_setState(self.model, self.data, self._saved, spec)
-        mujoco.mj_forward(self.model, self.data)
+        self.restore(snapshot)
         return image
 
-    def _uniform(self, box: tuple) -> np.ndarray:
-        return self.np_random.uniform(box[0], box[1])
-
     def _training_start(self) -> np.ndarray:
-        hand = self._uniform((ARENA_LOW, ARENA_HIGH))
+        hand = self.np_random.uniform(ARENA_LOW, ARENA_HIGH)
         while True:
             angle, radius = self.np_random.uniform(0.0, 2 * np.pi), self.np_random.uniform(*PUCK_RING)
             puck = hand + radius * np.array((np.cos(angle), np.sin(angle)))
@@ -968,7 +864,7 @@ class SawyerPushAndReachEnv(gym.Env):
 
     def _training_goal(self) -> np.ndarray:
         while True:
-            hand, puck = self._uniform((ARENA_LOW, ARENA_HIGH)), self._uniform((ARENA_LOW, ARENA_HIGH))
+            hand, puck = self.np_random.uniform(ARENA_LOW, ARENA_HIGH), self.np_random.uniform(ARENA_LOW, ARENA_HIGH)
             if np.linalg.norm(hand - puck) > GOAL_CLEARANCE:
                 return np.concatenate((hand, puck))
 
@@ -986,9 +882,9 @@ class SawyerPushAndReachEnv(gym.Env):
         super().reset(seed=seed)
         mujoco.mj_resetData(self.model, self.data)
         if self.test:
-            box = TEST_BOXES
-            start = np.concatenate((self._uniform(box["hand_start"]), self._uniform(box["puck_start"])))
-            goal = np.concatenate((self._uniform(box["hand_goal"]), self._uniform(box["puck_goal"])))
+            box, uniform = TEST_BOXES, self.np_random.uniform
+            start = np.concatenate((uniform(*box["hand_start"]), uniform(*box["puck_start"])))
+            goal = np.concatenate((uniform(*box["hand_goal"]), uniform(*box["puck_goal"])))
         else:
             start, goal = self._training_start(), self._training_goal()
         self.goal = goal.astype(np.float32)
@@ -1008,18 +904,15 @@ class SawyerPushAndReachEnv(gym.Env):
         return observation, -1.0, info["success"], self.steps >= EPISODE_STEPS, info
 
     def snapshot(self) -> dict:
-        """What the env carries from one step to the next, for --resume: the MuJoCo integration state (positions,
-        velocities, the mocap target, time, the solver's warm start), the goal and its image, the step count and the reset
-        generator's state."""
-        physics = np.empty(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION))
-        mujoco.mj_getState(self.model, self.data, physics, mujoco.mjtState.mjSTATE_INTEGRATION)
-        return {
-            "physics": physics, "goal": self.goal.copy(), "goal_image": self.goal_image.copy(), "steps": self.steps,
-            "np_random": self.np_random.bit_generator.state,
-        }  # fmt: skip
+        """For --resume: the MuJoCo integration state (positions, velocities, the mocap target, time, the solver's warm
+        start), the goal and its image, the step count and the reset generator's state."""
+        physics = np.empty(mujoco.mj_stateSize(self.model, INTEGRATION))
+        mujoco.mj_getState(self.model, self.data, physics, INTEGRATION)
+        goal = {"goal": self.goal.copy(), "goal_image": self.goal_image.copy(), "steps": self.steps}
+        return goal | {"physics": physics, "np_random": self.np_random.bit_generator.state}
 
     def restore(self, snapshot: dict) -> None:
-        mujoco.mj_setState(self.model, self.data, snapshot["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_setState(self.model, self.data, snapshot["physics"], INTEGRATION)
         mujoco.mj_forward(self.model, self.data)
         self.goal, self.goal_image, self.steps = snapshot["goal"].copy(), snapshot["goal_image"].copy(), snapshot["steps"]
         self.np_random.bit_generator.state = snapshot["np_random"]
@@ -1044,50 +937,34 @@ class SawyerPushAndReachEnv(gym.Env):
             self._renderer = None
 
 
-def reached(states: np.ndarray, goals: np.ndarray) -> np.ndarray:
-    """The success test on (..., 4) arrays of (hand xy, puck xy): max(hand distance, puck distance) < 0.05."""
-    hand = np.linalg.norm(states[..., :2] - goals[..., :2], axis=-1)
-    puck = np.linalg.norm(states[..., 2:] - goals[..., 2:], axis=-1)
-    return np.maximum(hand, puck) < SUCCESS_DISTANCE
-
-
-def make_env(seed: int, test: bool):
-    def thunk():
-        env = gym.wrappers.RecordEpisodeStatistics(SawyerPushAndReachEnv(test=test))
-        env.action_space.seed(seed)
-        return env
-
-    return thunk
+def make_env(seed: int, test: bool) -> gym.Env:
+    env = gym.wrappers.RecordEpisodeStatistics(SawyerPushAndReachEnv(test=test))
+    env.action_space.seed(seed)
+    return env
 
 
 def make_vector_env(n: int, seed: int, test: bool) -> gym.vector.SyncVectorEnv:
-    thunks = [make_env(seed + i, test) for i in range(n)]
+    thunks = [partial(make_env, seed + i, test) for i in range(n)]
     return gym.vector.SyncVectorEnv(thunks, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
 
 def vector_env_state(envs: gym.vector.SyncVectorEnv) -> dict:
-    """Everything a vector of Sawyer envs carries from one step to the next, for --resume: each env's snapshot, its action
-    space's generator and its episode statistics so far, and the batched action space's generator (the warm-up's random
-    actions). Copied out explicitly: pickling an env rebuilds it from its constructor arguments, losing all of this. Under
-    SAME_STEP autoreset the vector env keeps nothing else between steps; the last observations are the training loop's."""
-    return {
-        "envs": [
-            {"env": env.unwrapped.snapshot(), "action_space": env.action_space.np_random.bit_generator.state,
-             "episode_returns": env.episode_returns, "episode_lengths": env.episode_lengths,
-             "episode_count": env.episode_count}
-            for env in envs.envs
-        ],
-        "action_space": envs.action_space.np_random.bit_generator.state,
-    }  # fmt: skip
+    """For --resume: each env's snapshot, action-space generator and episode statistics, and the batched action space's
+    generator (pickling an env would rebuild it from its constructor). SAME_STEP autoreset keeps nothing else."""
+    per_env = [
+        {"env": env.unwrapped.snapshot(), "action_space": env.action_space.np_random.bit_generator.state}
+        | {name: getattr(env, name) for name in EPISODE_STATISTICS}
+        for env in envs.envs
+    ]
+    return {"envs": per_env, "action_space": envs.action_space.np_random.bit_generator.state}
 
 
 def set_vector_env_state(envs: gym.vector.SyncVectorEnv, state: dict) -> None:
     for env, saved in zip(envs.envs, state["envs"], strict=True):
         env.unwrapped.restore(saved["env"])
         env.action_space.np_random.bit_generator.state = saved["action_space"]
-        env.episode_returns, env.episode_lengths, env.episode_count = (
-            saved["episode_returns"], saved["episode_lengths"], saved["episode_count"]
-        )  # fmt: skip
+        for name in EPISODE_STATISTICS:
+            setattr(env, name, saved[name])
     envs.action_space.np_random.bit_generator.state = state["action_space"]
 
 
@@ -1117,9 +994,8 @@ TRAINING_ONLY = ("actor_target", "critic_target", "critic_optimizer", "actor_opt
 
 
 def training_state(agent: Agent, replay: ImageEpisodeReplay, envs, eval_envs, rng, loop: LoopState) -> dict:
-    """Everything a run needs to continue exactly, for save_resume (which adds the flags and the global random states):
-    the networks, codebook, targets and optimizers, the replay's filled rows, the training and evaluation envs, the
-    replay-sampling generator, and the loop's variables (a plain dict, so a run started as __main__ resumes imported)."""
+    """Everything a run needs to continue exactly but the flags and global random states (save_resume adds them); the
+    loop's variables as a plain dict, so that a run started as __main__ resumes imported."""
     return {
         "agent": agent.state_dicts() | {name: getattr(agent, name).state_dict() for name in TRAINING_ONLY},
         "replay": replay.state(),
@@ -1149,7 +1025,7 @@ DGRL_MUST_MATCH = ("n_embed",)  # the codebook's size, which matters only under 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT = 1  # the layout of a checkpoint file: script, format, args, then the script's own entries
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1165,9 +1041,8 @@ def seed_and_device(args) -> torch.device:
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
     """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
     if args.track:
-        wandb = importlib.import_module("wandb")  # an optional package, needed only here
         options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        wandb.init(**options, sync_tensorboard=True, save_code=True)
+        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -1238,6 +1113,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
+    layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1251,10 +1127,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             advice = "start the run afresh without --resume, or put back an older copy of the file"
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(" holds another script's or format's state" if resume else f" holds {found}; it needs {wanted}")
+        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
     older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
     if older:  # a flag added since: the file cannot say which value it had
         started = f" was started before {older} existed; continue it with the version that started it"
@@ -1279,7 +1155,7 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"rng": rng_states()} | state, args)
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
 
 
 def load_resume(args) -> dict:
@@ -1459,33 +1335,25 @@ def validate(args: Args) -> None:
         choices = f"0 (RIS) or divide --feature-dim {args.feature_dim}: one of {divisors}"
         errors.append(f"--groups must be {choices}; got {args.groups}")
     if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
-        errors.append(
-            f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac}) must be >= 0 with a "
-            "sum <= 1 (the rest are future goals)"
-        )
+        fractions = f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac})"
+        errors.append(f"{fractions} must be >= 0 with a sum <= 1 (the rest are future goals)")
     # The replay stores whole episodes (up to EPISODE_STEPS + 2 rows) and starts again at row 0 when the next one does not
     # fit, so it surely fills to --batch-size rows only if it holds a batch and one such episode besides.
     need_rows = args.batch_size + EPISODE_STEPS + 1
     if args.buffer_size >= 1 and args.buffer_size < need_rows:
-        errors.append(
-            f"--buffer-size must be >= --batch-size + {EPISODE_STEPS + 1} = {need_rows} (whole episodes of up to "
-            f"{EPISODE_STEPS + 2} rows, and a batch besides); got {args.buffer_size}"
-        )
+        rows = f"(whole episodes of up to {EPISODE_STEPS + 2} rows, and a batch besides); got {args.buffer_size}"
+        errors.append(f"--buffer-size must be >= --batch-size + {EPISODE_STEPS + 1} = {need_rows} {rows}")
     row_bytes = IMAGE_SIZE * IMAGE_SIZE * 3 + 4 * 4 + 4 * 2 + 8 + 8 + 1  # image, state, action, two row indices, flag
     memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") if hasattr(os, "sysconf") else math.inf
     if args.buffer_size * row_bytes > memory:
-        errors.append(
-            f"--buffer-size {args.buffer_size} needs {args.buffer_size * row_bytes / 1e9:.0f} GB of host memory ("
-            f"{row_bytes / 1e3:.0f} KB a row); this machine has {memory / 1e9:.0f} GB"
-        )
+        need = f"{args.buffer_size * row_bytes / 1e9:.0f} GB of host memory ({row_bytes / 1e3:.0f} KB a row)"
+        errors.append(f"--buffer-size {args.buffer_size} needs {need}; this machine has {memory / 1e9:.0f} GB")
     # Updates start after the random steps, once finished episodes (up to EPISODE_STEPS steps each) hold a batch.
     first_update = max(args.start_timesteps + 1, args.batch_size + (EPISODE_STEPS - 1) * args.num_envs)
     if args.total_timesteps >= 1 and args.total_timesteps < first_update:
-        errors.append(
-            f"--total-timesteps must be >= {first_update} for any update to run: updates start after --start-timesteps "
-            f"({args.start_timesteps}) random steps, once finished episodes of up to {EPISODE_STEPS} steps per env hold "
-            f"--batch-size ({args.batch_size}) transitions; got {args.total_timesteps}"
-        )
+        why = f"updates start after --start-timesteps ({args.start_timesteps}) random steps, once finished episodes of up to"
+        why += f" {EPISODE_STEPS} steps per env hold --batch-size ({args.batch_size}) transitions"
+        errors.append(f"--total-timesteps must be >= {first_update} for any update to run: {why}; got {args.total_timesteps}")
     exit_on_errors(errors)
 
 

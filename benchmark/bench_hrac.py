@@ -85,26 +85,21 @@ def filled_replays(rng: np.random.Generator) -> tuple[hrac.Replay, hrac.Replay]:
 def measure_updates(groups: int, cli: Args, rng: np.random.Generator) -> None:
     args, bounds, agent = build(groups, cli.device)
     ctrl_replay, man_replay = filled_replays(rng)
-    td3 = {"tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
-    threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2
 
     def controller_step():
         sample = hrac.as_tensors(ctrl_replay.sample(args.batch_size, rng), cli.device)
-        hrac.controller_update(agent, sample, gamma=args.ctrl_gamma, **td3)
+        hrac.controller_update(agent, sample, args)
 
     def manager_step():
         sample = man_replay.sample(args.batch_size, rng)
         hrac.manager_update(
             agent,
             hrac.manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=cli.device),
-            bounds=torch.as_tensor(bounds, device=cli.device),
-            gamma=args.man_gamma,
-            **td3,
-            adj_weight=args.adj_weight,
-            adj_threshold=threshold,
+            args,
+            torch.as_tensor(bounds, device=cli.device),
         )
 
-    act = timed(lambda: hrac.controller_action(agent, rng.normal(size=30), rng.normal(size=2), noise=1.0, rng=rng), 500)
+    act = timed(lambda: hrac.act(agent, rng.normal(size=30), rng.normal(size=2), manager=False, noise=1.0, rng=rng), 500)
     ctrl = timed(controller_step, 100)
     man = timed(manager_step, 20)
     episode = 500 * act + 500 * ctrl + 50 * man
@@ -121,10 +116,9 @@ def update_time(level: str, groups: int, cli: Args, fast: str) -> float:
     rng = np.random.default_rng(0)
     args, bounds, agent = build(groups, cli.device)
     ctrl_replay, man_replay = filled_replays(rng)
-    td3 = {"tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
     if level == "controller":
         batches = [hrac.as_tensors(ctrl_replay.sample(args.batch_size, rng), cli.device) for _ in range(16)]
-        flags = td3 | {"gamma": args.ctrl_gamma}
+        flags = (args,)
         optimizers = [agent.controller.critic_optimizer, agent.controller.actor_optimizer]
         update = hrac.fast_update(hrac.controller_update, fast, optimizers)
     else:
@@ -135,15 +129,13 @@ def update_time(level: str, groups: int, cli: Args, fast: str) -> float:
             )
             for _ in range(16)
         ]  # fmt: skip
-        threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2
-        flags = td3 | {"gamma": args.man_gamma, "adj_weight": args.adj_weight, "adj_threshold": threshold}
-        flags["bounds"] = torch.as_tensor(bounds, device=cli.device)
+        flags = (args, torch.as_tensor(bounds, device=cli.device))
         optimizers = [agent.manager.critic_optimizer, agent.manager.actor_optimizer]
         update = hrac.fast_update(hrac.manager_update, fast, optimizers)
     calls = [0]
 
     def step():
-        update(agent, batches[calls[0] % len(batches)], **flags)
+        update(agent, batches[calls[0] % len(batches)], *flags)
         calls[0] += 1
         if cli.device.startswith("cuda"):
             torch.cuda.synchronize()

@@ -36,7 +36,7 @@ def probe(agent: hrac.Agent, radius: float = 4.0, segments: int = 5, k: int = 10
         for t in range(segments * k):
             if t % k == 0:
                 subgoal = target - state[:2]
-            next_state, *_ = env.step(hrac.controller_action(agent, state, subgoal, noise=0.0, rng=rng))
+            next_state, *_ = env.step(hrac.act(agent, state, subgoal, manager=False, noise=0.0, rng=rng))
             subgoal = hrac.subgoal_transition(state, subgoal, next_state)
             state = next_state
         final.append(np.linalg.norm(target - state[:2]))

@@ -776,9 +776,7 @@ def test_default_encoder_uses_many_codes_only_with_dead_code_restarts(dead_code_
     EMA keeps it so (the study's runs used 1 code of 64 throughout before the default changed). Restarting
     codes unused for 50 updates (the script's default) spreads the codebook over the segments."""
     args = amigo.Args(env_id=DOORKEY, vq_dead_code_steps=dead_code_steps)
-    encoder = amigo.GoalEncoder(
-        5, 5, args.embed_dim, args.groups, args.n_embed, args.vq_beta, args.vq_decay, args.vq_dead_code_steps
-    )
+    encoder = amigo.GoalEncoder(5, 5, args)
     envs = amigo.MiniGridVecEnv(DOORKEY, 64)
     frames = envs.reset(seed=0)[0]["grid"]
     goals = torch.as_tensor(np.random.default_rng(0).integers(25, size=64))

@@ -662,7 +662,7 @@ def test_resume_refuses_changed_flags_and_accepts_free_ones(tmp_path, run_script
     (run_dir,) = (tmp_path / "runs").iterdir()
     changed = run_script("dgrl_goal_dqn.py", *tiny, "--seed", "2", "--groups", "8", "--resume", f"runs/{run_dir.name}")
     assert changed.returncode == 2 and "Traceback" not in changed.stderr, changed.stderr
-    assert "was started with other settings: pass --seed 1 --groups 16" in changed.stderr, changed.stderr
+    assert "was started with other settings: pass --groups 16 --seed 1" in changed.stderr, changed.stderr
     free = run_script(
         "dgrl_goal_dqn.py", *tiny, "--checkpoint-every", "5", "--threads", "2", "--resume", f"runs/{run_dir.name}"
     )

@@ -368,10 +368,10 @@ def test_replay_is_a_ring_of_preallocated_arrays():
 def bandit_level(max_action: float) -> hrac.Level:
     """A small TD3 level built as the script builds its levels (targets, fused Adam, critic weight decay)."""
     actor, critic = hrac.Actor(3, 2, 2, max_action, hidden_dim=64), hrac.TwinCritic(3, 2, 2, hidden_dim=64)
-    return hrac.make_level(actor, critic, actor_lr=1e-3, critic_lr=1e-3, critic_weight_decay=1e-4)
+    return hrac.make_level(actor, critic, hrac.Args(actor_lr=1e-3, critic_lr=1e-3, critic_weight_decay=1e-4))
 
 
-TD3 = {"gamma": 0.99, "tau": 0.005, "policy_noise": 0.2, "noise_clip": 0.5}
+TD3 = {"gamma": 0.99, "args": hrac.Args()}  # tau 0.005, policy_noise 0.2, noise_clip 0.5
 
 
 def test_td3_update_learns_a_one_step_task_and_moves_the_targets_by_tau():
@@ -392,7 +392,7 @@ def test_td3_update_learns_a_one_step_task_and_moves_the_targets_by_tau():
             next_goals=goals,
             dones=torch.ones(128),
         )
-        metrics = hrac.td3_update(level, batch, **TD3 | {"tau": 0.05})
+        metrics = hrac.td3_update(level, batch, **TD3 | {"args": hrac.Args(tau=0.05)})
         if step == 0:
             online_after = list(level.actor.parameters())
             for target, old_target, old_online, new_online in zip(
@@ -458,10 +458,6 @@ def agent(groups: int, env_id: str = "AntMaze", **overrides):
     return args, hrac.subgoal_bounds(env_id, args.subgoal_scale), make_agent(args)
 
 
-def td3_flags(args: hrac.Args, gamma: float) -> dict:
-    return {"gamma": gamma, "tau": args.tau, "policy_noise": args.policy_noise, "noise_clip": args.noise_clip}
-
-
 def filled_controller_replay(rng, n=64, goal_dim=2):
     replay = hrac.Replay(n, states=(30,), goals=(goal_dim,), actions=(8,), rewards=(), next_states=(30,),
                          next_goals=(goal_dim,), dones=())  # fmt: skip
@@ -500,7 +496,7 @@ def test_controller_update_under_dgrl_moves_the_codebook_the_encoder_and_both_ne
     encoder, controller = dgrl_agent.encoder, dgrl_agent.controller
     rng = np.random.default_rng(0)
     buffers = {name: value.clone() for name, value in encoder.vq.named_buffers()}
-    hrac.controller_action(dgrl_agent, rng.normal(size=30), np.array([3.0, -2.0]), noise=1.0, rng=rng)  # no EMA update
+    hrac.act(dgrl_agent, rng.normal(size=30), np.array([3.0, -2.0]), manager=False, noise=1.0, rng=rng)  # no EMA update
     correct(
         controller.actor,
         rng.normal(size=(4, 11, 30)),
@@ -515,7 +511,7 @@ def test_controller_update_under_dgrl_moves_the_codebook_the_encoder_and_both_ne
     watched = [*controller.actor.named_parameters(), *controller.critic.named_parameters(), *encoder.named_parameters()]
     before = {name: p.detach().clone() for name, p in watched}
     sample = hrac.as_tensors(filled_controller_replay(rng).sample(args.batch_size, rng), "cpu")
-    metrics = hrac.controller_update(dgrl_agent, sample, **td3_flags(args, args.ctrl_gamma))
+    metrics = hrac.controller_update(dgrl_agent, sample, args)
     assert not torch.equal(encoder.vq.codebook, buffers["codebook"])
     for name, p in watched:
         assert not torch.equal(p, before[name]), name  # the encoder's decoder too: the reconstruction loss reaches it
@@ -533,7 +529,7 @@ def test_the_controller_critic_loss_shapes_the_subgoal_encoder():
         replay = filled_controller_replay(np.random.default_rng(0))
         replay.fields["rewards"][:] = reward
         sample = hrac.as_tensors(replay.sample(args.batch_size, np.random.default_rng(1)), "cpu")
-        hrac.controller_update(dgrl_agent, sample, **td3_flags(args, args.ctrl_gamma))
+        hrac.controller_update(dgrl_agent, sample, args)
         return [p.detach().clone() for p in dgrl_agent.encoder.encoder.parameters()]
 
     same = [torch.equal(a, b) for a, b in zip(encoder_after_update(0.0), encoder_after_update(0.0), strict=True)]
@@ -604,10 +600,8 @@ def test_manager_update_learns_from_corrected_subgoals_with_the_weighted_adjacen
         hrac.manager_batch(
             replay.sample(n, sampler), sampler, bounds=bounds, correction_samples=args.correction_samples, device="cpu"
         ),
+        args,
         bounds=torch.as_tensor(bounds),
-        adj_weight=args.adj_weight,
-        adj_threshold=1.1,
-        **td3_flags(args, args.man_gamma),
     )
     assert seen["level"] is hrac_agent.manager
     index = np.random.default_rng(2).integers(n, size=n)
@@ -641,7 +635,7 @@ def test_fast_controller_update_equals_eager_and_is_free_of_host_syncs(groups):
     batches = [hrac.as_tensors(replay.sample(32, rng), "cpu") for _ in range(31)]
 
     def call(function, state, i):
-        return function(state, batches[i], **td3_flags(args, args.ctrl_gamma))
+        return function(state, batches[i], args)
 
     optimizers = lambda state: [state.controller.critic_optimizer, state.controller.actor_optimizer]  # noqa: E731
     check_fast_update(hrac, hrac.controller_update, trained, call, optimizers)
@@ -657,10 +651,9 @@ def test_fast_manager_update_equals_eager_and_is_free_of_host_syncs(groups):
     batches = [
         hrac.manager_batch(replay.sample(32, rng), rng, bounds=bounds, correction_samples=4, device="cpu") for _ in range(31)
     ]
-    hyper_parameters = td3_flags(args, args.man_gamma) | {"adj_weight": args.adj_weight, "adj_threshold": 1.1}
 
     def call(function, state, i):
-        return function(state, batches[i], bounds=torch.as_tensor(bounds), **hyper_parameters)
+        return function(state, batches[i], args, bounds=torch.as_tensor(bounds))
 
     optimizers = lambda state: [state.manager.critic_optimizer, state.manager.actor_optimizer]  # noqa: E731
     check_fast_update(hrac, hrac.manager_update, trained, call, optimizers)
@@ -676,10 +669,8 @@ def test_train_adjacency_separates_near_from_far_cells_along_a_corridor():
         torch.optim.Adam(anet.parameters(), lr=1e-3),
         memory,
         np.random.default_rng(0),
+        hrac.Args(adj_batch_size=64, adj_margin_pos=1.0, adj_margin_neg=1.2),
         epochs=60,
-        batch_size=64,
-        margin_pos=1.0,
-        margin_neg=1.2,
         device="cpu",
     )
     assert epochs == 60 and accuracy > 0.9 and loss < 0.05
@@ -705,7 +696,7 @@ def test_train_adjacency_stops_between_epochs_and_the_rest_continues_it_exactly(
     left, run later with the same generator and optimizer, leave the network as five epochs in a row do."""
     memory = hrac.AdjacencyMemory(k=10)
     memory.add_trajectory(np.stack([np.arange(0, 30, 0.5), np.zeros(60)], 1))
-    settings = {"batch_size": 64, "margin_pos": 1.0, "margin_neg": 1.2, "device": "cpu"}
+    settings = {"args": hrac.Args(adj_batch_size=64, adj_margin_pos=1.0, adj_margin_neg=1.2), "device": "cpu"}
     results, networks = [], []
     for stop in (None, StopAfter(2)):
         torch.manual_seed(0)
@@ -724,7 +715,7 @@ def test_train_adjacency_reports_nan_without_pairs():
     single_cell = hrac.AdjacencyMemory(k=10)
     single_cell.add_trajectory(np.zeros((20, 2)))
     anet = hrac.AdjacencyNet(2)
-    settings = {"epochs": 5, "batch_size": 64, "margin_pos": 1.0, "margin_neg": 1.2, "device": "cpu"}
+    settings = {"epochs": 5, "args": hrac.Args(adj_batch_size=64, adj_margin_pos=1.0, adj_margin_neg=1.2), "device": "cpu"}
     optimizer = torch.optim.Adam(anet.parameters(), lr=1e-3)
     epochs, *figures = hrac.train_adjacency(anet, optimizer, single_cell, np.random.default_rng(0), **settings)
     assert epochs == 5 and np.isnan(figures).all()
@@ -734,18 +725,18 @@ def test_evaluate_ends_an_episode_at_the_first_success(monkeypatch):
     """With the evaluation goal put at the start, the first step passes the distance test and ends the episode: success
     1, and the return is that one step's reward."""
     monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (1.0, 0.0))
-    args, bounds, dgrl_agent = agent(groups=16)
+    args, _, dgrl_agent = agent(groups=16)
     env = hrac.HiroAntEnv("AntMaze", evaluate=True)
     env.reset(seed=0)
-    result = hrac.evaluate(env, dgrl_agent, k=args.k, bounds=bounds, rng=np.random.default_rng(0), episodes=2)
+    result = hrac.evaluate(env, dgrl_agent, k=args.k, rng=np.random.default_rng(0), episodes=2)
     assert result["success"] == 1.0 and env.steps == 1 and result["episodes"] == 2
     assert result["return"] == pytest.approx(-result["distance"]) and result["distance"] < 5.0
     monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (0.0, 16.0))
-    result = hrac.evaluate(env, dgrl_agent, k=args.k, bounds=bounds, rng=np.random.default_rng(0), episodes=1)
+    result = hrac.evaluate(env, dgrl_agent, k=args.k, rng=np.random.default_rng(0), episodes=1)
     assert result["success"] == 0.0 and env.steps == hrac.EPISODE_STEPS and result["distance"] > 10
     # A stop request ends the evaluation after its first episode.
     monkeypatch.setitem(hrac.EVAL_GOALS, "AntMaze", (1.0, 0.0))
-    result = hrac.evaluate(env, dgrl_agent, k=args.k, bounds=bounds, rng=np.random.default_rng(0), episodes=50, stop=[2])
+    result = hrac.evaluate(env, dgrl_agent, k=args.k, rng=np.random.default_rng(0), episodes=50, stop=[2])
     assert result["episodes"] == 1
 
 

@@ -40,6 +40,24 @@ def run_script(tmp_path):
     return run
 
 
+def run_many(script: str, cases: list[tuple[Path, list[str]]], prefix: tuple[str, ...] = ()) -> list:
+    """Run `script` once per (folder, flags) case, each as a user would run it in that folder, all in ONE process
+    (tests/run_many.py): for refusals of bad input, which end before any work, at the cost of one start of Python and
+    torch. Returns a subprocess.CompletedProcess per case. `prefix` goes before the Python command (e.g. setpriv)."""
+    import json
+
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    command = [*prefix, sys.executable, str(ROOT / "tests" / "run_many.py"), str(ROOT / script)]
+    payload = json.dumps([{"cwd": str(folder), "argv": list(flags)} for folder, flags in cases])
+    batch = subprocess.run(command, input=payload, capture_output=True, text=True, timeout=HANG_TIMEOUT, env=env)
+    assert batch.returncode == 0, batch.stderr[-3000:]
+    results = json.loads(batch.stdout)
+    return [
+        subprocess.CompletedProcess([script, *flags], result["returncode"], result["stdout"], result["stderr"])
+        for (_, flags), result in zip(cases, results, strict=True)
+    ]
+
+
 class NoHostSync(TorchDispatchMode):
     """Fails on every op that makes the host wait for the device: reading a value back (`.item()`, `bool(tensor)`:
     aten._local_scalar_dense), ops whose output size depends on the data (nonzero, masked_select, unique, bincount,

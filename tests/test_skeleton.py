@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import HANG_TIMEOUT
+from conftest import run_many
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
@@ -175,7 +175,7 @@ def test_the_training_loop_comes_first_and_the_machinery_after(script):
     assert ast.unparse(ast.parse(source).body[-2]).startswith("def validate(args")
 
 
-# --- Bad input every script shares: a clean exit 2 naming the flag, no traceback ---------------------------------------
+# --- Bad input every script shares: a clean exit 2 naming the flag or file, no traceback, nothing written ---------
 
 
 def assert_clean_refusal(result, *words: str) -> None:
@@ -185,28 +185,85 @@ def assert_clean_refusal(result, *words: str) -> None:
         assert word in result.stderr, (word, result.stderr)
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_common_bad_flags_are_refused_before_any_work(script, run_script, tmp_path):
-    result = run_script(script, "--vq-beta", "nan", "--threads", "0", "--track")
-    assert_clean_refusal(result, "--vq-beta must be a finite number; got nan", "--threads must be >= 1; got 0", "--track")
-    assert "pip install wandb" in result.stderr
-    assert not (tmp_path / "runs").exists()
+def damaged_resume_files() -> dict[str, bytes]:
+    """An empty resume.pt (a disk that filled up) and one cut in half (a copy that did not finish)."""
+    import io
+
+    whole = io.BytesIO()
+    torch.save({"script": "dgrl_mnist.py", "format": 1, "args": {}, "block": torch.zeros(10_000)}, whole)
+    return {"empty": b"", "truncated": whole.getvalue()[: len(whole.getvalue()) // 2]}
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_a_garbage_checkpoint_is_refused(script, run_script, tmp_path):
-    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint at all")
-    assert_clean_refusal(run_script(script, "--checkpoint", "garbage.pt"), "--checkpoint garbage.pt is not a checkpoint")
-    assert_clean_refusal(run_script(script, "--checkpoint", "missing.pt"), "--checkpoint missing.pt: no such file")
-
-
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_another_scripts_checkpoint_is_refused(script, run_script, tmp_path):
+def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_path):
+    """Each case in a folder of its own, all run in one process (conftest.run_many), each as a user would run it:
+    common bad flags, a garbage, missing, foreign or bare checkpoint, a damaged resume file (left as it is), a file where
+    runs/ should be, a folder the run cannot write to, and an --exp-name that is a path. As root the batch runs without
+    the capabilities that let root ignore permissions (setpriv), so that the folder's mode bits apply as to anyone."""
+    prefix = ()
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.skip("as root, this needs setpriv (util-linux) to drop the capabilities that override permissions")
+        prefix = ("setpriv", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--")
     other = "dgrl_amigo.py" if script != "dgrl_amigo.py" else "dgrl_mnist.py"
-    torch.save({"script": other, "format": 1, "args": {}, "model": {}}, tmp_path / "other.pt")
-    torch.save({"model": {"weight": torch.zeros(2)}}, tmp_path / "plain.pt")  # a bare state dict, no script name
-    assert_clean_refusal(run_script(script, "--checkpoint", "other.pt"), f"holds {other} format 1", f"needs one that {script}")
-    assert_clean_refusal(run_script(script, "--checkpoint", "plain.pt"), "holds None format None", f"needs one that {script}")
+    cases = {
+        "common flags": ["--vq-beta", "nan", "--threads", "0", "--track"],
+        "garbage checkpoint": ["--checkpoint", "garbage.pt"],
+        "missing checkpoint": ["--checkpoint", "missing.pt"],
+        "another script's checkpoint": ["--checkpoint", "other.pt"],
+        "a bare state dict": ["--checkpoint", "plain.pt"],
+        "empty resume file": ["--resume", "runs/stopped_run"],
+        "truncated resume file": ["--resume", "runs/stopped_run"],
+        "a file named runs": [],
+        "a read-only folder": [],
+        **{f"--exp-name {name!r}": ["--exp-name", name] for name in ("a/b", "../x", "")},
+    }
+    folders = {case: tmp_path / f"case{i}" for i, case in enumerate(cases)}
+    for folder in folders.values():
+        folder.mkdir()
+    (folders["garbage checkpoint"] / "garbage.pt").write_bytes(b"not a checkpoint at all")
+    torch.save({"script": other, "format": 1, "args": {}, "model": {}}, folders["another script's checkpoint"] / "other.pt")
+    torch.save({"model": {"weight": torch.zeros(2)}}, folders["a bare state dict"] / "plain.pt")  # no script name
+    damaged = damaged_resume_files()
+    for damage in ("empty", "truncated"):
+        run_dir = folders[f"{damage} resume file"] / "runs" / "stopped_run"
+        run_dir.mkdir(parents=True)
+        (run_dir / "resume.pt").write_bytes(damaged[damage])
+    (folders["a file named runs"] / "runs").write_text("not a folder")
+    folders["a read-only folder"].chmod(0o555)
+    before = {case: sorted(str(path.relative_to(folder)) for path in folder.rglob("*")) for case, folder in folders.items()}
+    try:
+        outcomes = run_many(script, [(folders[case], flags) for case, flags in cases.items()], prefix)
+        results = dict(zip(cases, outcomes, strict=True))
+    finally:
+        folders["a read-only folder"].chmod(0o755)
+
+    assert_clean_refusal(
+        results["common flags"], "--vq-beta must be a finite number; got nan", "--threads must be >= 1; got 0", "--track"
+    )
+    assert "pip install wandb" in results["common flags"].stderr
+    assert_clean_refusal(results["garbage checkpoint"], "--checkpoint garbage.pt is not a checkpoint")
+    assert_clean_refusal(results["missing checkpoint"], "--checkpoint missing.pt: no such file")
+    needs = f"needs one that {script}"
+    assert_clean_refusal(results["another script's checkpoint"], f"holds {other} format 1", needs)
+    assert_clean_refusal(results["a bare state dict"], "holds None format None", needs)
+    for damage in ("empty", "truncated"):
+        result = results[f"{damage} resume file"]
+        problem = "--resume runs/stopped_run: runs/stopped_run/resume.pt cannot be read"
+        assert_clean_refusal(result, problem, "damaged or incomplete")
+        assert "start the run afresh without --resume, or put back an older copy of the file" in result.stderr
+        resume_file = folders[f"{damage} resume file"] / "runs" / "stopped_run" / "resume.pt"
+        assert resume_file.read_bytes() == damaged[damage]  # left as it is
+    assert_clean_refusal(results["a file named runs"], "runs is in the way: the run writes its logs in a folder of that name")
+    assert (folders["a file named runs"] / "runs").read_text() == "not a folder"
+    read_only = folders["a read-only folder"]
+    assert_clean_refusal(
+        results["a read-only folder"], f"cannot create runs/ in {read_only} (permission denied)", "a folder you can write to"
+    )
+    for name in ("a/b", "../x", ""):
+        assert_clean_refusal(results[f"--exp-name {name!r}"], f"--exp-name {name!r} must be a plain name, without '/'")
+    after = {case: sorted(str(path.relative_to(folder)) for path in folder.rglob("*")) for case, folder in folders.items()}
+    assert after == before  # nothing written, nothing removed
 
 
 # --- The shared validation helpers themselves (one script's copy; the drift test covers the others) --------------------
@@ -301,76 +358,6 @@ def test_a_kill_during_a_resume_write_leaves_the_previous_file_whole(tmp_path):
         saved = torch.load(tmp_path / "runs" / "killed" / "resume.pt", weights_only=False)
         assert saved["script"] == "dgrl_mnist.py" and saved["count"] >= 1
         assert torch.equal(saved["block"], torch.full((4_000_000,), float(saved["count"])))
-
-
-# --- Bad files and folders: a clean exit 2 naming the file or flag, nothing written or removed ------------------------
-
-
-def damaged_resume_files() -> dict[str, bytes]:
-    """An empty resume.pt (a disk that filled up) and one cut in half (a copy that did not finish)."""
-    import io
-
-    whole = io.BytesIO()
-    torch.save({"script": "dgrl_mnist.py", "format": 1, "args": {}, "block": torch.zeros(10_000)}, whole)
-    return {"empty": b"", "truncated": whole.getvalue()[: len(whole.getvalue()) // 2]}
-
-
-@pytest.mark.parametrize("damage", ["empty", "truncated"])
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_a_damaged_resume_file_is_refused_and_left_as_it_is(script, damage, run_script, tmp_path):
-    run_dir = tmp_path / "runs" / "stopped_run"
-    run_dir.mkdir(parents=True)
-    content = damaged_resume_files()[damage]
-    (run_dir / "resume.pt").write_bytes(content)
-    result = run_script(script, "--resume", "runs/stopped_run")
-    assert_clean_refusal(
-        result, "--resume runs/stopped_run: runs/stopped_run/resume.pt cannot be read", "damaged or incomplete"
-    )
-    assert "start the run afresh without --resume, or put back an older copy of the file" in result.stderr
-    assert os.listdir(run_dir) == ["resume.pt"] and (run_dir / "resume.pt").read_bytes() == content
-
-
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_a_file_where_runs_should_be_is_refused_before_any_work(script, run_script, tmp_path):
-    (tmp_path / "runs").write_text("not a folder")
-    assert_clean_refusal(run_script(script), "runs is in the way: the run writes its logs in a folder of that name")
-    assert (tmp_path / "runs").read_text() == "not a folder" and sorted(os.listdir(tmp_path)) == ["runs"]
-
-
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_a_folder_the_run_cannot_write_to_is_refused_before_any_work(script, tmp_path):
-    """As a user without write permission would see it. Root may write anywhere, so as root the run goes without the
-    capabilities that let it ignore permissions (setpriv): the folder's mode bits then apply to it as to anyone."""
-    prefix = []
-    if os.geteuid() == 0:
-        if shutil.which("setpriv") is None:
-            pytest.skip("as root, this needs setpriv (util-linux) to drop the capabilities that override permissions")
-        prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--"]
-    folder = tmp_path / "read_only"
-    folder.mkdir()
-    folder.chmod(0o555)
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    try:
-        result = subprocess.run(
-            [*prefix, sys.executable, str(ROOT / script)],
-            cwd=folder,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=HANG_TIMEOUT,
-        )
-        assert_clean_refusal(result, f"cannot create runs/ in {folder} (permission denied)", "a folder you can write to")
-        assert os.listdir(folder) == []
-    finally:
-        folder.chmod(0o755)
-
-
-@pytest.mark.parametrize("name", ["a/b", "../x", ""])
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_an_exp_name_that_is_a_path_is_refused(script, name, run_script, tmp_path):
-    result = run_script(script, "--exp-name", name)
-    assert_clean_refusal(result, f"--exp-name {name!r} must be a plain name, without '/'")
-    assert os.listdir(tmp_path) == []
 
 
 # --- Progress: the time left stays current, the step-based resume trigger ----------------------------------------------

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_many
+from conftest import HANG_TIMEOUT, run_many, signal_at_line
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
@@ -358,6 +358,98 @@ def test_a_kill_during_a_resume_write_leaves_the_previous_file_whole(tmp_path):
         saved = torch.load(tmp_path / "runs" / "killed" / "resume.pt", weights_only=False)
         assert saved["script"] == "dgrl_mnist.py" and saved["count"] >= 1
         assert torch.equal(saved["block"], torch.full((4_000_000,), float(saved["count"])))
+
+
+# --- Ctrl-C: every script stops after its step, with its checkpoint written and its logs on disk -------------------
+
+# For each script: a run too long to end by itself; the line at which it receives SIGINT (signal_at_line: sent as the
+# line prints, so on any machine the stop comes at that step, with updates under way); its stop line; scalars its logs
+# must hold by then; and the flags and output of a --checkpoint evaluation of what it saved.
+AMIGO_MODEL = ["--env-id", "MiniGrid-Empty-5x5-v0", "--groups", "4", "--embed-dim", "16", "--n-embed", "8"]
+RIS_MODEL = ["--env-id", "AntU", "--groups", "4", "--embed-dim", "8", "--n-embed", "8", "--hidden-dim", "16"]
+RIS_MODEL += ["--max-episode-steps", "50", "--eval-episodes", "1"]
+GOAL_DQN_TINY = ["--learning-starts", "100", "--rep-steps", "5", "--rep-transitions", "500", "--eval-frequency", "200"]
+GOAL_DQN_TINY += ["--batch-size", "16", "--buffer-size", "1000", "--max-episode-steps", "30", "--groups", "4"]
+KEYCHEST_TINY = ["--num-envs", "4", "--max-episode-steps", "100", "--adj-init-steps", "800", "--adj-init-epochs", "1"]
+KEYCHEST_TINY += ["--adj-frequency", "1200", "--adj-epochs", "1", "--man-buffer-size", "200", "--eval-frequency", "400"]
+KEYCHEST_TINY += ["--log-frequency", "400", "--eval-episodes", "4", "--hidden-dim", "32", "--ae-init-steps", "5"]
+MNIST_TINY = ["--train-size", "1000", "--hidden-dim", "64", "--classifier-epochs", "1"]
+CTRL_C = {
+    "dgrl_amigo.py": dict(
+        flags=[*AMIGO_MODEL, "--num-envs", "2", "--batch-envs", "2", "--num-steps", "10", "--teacher-batch-size", "4",
+               "--seed", "2", "--total-timesteps", "10000000", "--progress-frequency", "100"],
+        at=r"^frame +100/10000000 ", stopped=r"stopped: \d+ frames, \d+ student and \d+ teacher updates",
+        tags=["charts/SPS", "charts/goal_reach_rate"],
+        evaluate=[*AMIGO_MODEL, "--num-envs", "1", "--eval-episodes", "1"], evaluated=r"^1 episodes \(t\* 7 at save\)",
+    ),
+    "dgrl_goal_dqn.py": dict(
+        flags=[*GOAL_DQN_TINY, "--total-timesteps", "1000000"],
+        at=r"^step +\d+/1000000  train .* novel .* SPS", stopped=r"stopped: ",
+        tags=["eval/novel_success_rate", "charts/SPS"],
+        evaluate=["--groups", "4", "--max-episode-steps", "30"], evaluated=r"novel goals",
+    ),
+    "dgrl_hrac.py": dict(
+        flags=["--total-timesteps", "100000", "--ctrl-updates", "2", "--man-updates", "1", "--batch-size", "8",
+               "--eval-frequency", "500", "--eval-episodes", "1", "--hidden-dim", "32", "--groups", "0"],
+        at=r"eval success", stopped=r"stopped: \d+ steps",
+        tags=["eval/final_distance", "charts/episodic_return", "losses/controller_critic_loss"],
+        evaluate=["--groups", "0", "--hidden-dim", "32", "--eval-episodes", "1", "--n-embed", "32"],  # no codebook in HRAC
+        evaluated=r"1 evaluation episodes: success",
+    ),
+    "dgrl_hrac_keychest.py": dict(
+        flags=[*KEYCHEST_TINY, "--total-timesteps", "10000000"],
+        at=r"^frame +2000/10000000 ", stopped=r"stopped: ",  # the third evaluation: after the first updates
+        tags=["eval/return", "charts/SPS"],
+        evaluate=["--max-episode-steps", "100", "--hidden-dim", "32", "--eval-episodes", "2"], evaluated=r"2 episodes: return",
+    ),
+    "dgrl_mnist.py": dict(
+        flags=[*MNIST_TINY, "--epochs", "300"],
+        at=r"^image ", stopped=r"stopped: (.|\n)*no factor tests \(stopped\)",
+        tags=["charts/SPS"],
+        evaluate=MNIST_TINY, evaluated=r"accuracy on reconstructions",
+    ),
+    "dgrl_ris.py": dict(
+        flags=[*RIS_MODEL, "--total-timesteps", "1000000", "--start-timesteps", "100", "--batch-size", "16",
+               "--eval-frequency", "200", "--buffer-size", "5000"],
+        at=r"^step +200/1000000 +eval success", stopped=r"stopped: \d+ steps, \d+ updates",
+        tags=["eval/success_rate", "charts/episodic_return"],
+        evaluate=RIS_MODEL, evaluated=r"1 test episodes: success \d+%, final distance [\d.]+",
+    ),
+    "dgrl_ris_sawyer.py": dict(
+        flags=["--total-timesteps", "100000", "--start-timesteps", "100", "--batch-size", "16", "--buffer-size", "1000",
+               "--eval-frequency", "150", "--eval-episodes", "1", "--groups", "4"],
+        at=r"^step +150/100000 +eval success", stopped=r"stopped: \d+ steps, \d+ updates, last eval success",
+        tags=["eval/success_rate", "losses/critic_loss", "vq/commit_loss"],
+        evaluate=["--groups", "4", "--eval-episodes", "1"], evaluated=r"1 test episodes: success \d+%, hand success \d+%",
+    ),
+}  # fmt: skip
+
+
+def test_ctrl_c_is_tested_for_every_script():
+    assert sorted(CTRL_C) == SCRIPTS
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_ctrl_c_stops_after_the_step_with_the_checkpoint_written_and_the_logs_on_disk(script, run_script, tmp_path):
+    """SIGINT while training: exit status 0 with the stop line, no traceback; the checkpoint of the run (this script's,
+    with its step) is written and names its path; every scalar logged by then is on disk; --checkpoint evaluates it."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    case = CTRL_C[script]
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    command = signal_at_line("SIGINT", case["at"], script, *case["flags"], "--save-model")
+    run = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert run.returncode == 0 and "Traceback" not in run.stderr, run.stdout[-2000:] + run.stderr[-3000:]
+    assert re.search(case["stopped"], run.stdout), run.stdout[-3000:]
+    (checkpoint,) = tmp_path.glob(f"runs/*/{script[:-3]}.cleanrl_model")
+    assert f"checkpoint: {checkpoint.relative_to(tmp_path)}" in run.stdout, run.stdout[-2000:]
+    assert torch.load(checkpoint, weights_only=True)["script"] == script
+    events = EventAccumulator(str(checkpoint.parent), size_guidance={"scalars": 0})
+    events.Reload()
+    assert set(case["tags"]) <= set(events.Tags()["scalars"]), events.Tags()["scalars"]
+    evaluation = run_script(script, *case["evaluate"], "--checkpoint", str(checkpoint))
+    assert evaluation.returncode == 0, evaluation.stderr[-3000:]
+    assert re.search(case["evaluated"], evaluation.stdout, re.M), evaluation.stdout[-2000:]
 
 
 # --- Progress: the time left stays current, the step-based resume trigger ----------------------------------------------

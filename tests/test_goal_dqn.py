@@ -622,14 +622,12 @@ def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(kill_check
     assert saved["loop"]["global_step"] == 120 and "resumed at DQN step 120" in resumed
 
 
-def test_resume_refuses_changed_flags_and_accepts_free_ones(tmp_path, run_script):
+def test_a_finished_run_resumed_with_free_flags_says_where_it_resumed_and_ends(tmp_path, run_script):
+    """(Changed flags that must match are refused for every script: tests/test_skeleton.py.)"""
     tiny = ["--rep-steps", "0", "--total-timesteps", "30", "--learning-starts", "10", "--batch-size", "8"]
     first = run_script("dgrl_goal_dqn.py", *tiny)
     assert first.returncode == 0, first.stderr[-3000:]
     (run_dir,) = (tmp_path / "runs").iterdir()
-    changed = run_script("dgrl_goal_dqn.py", *tiny, "--seed", "2", "--groups", "8", "--resume", f"runs/{run_dir.name}")
-    assert changed.returncode == 2 and "Traceback" not in changed.stderr, changed.stderr
-    assert "was started with other settings: pass --seed 1 --groups 16" in changed.stderr, changed.stderr
     free = run_script(
         "dgrl_goal_dqn.py", *tiny, "--checkpoint-every", "5", "--threads", "2", "--resume", f"runs/{run_dir.name}"
     )

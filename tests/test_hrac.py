@@ -1046,18 +1046,13 @@ def test_a_run_killed_after_a_periodic_resume_write_resumes_exactly(kill_check, 
     assert saved["loop"]["step"] == 700 and "resuming at step 700" in resumed
 
 
-def test_resume_refuses_changed_flags_and_a_missing_file(run_script, tmp_path):
+def test_a_finished_run_keeps_its_resume_file_and_resumes_to_its_end(run_script, tmp_path):
+    """(Changed flags that must match are refused for every script: tests/test_skeleton.py.)"""
     flags = ["--env-id", "AntPush", "--groups", "0", "--total-timesteps", "20", "--ctrl-updates", "2", "--man-updates", "1",
              "--batch-size", "8", "--eval-episodes", "1", "--hidden-dim", "32"]  # fmt: skip
     assert run_script("dgrl_hrac.py", *flags).returncode == 0
     (run_dir,) = (tmp_path / "runs").iterdir()
     saved = torch.load(run_dir / "resume.pt", weights_only=False)  # a finished run leaves its resume file too
     assert saved["loop"]["step"] == 20 and saved["ctrl_replay"]["fields"]["states"].shape == (20, 30)
-    before = sorted(run_dir.iterdir())
-    changed = run_script("dgrl_hrac.py", *flags, "--seed", "4", "--hidden-dim", "64", "--resume", f"runs/{run_dir.name}")
-    assert_clean_refusal(changed, "was started with other settings: pass --seed 1 --hidden-dim 32")
-    assert sorted(run_dir.iterdir()) == before  # nothing written
-    missing = run_script("dgrl_hrac.py", *flags, "--resume", "runs/nothing")
-    assert_clean_refusal(missing, "--resume runs/nothing: no resume.pt there")
     done = run_script("dgrl_hrac.py", *flags, "--threads", "2", "--resume", f"runs/{run_dir.name}")  # a free flag
     assert done.returncode == 0 and "done: 20 steps" in done.stdout, done.stderr

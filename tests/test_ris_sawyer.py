@@ -875,9 +875,10 @@ def test_a_run_stopped_inside_an_episode_after_updates_started_resumes_exactly(r
     assert ends[:2] == [100, 200], ends  # the stop fell inside the second episode
 
 
-def test_resume_refuses_changed_flags_and_continues_a_finished_run_to_its_end(run_script, tmp_path):
-    """--resume with another --seed or --groups exits 2 naming the flag to pass; with only free flags changed, a finished
-    run stays as it was (no new point). The replay's images are stored in resume.pt as uint8, only the filled rows."""
+def test_a_finished_run_resumes_to_its_end_and_its_resume_file_holds_uint8_images(run_script, tmp_path):
+    """With only free flags changed, a finished run stays as it was (no new point). The replay's images are stored in
+    resume.pt as uint8, only the filled rows. (Changed flags that must match are refused for every script:
+    tests/test_skeleton.py.)"""
     flags = [*RESUME, "--groups", "4", "--total-timesteps", "115", "--eval-frequency", "1000"]
     first = run_script("dgrl_ris_sawyer.py", *flags)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -886,9 +887,6 @@ def test_resume_refuses_changed_flags_and_continues_a_finished_run_to_its_end(ru
     assert saved["replay"]["images"].dtype == torch.uint8 and saved["replay"]["images"].shape == (102, 84, 84, 3)
     assert saved["loop"]["finished"] and saved["loop"]["step"] == 115
     resume = ["--resume", f"runs/{run.name}"]
-    for changed, message in ((["--seed", "2"], "pass --seed 1"), (["--groups", "8"], "pass --groups 4")):
-        refused = run_script("dgrl_ris_sawyer.py", *flags, *changed, *resume)
-        assert_clean_refusal(refused, f"--resume runs/{run.name} was started with other settings: {message}")
     again = run_script("dgrl_ris_sawyer.py", *flags, "--checkpoint-every", "0", "--threads", "2", *resume)
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"{run.name}: (84, 84, 3) images" in again.stdout and "resumed at step 115" in again.stdout

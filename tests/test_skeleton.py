@@ -196,7 +196,7 @@ def damaged_resume_files() -> dict[str, bytes]:
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_path):
-    """Each case in a folder of its own, all run in one process (conftest.run_many), each as a user would run it:
+    """Each case in a folder of its own, run in one process (conftest.run_many), each as a user would run it:
     common bad flags, a garbage, missing, foreign or bare checkpoint, a damaged resume file (left as it is), a file where
     runs/ should be, a folder the run cannot write to, and an --exp-name that is a path. As root the batch runs without
     the capabilities that let root ignore permissions (setpriv), so that the folder's mode bits apply as to anyone."""
@@ -214,6 +214,7 @@ def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_pa
         "a bare state dict": ["--checkpoint", "plain.pt"],
         "empty resume file": ["--resume", "runs/stopped_run"],
         "truncated resume file": ["--resume", "runs/stopped_run"],
+        "no resume file": ["--resume", "runs/nothing"],
         "a file named runs": [],
         "a read-only folder": [],
         **{f"--exp-name {name!r}": ["--exp-name", name] for name in ("a/b", "../x", "")},
@@ -233,8 +234,9 @@ def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_pa
     folders["a read-only folder"].chmod(0o555)
     before = {case: sorted(str(path.relative_to(folder)) for path in folder.rglob("*")) for case, folder in folders.items()}
     try:
-        outcomes = run_many(script, [(folders[case], flags) for case, flags in cases.items()], prefix)
-        results = dict(zip(cases, outcomes, strict=True))
+        others = [case for case in cases if case != "a read-only folder"]
+        results = dict(zip(others, run_many(script, [(folders[case], cases[case]) for case in others]), strict=True))
+        (results["a read-only folder"],) = run_many(script, [(folders["a read-only folder"], [])], prefix)
     finally:
         folders["a read-only folder"].chmod(0o755)
 
@@ -254,6 +256,7 @@ def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_pa
         assert "start the run afresh without --resume, or put back an older copy of the file" in result.stderr
         resume_file = folders[f"{damage} resume file"] / "runs" / "stopped_run" / "resume.pt"
         assert resume_file.read_bytes() == damaged[damage]  # left as it is
+    assert_clean_refusal(results["no resume file"], "--resume runs/nothing: no resume.pt there")
     assert_clean_refusal(results["a file named runs"], "runs is in the way: the run writes its logs in a folder of that name")
     assert (folders["a file named runs"] / "runs").read_text() == "not a folder"
     read_only = folders["a read-only folder"]
@@ -430,9 +433,11 @@ def test_ctrl_c_is_tested_for_every_script():
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_ctrl_c_stops_after_the_step_with_the_checkpoint_written_and_the_logs_on_disk(script, run_script, tmp_path):
-    """SIGINT while training: exit status 0 with the stop line, no traceback; the checkpoint of the run (this script's,
-    with its step) is written and names its path; every scalar logged by then is on disk; --checkpoint evaluates it."""
+def test_ctrl_c_stops_after_the_step_and_the_run_resumes_under_its_own_flags_only(script, run_script, tmp_path):
+    """SIGINT while training: exit status 0 with the stop line, no traceback; the checkpoint of the run (this script's)
+    is written and names its path; the scalars logged by then are on disk; --checkpoint evaluates it. --resume with a
+    flag the run must keep changed (--seed) exits 2 naming it and leaves the resume file as it was; with free flags
+    changed (--threads, --checkpoint-every) the run continues (stopped again at once, at its first line)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     case = CTRL_C[script]
@@ -450,6 +455,18 @@ def test_ctrl_c_stops_after_the_step_with_the_checkpoint_written_and_the_logs_on
     evaluation = run_script(script, *case["evaluate"], "--checkpoint", str(checkpoint))
     assert evaluation.returncode == 0, evaluation.stderr[-3000:]
     assert re.search(case["evaluated"], evaluation.stdout, re.M), evaluation.stdout[-2000:]
+
+    resume = ["--resume", f"runs/{checkpoint.parent.name}"]
+    resume_file = checkpoint.parent / "resume.pt"
+    saved = resume_file.read_bytes()
+    (refused,) = run_many(script, [(tmp_path, [*case["flags"], "--save-model", "--seed", "99", *resume])])
+    assert_clean_refusal(refused, f"--resume runs/{checkpoint.parent.name} was started with other settings: pass --seed ")
+    assert resume_file.read_bytes() == saved
+    free = ["--threads", "2", "--checkpoint-every", "0"]
+    first_line = f"^{re.escape(checkpoint.parent.name)}: "
+    command = signal_at_line("SIGINT", first_line, script, *case["flags"], "--save-model", *free, *resume)
+    resumed = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert resumed.returncode == 0 and re.search(case["stopped"], resumed.stdout), resumed.stdout[-2000:] + resumed.stderr
 
 
 # --- Progress: the time left stays current, the step-based resume trigger ----------------------------------------------

@@ -1209,7 +1209,7 @@ def test_resume_refuses_changed_flags_and_keeps_images_uint8(run_script, tmp_pat
     assert saved["networks"]["student"]["trunk.0.weight"].shape[1] == 10  # no goal map: the goal only as codes
     resume = ["--resume", f"runs/{run_dir.name}"]
     changed = run_script("dgrl_amigo.py", *TINY, *model, "--seed", "5", "--goal-channel", "on", *resume)
-    assert_clean_refusal(changed, "was started with other settings: pass --seed 4 --goal-channel off")
+    assert_clean_refusal(changed, "was started with other settings: pass --goal-channel off --seed 4")
     finished = run_script("dgrl_amigo.py", *TINY, *model, *resume, "--no-save-model")  # a free flag may change
     assert finished.returncode == 0, finished.stderr
     assert "resumed from" in finished.stdout and "done: 160 frames" in finished.stdout

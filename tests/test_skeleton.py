@@ -175,6 +175,21 @@ def test_the_training_loop_comes_first_and_the_machinery_after(script):
     assert ast.unparse(ast.parse(source).body[-2]).startswith("def validate(args")
 
 
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_the_loops_state_is_one_dataclass_saved_and_restored_whole(script):
+    """The variables the training loop carries are one `@dataclass LoopState` in the resume appendix (after main): saved
+    as a plain dict of all its fields (vars or asdict, never the pickled class) and rebuilt with LoopState(**saved)."""
+    source = (ROOT / script).read_text()
+    tree = ast.parse(source)
+    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
+    main = next(node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == "main")
+    assert "LoopState" in classes and classes["LoopState"].lineno > main.end_lineno
+    assert [ast.unparse(decorator) for decorator in classes["LoopState"].decorator_list] == ["dataclass"]
+    assert "LoopState(" in ast.get_source_segment(source, main)
+    assert re.search(r"(copy\.deepcopy\(vars\(loop\)\)|asdict\(loop\))", source)
+    assert re.search(r"LoopState\(\*\*saved\[", source)
+
+
 # --- Bad input every script shares: a clean exit 2 naming the flag or file, no traceback, nothing written ---------
 
 

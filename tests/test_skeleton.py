@@ -23,9 +23,9 @@ SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
 MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
 WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
-    "CHECKPOINT_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress", "save_checkpoint",
-    "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS", "fast_update",
-    "CudaGraphUpdate",  # the run-management appendix
+    "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
+    "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS",
+    "fast_update", "CudaGraphUpdate",  # the run-management appendix
     "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors",  # the checks every script makes
     "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
@@ -62,7 +62,7 @@ def shared_pieces(source: str) -> dict[str, str]:
         block = "\n".join(lines[first + 1 : last])
         for node in ast.parse(block).body:
             if isinstance(node, ast.Assign):
-                name = node.targets[0].id
+                name = ast.unparse(node.targets[0])
             elif isinstance(node, ast.FunctionDef | ast.ClassDef):
                 name = node.name
             else:
@@ -547,8 +547,7 @@ def test_files_written_before_a_flag_existed_are_refused(script, tmp_path, capsy
     del saved_args["seed"]  # every script has it and it is never a free flag
     run_dir = tmp_path / "runs" / "old_run"
     run_dir.mkdir(parents=True)
-    format_ = module.CHECKPOINT_FORMAT
-    torch.save({"script": script, "format": format_, "args": saved_args}, run_dir / module.RESUME_FILE)
+    torch.save({"script": script, "format": module.RESUME_FORMAT, "args": saved_args}, run_dir / module.RESUME_FILE)
     args.resume = str(run_dir)
     with pytest.raises(SystemExit) as stopped:
         module.load_resume(args)
@@ -557,9 +556,27 @@ def test_files_written_before_a_flag_existed_are_refused(script, tmp_path, capsy
     checkpoint_args = dict(vars(module.Args()))
     dropped = module.MUST_MATCH[0]
     del checkpoint_args[dropped]
-    torch.save({"script": script, "format": format_, "args": checkpoint_args}, tmp_path / "old.cleanrl_model")
+    torch.save({"script": script, "format": module.CHECKPOINT_FORMAT, "args": checkpoint_args}, tmp_path / "old.cleanrl_model")
     with pytest.raises(SystemExit) as stopped:
         module.load_checkpoint(str(tmp_path / "old.cleanrl_model"), module.Args(), module.MUST_MATCH, torch.device("cpu"))
     assert stopped.value.code == 2
     flag = "--" + dropped.replace("_", "-")
     assert f"old.cleanrl_model was written before {flag} existed; use its version" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_resume_file_of_an_older_layout_is_refused(script, tmp_path, capsys):
+    """A resume.pt written before the loop's variables became one LoopState (resume format 1) cannot be restored by this
+    version: refused, saying to continue it with the version that started it, not a traceback halfway into setup."""
+    sys.path.insert(0, str(ROOT))
+    module = __import__(script[:-3])
+    assert module.RESUME_FORMAT == 2 and module.CHECKPOINT_FORMAT == 1
+    run_dir = tmp_path / "runs" / "old_run"
+    run_dir.mkdir(parents=True)
+    torch.save({"script": script, "format": 1, "args": dict(vars(module.Args()))}, run_dir / module.RESUME_FILE)
+    args = module.Args(resume=str(run_dir))
+    with pytest.raises(SystemExit) as stopped:
+        module.load_resume(args)
+    assert stopped.value.code == 2
+    wanted = f"--resume {run_dir} holds {script} format 1: continue it with the version that started it"
+    assert wanted in capsys.readouterr().err

@@ -11,6 +11,33 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 ROOT = Path(__file__).resolve().parents[1]
 HANG_TIMEOUT = 1800  # seconds: a guard against a run that hangs, far beyond any run's time on a slow, busy machine
+FORK = os.environ.get("DGRL_TESTS_FORK", "1") != "0"  # 0: every script run starts a fresh interpreter
+FORK_SERVER = {}
+
+
+def python() -> list[str]:
+    """The command that starts `python FILE ARGS...` for a test. A script run pays seconds of CPU to import torch; the
+    tests run scripts some two hundred times, so each run is a fork of one server that has torch and the scripts'
+    other libraries imported already (tests/forkserver.py, one per test process, started on first use), reached through
+    tests/forked.py, which behaves as the run's own process would: same folder, environment, streams, signals and exit
+    status. With DGRL_TESTS_FORK=0 in the environment every run starts a fresh interpreter instead."""
+    if not FORK:
+        return [sys.executable]
+    if not FORK_SERVER:
+        import atexit
+        import shutil
+        import tempfile
+
+        folder = tempfile.mkdtemp(prefix="dgrl-tests-")
+        socket_path = os.path.join(folder, "forkserver")
+        server = subprocess.Popen(
+            [sys.executable, str(ROOT / "tests" / "forkserver.py"), socket_path],
+            stdout=subprocess.PIPE, text=True, env={"PATH": "/usr/bin:/bin", "OMP_NUM_THREADS": "1"},
+        )  # fmt: skip
+        assert server.stdout.readline().strip() == "ready", "the tests' fork server did not start"
+        atexit.register(lambda: (server.kill(), server.wait(), shutil.rmtree(folder, ignore_errors=True)))
+        FORK_SERVER["socket"] = socket_path
+    return [sys.executable, str(ROOT / "tests" / "forked.py"), FORK_SERVER["socket"]]
 
 
 @pytest.fixture(autouse=True)
@@ -29,7 +56,7 @@ def run_script(tmp_path):
     def run(script: str, *flags: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
         base = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
         return subprocess.run(
-            [sys.executable, str(ROOT / script), *flags],
+            [*python(), str(ROOT / script), *flags],
             cwd=tmp_path,
             capture_output=True,
             text=True,
@@ -38,6 +65,25 @@ def run_script(tmp_path):
         )
 
     return run
+
+
+def run_many(script: str, cases: list[tuple[Path, list[str]]], prefix: tuple[str, ...] = ()) -> list:
+    """Run `script` once per (folder, flags) case, each as a user would run it in that folder, all in ONE process
+    (tests/run_many.py): for refusals of bad input, which end before any work, at the cost of one start of Python and
+    torch. Returns a subprocess.CompletedProcess per case. `prefix` goes before the Python command (e.g. setpriv)."""
+    import json
+
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    interpreter = [*prefix, sys.executable] if prefix else python()  # a fork would not drop the prefix's privileges
+    command = [*interpreter, str(ROOT / "tests" / "run_many.py"), str(ROOT / script)]
+    payload = json.dumps([{"cwd": str(folder), "argv": list(flags)} for folder, flags in cases])
+    batch = subprocess.run(command, input=payload, capture_output=True, text=True, timeout=HANG_TIMEOUT, env=env)
+    assert batch.returncode == 0, batch.stderr[-3000:]
+    results = json.loads(batch.stdout)
+    return [
+        subprocess.CompletedProcess([script, *flags], result["returncode"], result["stdout"], result["stderr"])
+        for (_, flags), result in zip(cases, results, strict=True)
+    ]
 
 
 class NoHostSync(TorchDispatchMode):
@@ -136,7 +182,7 @@ def signal_at_line(signal_name: str, pattern: str, script: str | Path, *flags: s
     """The command that runs `script` with `flags` and sends its own process `signal_name` (SIGTERM, SIGKILL...) right
     after it prints the first line matching the regex `pattern` (tests/signal_at_line.py): a stop or kill at an exact
     point of the run, on any machine."""
-    return [sys.executable, str(ROOT / "tests" / "signal_at_line.py"), signal_name, pattern, str(ROOT / script), *flags]
+    return [*python(), str(ROOT / "tests" / "signal_at_line.py"), signal_name, pattern, str(ROOT / script), *flags]
 
 
 @pytest.fixture
@@ -149,7 +195,7 @@ def resume_check(tmp_path):
 
     def check(script: str, flags: list[str], stop_after: str, ignore: tuple[str, ...] = ()) -> str:
         env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-        command = [sys.executable, str(ROOT / script), *flags]
+        command = [*python(), str(ROOT / script), *flags]
         straight, stopped = tmp_path / "straight", tmp_path / "stopped"
         straight.mkdir()
         stopped.mkdir()
@@ -188,7 +234,7 @@ def kill_check(tmp_path):
 
     def check(script: str, flags: list[str], kill_after: str, before_resume=None) -> tuple[dict, str]:
         env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-        command = [sys.executable, str(ROOT / script), *flags]
+        command = [*python(), str(ROOT / script), *flags]
         straight, killed = tmp_path / "straight", tmp_path / "killed"
         straight.mkdir()
         killed.mkdir()

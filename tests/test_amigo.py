@@ -9,9 +9,6 @@ import dataclasses
 import math
 import re
 import signal
-import subprocess
-import sys
-import threading
 from pathlib import Path
 
 import gymnasium as gym
@@ -20,7 +17,6 @@ import pytest
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from conftest import HANG_TIMEOUT
 from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
 from minigrid.core.world_object import Door
 from minigrid.wrappers import FullyObsWrapper
@@ -1161,37 +1157,6 @@ def test_goal_channel_takes_auto_on_or_off_only(run_script, tmp_path, flags, mes
     assert not (tmp_path / "runs").exists()
 
 
-def test_ctrl_c_stops_the_run_with_its_checkpoint_and_logs(run_script, tmp_path):
-    model = ["--env-id", EMPTY, "--groups", "4", "--embed-dim", "16", "--n-embed", "8"]
-    flags = ["--num-envs", "2", "--batch-envs", "2", "--num-steps", "10", "--teacher-batch-size", "4", "--seed", "2"]
-    process = subprocess.Popen(
-        [sys.executable, str(ROOT / "dgrl_amigo.py"), *model, *flags, "--total-timesteps", "10000000",
-         "--progress-frequency", "100", "--save-model"],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"},
-    )  # fmt: skip
-    watchdog = threading.Timer(HANG_TIMEOUT, process.kill)  # a run that never prints a progress line fails instead of hanging
-    watchdog.start()
-    try:
-        progress_line = next(line for line in process.stdout if line.startswith("frame"))
-        process.send_signal(signal.SIGINT)  # in training: a progress line comes after every 100 frames
-        out, err = process.communicate(timeout=HANG_TIMEOUT)
-    finally:
-        watchdog.cancel()
-    assert process.returncode == 0, err
-    assert re.match(r"frame +100/10000000 ", progress_line) and "Traceback" not in err
-    assert re.search(r"stopped: \d+ frames, \d+ student and \d+ teacher updates", out), out
-    checkpoint = next(tmp_path.glob("runs/*/dgrl_amigo.cleanrl_model"))
-    assert 100 <= torch.load(checkpoint, weights_only=True)["step"] < 10_000_000
-    events = next(tmp_path.glob("runs/*/events.out.tfevents.*")).read_bytes()
-    assert b"charts/SPS" in events  # logged at the progress line, flushed when the writer closed
-    evaluation = run_script(
-        "dgrl_amigo.py", *model, "--num-envs", "1", "--eval-episodes", "1", "--checkpoint", str(checkpoint)
-    )
-    assert evaluation.returncode == 0, evaluation.stderr
-    assert evaluation.stdout.startswith("1 episodes (t* 7 at save)")
-
-
 # --- stopping and resuming --------------------------------------------------------------------------------------------
 
 RESUME_FLAGS = [
@@ -1242,7 +1207,7 @@ def test_resume_refuses_changed_flags_and_keeps_images_uint8(run_script, tmp_pat
     assert saved["networks"]["student"]["trunk.0.weight"].shape[1] == 10  # no goal map: the goal only as codes
     resume = ["--resume", f"runs/{run_dir.name}"]
     changed = run_script("dgrl_amigo.py", *TINY, *model, "--seed", "5", "--goal-channel", "on", *resume)
-    assert_clean_refusal(changed, "was started with other settings: pass --seed 4 --goal-channel off")
+    assert_clean_refusal(changed, "was started with other settings: pass --goal-channel off --seed 4")
     finished = run_script("dgrl_amigo.py", *TINY, *model, *resume, "--no-save-model")  # a free flag may change
     assert finished.returncode == 0, finished.stderr
     assert "resumed from" in finished.stdout and "done: 160 frames" in finished.stdout

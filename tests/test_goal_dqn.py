@@ -4,9 +4,6 @@ updates, smoke runs, checkpoints, Ctrl-C and bad flags."""
 import itertools
 import math
 import re
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -14,7 +11,6 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from conftest import HANG_TIMEOUT
 
 import dgrl_goal_dqn as gdqn
 from tests.conftest import check_fast_update
@@ -553,35 +549,6 @@ def test_smoke_run(tmp_path, run_script, flags):
         assert sorted(path.name for path in (tmp_path / "videos").glob("*/*.mp4")) == ["eval_step200.mp4", "eval_step400.mp4"]
 
 
-def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path, run_script):
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    flags = [*TINY, "--total-timesteps", "1000000", "--groups", "4", "--save-model"]
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    process = subprocess.Popen(
-        [sys.executable, str(ROOT / "dgrl_goal_dqn.py"), *flags],
-        cwd=tmp_path,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    for line in process.stdout:  # the first progress line: the DQN phase is running
-        if PROGRESS_LINE.match(line):
-            break
-    process.send_signal(signal.SIGINT)
-    stdout, stderr = process.communicate(timeout=HANG_TIMEOUT)
-    assert process.returncode == 0 and "Traceback" not in stderr, stderr[-3000:]
-    assert "stopped: " in stdout and "checkpoint: " in stdout
-    events = EventAccumulator(str(next((tmp_path / "runs").glob("*/events.out.tfevents.*"))))
-    events.Reload()
-    assert events.Scalars("eval/novel_success_rate")[0].step == 199
-    evaluated = run_script(
-        "dgrl_goal_dqn.py", "--groups", "4", "--max-episode-steps", "30", "--checkpoint", str(checkpoint_of(tmp_path))
-    )
-    assert evaluated.returncode == 0 and "novel goals" in evaluated.stdout, evaluated.stderr[-3000:]
-
-
 @pytest.mark.parametrize(
     ("flags", "messages"),
     [
@@ -655,14 +622,12 @@ def test_resume_after_kill_9_drops_what_followed_the_last_resume_file(kill_check
     assert saved["loop"]["global_step"] == 120 and "resumed at DQN step 120" in resumed
 
 
-def test_resume_refuses_changed_flags_and_accepts_free_ones(tmp_path, run_script):
+def test_a_finished_run_resumed_with_free_flags_says_where_it_resumed_and_ends(tmp_path, run_script):
+    """(Changed flags that must match are refused for every script: tests/test_skeleton.py.)"""
     tiny = ["--rep-steps", "0", "--total-timesteps", "30", "--learning-starts", "10", "--batch-size", "8"]
     first = run_script("dgrl_goal_dqn.py", *tiny)
     assert first.returncode == 0, first.stderr[-3000:]
     (run_dir,) = (tmp_path / "runs").iterdir()
-    changed = run_script("dgrl_goal_dqn.py", *tiny, "--seed", "2", "--groups", "8", "--resume", f"runs/{run_dir.name}")
-    assert changed.returncode == 2 and "Traceback" not in changed.stderr, changed.stderr
-    assert "was started with other settings: pass --groups 16 --seed 1" in changed.stderr, changed.stderr
     free = run_script(
         "dgrl_goal_dqn.py", *tiny, "--checkpoint-every", "5", "--threads", "2", "--resume", f"runs/{run_dir.name}"
     )

@@ -12,15 +12,13 @@ import math
 import re
 import signal
 import subprocess
-import sys
-import threading
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import HANG_TIMEOUT, record_outputs_with_grad
+from conftest import record_outputs_with_grad
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dgrl_ris_sawyer as sawyer
@@ -791,37 +789,6 @@ def test_smoke_run(run_script, tmp_path, groups):
     assert_clean_refusal(mismatch, "was saved with other settings: pass --feature-dim 16 --groups 16")
 
 
-def test_ctrl_c_stops_with_a_checkpoint_and_flushed_logs(tmp_path):
-    """SIGINT after the first progress line: exit status 0, the checkpoint written and loadable, the logs on disk."""
-    base = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    flags = ["--total-timesteps", "100000", "--start-timesteps", "100", "--batch-size", "16", "--buffer-size", "1000"]
-    flags += ["--eval-frequency", "150", "--eval-episodes", "1", "--groups", "4", "--save-model"]
-    script = str(ROOT / "dgrl_ris_sawyer.py")
-    process = subprocess.Popen([sys.executable, script, *flags], cwd=tmp_path, env=base, stdout=subprocess.PIPE, text=True)
-    watchdog = threading.Timer(HANG_TIMEOUT, process.kill)
-    watchdog.start()
-    lines = []
-    while not any(re.search(PROGRESS.format(step=150, total=100000), line) for line in lines):
-        line = process.stdout.readline()
-        assert line, "".join(lines)  # the run ended (or was killed) before its first progress line
-        lines.append(line)
-    process.send_signal(signal.SIGINT)
-    rest, _ = process.communicate()
-    watchdog.cancel()
-    assert process.returncode == 0, "".join(lines) + rest
-    assert re.search(r"stopped: \d+ steps, \d+ updates, last eval success", rest), rest
-    checkpoint = next(tmp_path.glob("runs/*/dgrl_ris_sawyer.cleanrl_model"))
-    assert f"checkpoint: {checkpoint.relative_to(tmp_path)}" in rest
-    events = EventAccumulator(str(checkpoint.parent))
-    events.Reload()
-    assert {"eval/success_rate", "losses/critic_loss", "vq/commit_loss"} <= set(events.Tags()["scalars"])
-    assert events.Scalars("eval/success_rate")[0].step == 150
-    flags = ["--groups", "4", "--eval-episodes", "1", "--checkpoint", str(checkpoint)]
-    reloaded = subprocess.run([sys.executable, script, *flags], cwd=tmp_path, env=base, capture_output=True, text=True)
-    assert reloaded.returncode == 0, reloaded.stderr[-3000:]
-    assert re.search(r"1 test episodes: success \d+%, hand success \d+%", reloaded.stdout), reloaded.stdout
-
-
 # --- stopping and resuming --------------------------------------------------------------------------------------------
 
 
@@ -908,9 +875,10 @@ def test_a_run_stopped_inside_an_episode_after_updates_started_resumes_exactly(r
     assert ends[:2] == [100, 200], ends  # the stop fell inside the second episode
 
 
-def test_resume_refuses_changed_flags_and_continues_a_finished_run_to_its_end(run_script, tmp_path):
-    """--resume with another --seed or --groups exits 2 naming the flag to pass; with only free flags changed, a finished
-    run stays as it was (no new point). The replay's images are stored in resume.pt as uint8, only the filled rows."""
+def test_a_finished_run_resumes_to_its_end_and_its_resume_file_holds_uint8_images(run_script, tmp_path):
+    """With only free flags changed, a finished run stays as it was (no new point). The replay's images are stored in
+    resume.pt as uint8, only the filled rows. (Changed flags that must match are refused for every script:
+    tests/test_skeleton.py.)"""
     flags = [*RESUME, "--groups", "4", "--total-timesteps", "115", "--eval-frequency", "1000"]
     first = run_script("dgrl_ris_sawyer.py", *flags)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -919,9 +887,6 @@ def test_resume_refuses_changed_flags_and_continues_a_finished_run_to_its_end(ru
     assert saved["replay"]["images"].dtype == torch.uint8 and saved["replay"]["images"].shape == (102, 84, 84, 3)
     assert saved["loop"]["finished"] and saved["loop"]["step"] == 115
     resume = ["--resume", f"runs/{run.name}"]
-    for changed, message in ((["--seed", "2"], "pass --seed 1"), (["--groups", "8"], "pass --groups 4")):
-        refused = run_script("dgrl_ris_sawyer.py", *flags, *changed, *resume)
-        assert_clean_refusal(refused, f"--resume runs/{run.name} was started with other settings: {message}")
     again = run_script("dgrl_ris_sawyer.py", *flags, "--checkpoint-every", "0", "--threads", "2", *resume)
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"{run.name}: (84, 84, 3) images" in again.stdout and "resumed at step 115" in again.stdout

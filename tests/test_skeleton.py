@@ -16,16 +16,16 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import HANG_TIMEOUT
+from conftest import HANG_TIMEOUT, run_many, signal_at_line
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
 MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
 WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
-    "CHECKPOINT_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress", "save_checkpoint",
-    "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS", "fast_update",
-    "CudaGraphUpdate",  # the run-management appendix
+    "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
+    "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS",
+    "fast_update", "CudaGraphUpdate",  # the run-management appendix
     "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors",  # the checks every script makes
     "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
@@ -62,7 +62,7 @@ def shared_pieces(source: str) -> dict[str, str]:
         block = "\n".join(lines[first + 1 : last])
         for node in ast.parse(block).body:
             if isinstance(node, ast.Assign):
-                name = node.targets[0].id
+                name = ast.unparse(node.targets[0])
             elif isinstance(node, ast.FunctionDef | ast.ClassDef):
                 name = node.name
             else:
@@ -175,7 +175,22 @@ def test_the_training_loop_comes_first_and_the_machinery_after(script):
     assert ast.unparse(ast.parse(source).body[-2]).startswith("def validate(args")
 
 
-# --- Bad input every script shares: a clean exit 2 naming the flag, no traceback ---------------------------------------
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_the_loops_state_is_one_dataclass_saved_and_restored_whole(script):
+    """The variables the training loop carries are one `@dataclass LoopState` in the resume appendix (after main): saved
+    as a plain dict of all its fields (vars or asdict, never the pickled class) and rebuilt with LoopState(**saved)."""
+    source = (ROOT / script).read_text()
+    tree = ast.parse(source)
+    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
+    main = next(node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == "main")
+    assert "LoopState" in classes and classes["LoopState"].lineno > main.end_lineno
+    assert [ast.unparse(decorator) for decorator in classes["LoopState"].decorator_list] == ["dataclass"]
+    assert "LoopState(" in ast.get_source_segment(source, main)
+    assert re.search(r"(copy\.deepcopy\(vars\(loop\)\)|asdict\(loop\))", source)
+    assert re.search(r"LoopState\(\*\*saved\[", source)
+
+
+# --- Bad input every script shares: a clean exit 2 naming the flag or file, no traceback, nothing written ---------
 
 
 def assert_clean_refusal(result, *words: str) -> None:
@@ -185,28 +200,88 @@ def assert_clean_refusal(result, *words: str) -> None:
         assert word in result.stderr, (word, result.stderr)
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_common_bad_flags_are_refused_before_any_work(script, run_script, tmp_path):
-    result = run_script(script, "--vq-beta", "nan", "--threads", "0", "--track")
-    assert_clean_refusal(result, "--vq-beta must be a finite number; got nan", "--threads must be >= 1; got 0", "--track")
-    assert "pip install wandb" in result.stderr
-    assert not (tmp_path / "runs").exists()
+def damaged_resume_files() -> dict[str, bytes]:
+    """An empty resume.pt (a disk that filled up) and one cut in half (a copy that did not finish)."""
+    import io
+
+    whole = io.BytesIO()
+    torch.save({"script": "dgrl_mnist.py", "format": 1, "args": {}, "block": torch.zeros(10_000)}, whole)
+    return {"empty": b"", "truncated": whole.getvalue()[: len(whole.getvalue()) // 2]}
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_a_garbage_checkpoint_is_refused(script, run_script, tmp_path):
-    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint at all")
-    assert_clean_refusal(run_script(script, "--checkpoint", "garbage.pt"), "--checkpoint garbage.pt is not a checkpoint")
-    assert_clean_refusal(run_script(script, "--checkpoint", "missing.pt"), "--checkpoint missing.pt: no such file")
-
-
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_another_scripts_checkpoint_is_refused(script, run_script, tmp_path):
+def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_path):
+    """Each case in a folder of its own, run in one process (conftest.run_many), each as a user would run it:
+    common bad flags, a garbage, missing, foreign or bare checkpoint, a damaged resume file (left as it is), a file where
+    runs/ should be, a folder the run cannot write to, and an --exp-name that is a path. As root the batch runs without
+    the capabilities that let root ignore permissions (setpriv), so that the folder's mode bits apply as to anyone."""
+    prefix = ()
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.skip("as root, this needs setpriv (util-linux) to drop the capabilities that override permissions")
+        prefix = ("setpriv", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--")
     other = "dgrl_amigo.py" if script != "dgrl_amigo.py" else "dgrl_mnist.py"
-    torch.save({"script": other, "format": 1, "args": {}, "model": {}}, tmp_path / "other.pt")
-    torch.save({"model": {"weight": torch.zeros(2)}}, tmp_path / "plain.pt")  # a bare state dict, no script name
-    assert_clean_refusal(run_script(script, "--checkpoint", "other.pt"), f"holds {other} format 1", f"needs one that {script}")
-    assert_clean_refusal(run_script(script, "--checkpoint", "plain.pt"), "holds None format None", f"needs one that {script}")
+    cases = {
+        "common flags": ["--vq-beta", "nan", "--threads", "0", "--track"],
+        "garbage checkpoint": ["--checkpoint", "garbage.pt"],
+        "missing checkpoint": ["--checkpoint", "missing.pt"],
+        "another script's checkpoint": ["--checkpoint", "other.pt"],
+        "a bare state dict": ["--checkpoint", "plain.pt"],
+        "empty resume file": ["--resume", "runs/stopped_run"],
+        "truncated resume file": ["--resume", "runs/stopped_run"],
+        "no resume file": ["--resume", "runs/nothing"],
+        "a file named runs": [],
+        "a read-only folder": [],
+        **{f"--exp-name {name!r}": ["--exp-name", name] for name in ("a/b", "../x", "")},
+    }
+    folders = {case: tmp_path / f"case{i}" for i, case in enumerate(cases)}
+    for folder in folders.values():
+        folder.mkdir()
+    (folders["garbage checkpoint"] / "garbage.pt").write_bytes(b"not a checkpoint at all")
+    torch.save({"script": other, "format": 1, "args": {}, "model": {}}, folders["another script's checkpoint"] / "other.pt")
+    torch.save({"model": {"weight": torch.zeros(2)}}, folders["a bare state dict"] / "plain.pt")  # no script name
+    damaged = damaged_resume_files()
+    for damage in ("empty", "truncated"):
+        run_dir = folders[f"{damage} resume file"] / "runs" / "stopped_run"
+        run_dir.mkdir(parents=True)
+        (run_dir / "resume.pt").write_bytes(damaged[damage])
+    (folders["a file named runs"] / "runs").write_text("not a folder")
+    folders["a read-only folder"].chmod(0o555)
+    before = {case: sorted(str(path.relative_to(folder)) for path in folder.rglob("*")) for case, folder in folders.items()}
+    try:
+        others = [case for case in cases if case != "a read-only folder"]
+        results = dict(zip(others, run_many(script, [(folders[case], cases[case]) for case in others]), strict=True))
+        (results["a read-only folder"],) = run_many(script, [(folders["a read-only folder"], [])], prefix)
+    finally:
+        folders["a read-only folder"].chmod(0o755)
+
+    assert_clean_refusal(
+        results["common flags"], "--vq-beta must be a finite number; got nan", "--threads must be >= 1; got 0", "--track"
+    )
+    assert "pip install wandb" in results["common flags"].stderr
+    assert_clean_refusal(results["garbage checkpoint"], "--checkpoint garbage.pt is not a checkpoint")
+    assert_clean_refusal(results["missing checkpoint"], "--checkpoint missing.pt: no such file")
+    needs = f"needs one that {script}"
+    assert_clean_refusal(results["another script's checkpoint"], f"holds {other} format 1", needs)
+    assert_clean_refusal(results["a bare state dict"], "holds None format None", needs)
+    for damage in ("empty", "truncated"):
+        result = results[f"{damage} resume file"]
+        problem = "--resume runs/stopped_run: runs/stopped_run/resume.pt cannot be read"
+        assert_clean_refusal(result, problem, "damaged or incomplete")
+        assert "start the run afresh without --resume, or put back an older copy of the file" in result.stderr
+        resume_file = folders[f"{damage} resume file"] / "runs" / "stopped_run" / "resume.pt"
+        assert resume_file.read_bytes() == damaged[damage]  # left as it is
+    assert_clean_refusal(results["no resume file"], "--resume runs/nothing: no resume.pt there")
+    assert_clean_refusal(results["a file named runs"], "runs is in the way: the run writes its logs in a folder of that name")
+    assert (folders["a file named runs"] / "runs").read_text() == "not a folder"
+    read_only = folders["a read-only folder"]
+    assert_clean_refusal(
+        results["a read-only folder"], f"cannot create runs/ in {read_only} (permission denied)", "a folder you can write to"
+    )
+    for name in ("a/b", "../x", ""):
+        assert_clean_refusal(results[f"--exp-name {name!r}"], f"--exp-name {name!r} must be a plain name, without '/'")
+    after = {case: sorted(str(path.relative_to(folder)) for path in folder.rglob("*")) for case, folder in folders.items()}
+    assert after == before  # nothing written, nothing removed
 
 
 # --- The shared validation helpers themselves (one script's copy; the drift test covers the others) --------------------
@@ -303,74 +378,110 @@ def test_a_kill_during_a_resume_write_leaves_the_previous_file_whole(tmp_path):
         assert torch.equal(saved["block"], torch.full((4_000_000,), float(saved["count"])))
 
 
-# --- Bad files and folders: a clean exit 2 naming the file or flag, nothing written or removed ------------------------
+# --- Ctrl-C: every script stops after its step, with its checkpoint written and its logs on disk -------------------
+
+# For each script: a run too long to end by itself; the line at which it receives SIGINT (signal_at_line: sent as the
+# line prints, so on any machine the stop comes at that step, with updates under way); its stop line; scalars its logs
+# must hold by then; and the flags and output of a --checkpoint evaluation of what it saved.
+AMIGO_MODEL = ["--env-id", "MiniGrid-Empty-5x5-v0", "--groups", "4", "--embed-dim", "16", "--n-embed", "8"]
+RIS_MODEL = ["--env-id", "AntU", "--groups", "4", "--embed-dim", "8", "--n-embed", "8", "--hidden-dim", "16"]
+RIS_MODEL += ["--max-episode-steps", "50", "--eval-episodes", "1"]
+GOAL_DQN_TINY = ["--learning-starts", "100", "--rep-steps", "5", "--rep-transitions", "500", "--eval-frequency", "200"]
+GOAL_DQN_TINY += ["--batch-size", "16", "--buffer-size", "1000", "--max-episode-steps", "30", "--groups", "4"]
+KEYCHEST_TINY = ["--num-envs", "4", "--max-episode-steps", "100", "--adj-init-steps", "800", "--adj-init-epochs", "1"]
+KEYCHEST_TINY += ["--adj-frequency", "1200", "--adj-epochs", "1", "--man-buffer-size", "200", "--eval-frequency", "400"]
+KEYCHEST_TINY += ["--log-frequency", "400", "--eval-episodes", "4", "--hidden-dim", "32", "--ae-init-steps", "5"]
+MNIST_TINY = ["--train-size", "1000", "--hidden-dim", "64", "--classifier-epochs", "1"]
+CTRL_C = {
+    "dgrl_amigo.py": dict(
+        flags=[*AMIGO_MODEL, "--num-envs", "2", "--batch-envs", "2", "--num-steps", "10", "--teacher-batch-size", "4",
+               "--seed", "2", "--total-timesteps", "10000000", "--progress-frequency", "100"],
+        at=r"^frame +100/10000000 ", stopped=r"stopped: \d+ frames, \d+ student and \d+ teacher updates",
+        tags=["charts/SPS", "charts/goal_reach_rate"],
+        evaluate=[*AMIGO_MODEL, "--num-envs", "1", "--eval-episodes", "1"], evaluated=r"^1 episodes \(t\* 7 at save\)",
+    ),
+    "dgrl_goal_dqn.py": dict(
+        flags=[*GOAL_DQN_TINY, "--total-timesteps", "1000000"],
+        at=r"^step +\d+/1000000  train .* novel .* SPS", stopped=r"stopped: ",
+        tags=["eval/novel_success_rate", "charts/SPS"],
+        evaluate=["--groups", "4", "--max-episode-steps", "30"], evaluated=r"novel goals",
+    ),
+    "dgrl_hrac.py": dict(
+        flags=["--total-timesteps", "100000", "--ctrl-updates", "2", "--man-updates", "1", "--batch-size", "8",
+               "--eval-frequency", "500", "--eval-episodes", "1", "--hidden-dim", "32", "--groups", "0"],
+        at=r"eval success", stopped=r"stopped: \d+ steps",
+        tags=["eval/final_distance", "charts/episodic_return", "losses/controller_critic_loss"],
+        evaluate=["--groups", "0", "--hidden-dim", "32", "--eval-episodes", "1", "--n-embed", "32"],  # no codebook in HRAC
+        evaluated=r"1 evaluation episodes: success",
+    ),
+    "dgrl_hrac_keychest.py": dict(
+        flags=[*KEYCHEST_TINY, "--total-timesteps", "10000000"],
+        at=r"^frame +2000/10000000 ", stopped=r"stopped: ",  # the third evaluation: after the first updates
+        tags=["eval/return", "charts/SPS"],
+        evaluate=["--max-episode-steps", "100", "--hidden-dim", "32", "--eval-episodes", "2"], evaluated=r"2 episodes: return",
+    ),
+    "dgrl_mnist.py": dict(
+        flags=[*MNIST_TINY, "--epochs", "300"],
+        at=r"^image ", stopped=r"stopped: (.|\n)*no factor tests \(stopped\)",
+        tags=["charts/SPS"],
+        evaluate=MNIST_TINY, evaluated=r"accuracy on reconstructions",
+    ),
+    "dgrl_ris.py": dict(
+        flags=[*RIS_MODEL, "--total-timesteps", "1000000", "--start-timesteps", "100", "--batch-size", "16",
+               "--eval-frequency", "200", "--buffer-size", "5000"],
+        at=r"^step +200/1000000 +eval success", stopped=r"stopped: \d+ steps, \d+ updates",
+        tags=["eval/success_rate", "charts/episodic_return"],
+        evaluate=RIS_MODEL, evaluated=r"1 test episodes: success \d+%, final distance [\d.]+",
+    ),
+    "dgrl_ris_sawyer.py": dict(
+        flags=["--total-timesteps", "100000", "--start-timesteps", "100", "--batch-size", "16", "--buffer-size", "1000",
+               "--eval-frequency", "150", "--eval-episodes", "1", "--groups", "4"],
+        at=r"^step +150/100000 +eval success", stopped=r"stopped: \d+ steps, \d+ updates, last eval success",
+        tags=["eval/success_rate", "losses/critic_loss", "vq/commit_loss"],
+        evaluate=["--groups", "4", "--eval-episodes", "1"], evaluated=r"1 test episodes: success \d+%, hand success \d+%",
+    ),
+}  # fmt: skip
 
 
-def damaged_resume_files() -> dict[str, bytes]:
-    """An empty resume.pt (a disk that filled up) and one cut in half (a copy that did not finish)."""
-    import io
-
-    whole = io.BytesIO()
-    torch.save({"script": "dgrl_mnist.py", "format": 1, "args": {}, "block": torch.zeros(10_000)}, whole)
-    return {"empty": b"", "truncated": whole.getvalue()[: len(whole.getvalue()) // 2]}
+def test_ctrl_c_is_tested_for_every_script():
+    assert sorted(CTRL_C) == SCRIPTS
 
 
-@pytest.mark.parametrize("damage", ["empty", "truncated"])
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_a_damaged_resume_file_is_refused_and_left_as_it_is(script, damage, run_script, tmp_path):
-    run_dir = tmp_path / "runs" / "stopped_run"
-    run_dir.mkdir(parents=True)
-    content = damaged_resume_files()[damage]
-    (run_dir / "resume.pt").write_bytes(content)
-    result = run_script(script, "--resume", "runs/stopped_run")
-    assert_clean_refusal(
-        result, "--resume runs/stopped_run: runs/stopped_run/resume.pt cannot be read", "damaged or incomplete"
-    )
-    assert "start the run afresh without --resume, or put back an older copy of the file" in result.stderr
-    assert os.listdir(run_dir) == ["resume.pt"] and (run_dir / "resume.pt").read_bytes() == content
+def test_ctrl_c_stops_after_the_step_and_the_run_resumes_under_its_own_flags_only(script, run_script, tmp_path):
+    """SIGINT while training: exit status 0 with the stop line, no traceback; the checkpoint of the run (this script's)
+    is written and names its path; the scalars logged by then are on disk; --checkpoint evaluates it. --resume with a
+    flag the run must keep changed (--seed) exits 2 naming it and leaves the resume file as it was; with free flags
+    changed (--threads, --checkpoint-every) the run continues (stopped again at once, at its first line)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+    case = CTRL_C[script]
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    command = signal_at_line("SIGINT", case["at"], script, *case["flags"], "--save-model")
+    run = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert run.returncode == 0 and "Traceback" not in run.stderr, run.stdout[-2000:] + run.stderr[-3000:]
+    assert re.search(case["stopped"], run.stdout), run.stdout[-3000:]
+    (checkpoint,) = tmp_path.glob(f"runs/*/{script[:-3]}.cleanrl_model")
+    assert f"checkpoint: {checkpoint.relative_to(tmp_path)}" in run.stdout, run.stdout[-2000:]
+    assert torch.load(checkpoint, weights_only=True)["script"] == script
+    events = EventAccumulator(str(checkpoint.parent), size_guidance={"scalars": 0})
+    events.Reload()
+    assert set(case["tags"]) <= set(events.Tags()["scalars"]), events.Tags()["scalars"]
+    evaluation = run_script(script, *case["evaluate"], "--checkpoint", str(checkpoint))
+    assert evaluation.returncode == 0, evaluation.stderr[-3000:]
+    assert re.search(case["evaluated"], evaluation.stdout, re.M), evaluation.stdout[-2000:]
 
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_a_file_where_runs_should_be_is_refused_before_any_work(script, run_script, tmp_path):
-    (tmp_path / "runs").write_text("not a folder")
-    assert_clean_refusal(run_script(script), "runs is in the way: the run writes its logs in a folder of that name")
-    assert (tmp_path / "runs").read_text() == "not a folder" and sorted(os.listdir(tmp_path)) == ["runs"]
-
-
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_a_folder_the_run_cannot_write_to_is_refused_before_any_work(script, tmp_path):
-    """As a user without write permission would see it. Root may write anywhere, so as root the run goes without the
-    capabilities that let it ignore permissions (setpriv): the folder's mode bits then apply to it as to anyone."""
-    prefix = []
-    if os.geteuid() == 0:
-        if shutil.which("setpriv") is None:
-            pytest.skip("as root, this needs setpriv (util-linux) to drop the capabilities that override permissions")
-        prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--"]
-    folder = tmp_path / "read_only"
-    folder.mkdir()
-    folder.chmod(0o555)
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    try:
-        result = subprocess.run(
-            [*prefix, sys.executable, str(ROOT / script)],
-            cwd=folder,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=HANG_TIMEOUT,
-        )
-        assert_clean_refusal(result, f"cannot create runs/ in {folder} (permission denied)", "a folder you can write to")
-        assert os.listdir(folder) == []
-    finally:
-        folder.chmod(0o755)
-
-
-@pytest.mark.parametrize("name", ["a/b", "../x", ""])
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_an_exp_name_that_is_a_path_is_refused(script, name, run_script, tmp_path):
-    result = run_script(script, "--exp-name", name)
-    assert_clean_refusal(result, f"--exp-name {name!r} must be a plain name, without '/'")
-    assert os.listdir(tmp_path) == []
+    resume = ["--resume", f"runs/{checkpoint.parent.name}"]
+    resume_file = checkpoint.parent / "resume.pt"
+    saved = resume_file.read_bytes()
+    (refused,) = run_many(script, [(tmp_path, [*case["flags"], "--save-model", "--seed", "99", *resume])])
+    assert_clean_refusal(refused, f"--resume runs/{checkpoint.parent.name} was started with other settings: pass --seed ")
+    assert resume_file.read_bytes() == saved
+    free = ["--threads", "2", "--checkpoint-every", "0"]
+    first_line = f"^{re.escape(checkpoint.parent.name)}: "
+    command = signal_at_line("SIGINT", first_line, script, *case["flags"], "--save-model", *free, *resume)
+    resumed = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert resumed.returncode == 0 and re.search(case["stopped"], resumed.stdout), resumed.stdout[-2000:] + resumed.stderr
 
 
 # --- Progress: the time left stays current, the step-based resume trigger ----------------------------------------------
@@ -436,8 +547,7 @@ def test_files_written_before_a_flag_existed_are_refused(script, tmp_path, capsy
     del saved_args["seed"]  # every script has it and it is never a free flag
     run_dir = tmp_path / "runs" / "old_run"
     run_dir.mkdir(parents=True)
-    format_ = module.CHECKPOINT_FORMAT
-    torch.save({"script": script, "format": format_, "args": saved_args}, run_dir / module.RESUME_FILE)
+    torch.save({"script": script, "format": module.RESUME_FORMAT, "args": saved_args}, run_dir / module.RESUME_FILE)
     args.resume = str(run_dir)
     with pytest.raises(SystemExit) as stopped:
         module.load_resume(args)
@@ -446,9 +556,27 @@ def test_files_written_before_a_flag_existed_are_refused(script, tmp_path, capsy
     checkpoint_args = dict(vars(module.Args()))
     dropped = module.MUST_MATCH[0]
     del checkpoint_args[dropped]
-    torch.save({"script": script, "format": format_, "args": checkpoint_args}, tmp_path / "old.cleanrl_model")
+    torch.save({"script": script, "format": module.CHECKPOINT_FORMAT, "args": checkpoint_args}, tmp_path / "old.cleanrl_model")
     with pytest.raises(SystemExit) as stopped:
         module.load_checkpoint(str(tmp_path / "old.cleanrl_model"), module.Args(), module.MUST_MATCH, torch.device("cpu"))
     assert stopped.value.code == 2
     flag = "--" + dropped.replace("_", "-")
     assert f"old.cleanrl_model was written before {flag} existed; use its version" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_resume_file_of_an_older_layout_is_refused(script, tmp_path, capsys):
+    """A resume.pt written before the loop's variables became one LoopState (resume format 1) cannot be restored by this
+    version: refused, saying to continue it with the version that started it, not a traceback halfway into setup."""
+    sys.path.insert(0, str(ROOT))
+    module = __import__(script[:-3])
+    assert module.RESUME_FORMAT == 2 and module.CHECKPOINT_FORMAT == 1
+    run_dir = tmp_path / "runs" / "old_run"
+    run_dir.mkdir(parents=True)
+    torch.save({"script": script, "format": 1, "args": dict(vars(module.Args()))}, run_dir / module.RESUME_FILE)
+    args = module.Args(resume=str(run_dir))
+    with pytest.raises(SystemExit) as stopped:
+        module.load_resume(args)
+    assert stopped.value.code == 2
+    wanted = f"--resume {run_dir} holds {script} format 1: continue it with the version that started it"
+    assert wanted in capsys.readouterr().err

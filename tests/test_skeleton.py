@@ -62,7 +62,7 @@ def shared_pieces(source: str) -> dict[str, str]:
         block = "\n".join(lines[first + 1 : last])
         for node in ast.parse(block).body:
             if isinstance(node, ast.Assign):
-                name = ast.unparse(node.targets[0])
+                name = ast.unparse(node.targets[0]).strip("()")
             elif isinstance(node, ast.FunctionDef | ast.ClassDef):
                 name = node.name
             else:

@@ -821,6 +821,7 @@ def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, thresho
             env = gym.wrappers.TimeLimit(AntMazeEnv(env_id, test, threshold, render_mode), limit)
         else:
             kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
+            robotics_ids()  # registers the ids (a caller may not have: episode_limit skips it under --max-episode-steps)
             env = gym.make(env_id, continuing_task=False, render_mode=render_mode, max_episode_steps=limit, **kwargs)
             env = RoboticsMaze(env, test)
         env = gym.wrappers.RecordEpisodeStatistics(env)

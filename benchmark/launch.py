@@ -39,6 +39,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -503,11 +504,13 @@ def finish(attempt: Attempt) -> dict:
 
 
 def progress_of(run: Run) -> dict:
-    """The latest progress line of the run's log: step, total, figures, SPS, seconds left."""
+    """The latest progress line of the run's log: step, total, figures, SPS, and the seconds left at the rate since the
+    line before, less the time since the log was last written (so the figure keeps counting down between lines)."""
     try:
         with open(run.folder / LOG_FILE, "rb") as log:
             log.seek(max(0, log.seek(0, os.SEEK_END) - 8192))
             lines = log.read().decode(errors="replace").splitlines()
+            written = os.fstat(log.fileno()).st_mtime
     except OSError:
         return {}
     for line in reversed(lines):
@@ -519,7 +522,7 @@ def progress_of(run: Run) -> dict:
                 "total": int(total),
                 "figures": figures,
                 "sps": int(sps),
-                "left": None if left is None else int(left),
+                "left": None if left is None else max(int(left) - max(time.time() - written, 0), 0),
             }
     return {}
 
@@ -734,7 +737,7 @@ def run_slurm(runs: list[Run], args: Args, folder: Path) -> dict[str, str]:
     )
     states: dict[str, str] = {}
     waiting = dict(zip(jobs, chunks, strict=True))
-    stop = []
+    stop, requeued = [], set()
     previous = signal.signal(signal.SIGINT, lambda n, f: stop.append(n))
     last_table = time.time()
     try:
@@ -745,6 +748,15 @@ def run_slurm(runs: list[Run], args: Args, folder: Path) -> dict[str, str]:
                     if status_file.is_file() and status_file.stat().st_mtime >= submitted:
                         states[run.run_id] = run.status().get("state", "queued")
                 if not job.done():
+                    continue
+                held = slurm_state(job.job_id)  # done() trusts the result file, which an earlier attempt may have left
+                if held in ACTIVE_STATES and any(run.status().get("state") not in ("done", "failed") for run in chunk):
+                    for run in chunk:  # Slurm requeued the task itself (scontrol requeue, preemption): it will run again
+                        if states.get(run.run_id) == "stopped" and held != "COMPLETING":
+                            states[run.run_id] = "requeued"
+                            if (run.run_id, run.status().get("attempts")) not in requeued:
+                                requeued.add((run.run_id, run.status().get("attempts")))
+                                print(f"requeued {run.run_id} (job {job.job_id}, Slurm state {held})", flush=True)
                     continue
                 del waiting[job]
                 try:
@@ -947,6 +959,48 @@ def check(args: Args) -> list[str]:
     return errors
 
 
+# The script's own parser and validate(), on each run's flags, in a child process (it imports torch), from an empty
+# folder: a run of the sweep would refuse the same flags with the same message, after queueing and starting.
+FLAG_CHECK = """
+import importlib.util, json, sys, tyro
+path, on_slurm, runs = sys.argv[1], sys.argv[2] == "slurm", json.load(sys.stdin)
+spec = importlib.util.spec_from_file_location("checked_script", path)
+script = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(script)
+for run_id, argv in runs:
+    print(run_id, flush=True)
+    args = tyro.cli(script.Args, args=argv, prog=spec.origin.rsplit("/", 1)[-1])
+    if on_slurm:
+        args.fast = "eager"  # what --fast needs (CUDA, a compiler) is the node's, not this machine's
+    script.validate(args)
+"""
+
+
+def flag_errors(runs: list[Run], python: str, backend: str) -> list[str]:
+    """The runs' flags as their scripts see them, checked once before the sweep starts: one error per refusing script."""
+    errors = []
+    for script in dict.fromkeys(run.script for run in runs):
+        source = (ROOT / script).read_text()
+        if "\nclass Args" not in source or "\ndef validate(" not in source:
+            continue  # not a script of this project (a stand-in of the tests): it has no validate to ask
+        argvs = [(run.run_id, run.argv) for run in runs if run.script == script]
+        with tempfile.TemporaryDirectory() as folder:
+            result = subprocess.run(
+                [python, "-c", FLAG_CHECK, str(ROOT / script), backend],
+                input=json.dumps(argvs),
+                capture_output=True,
+                text=True,
+                cwd=folder,
+                env=dict(os.environ, PYTHONPATH=str(ROOT)),
+            )
+        if result.returncode:
+            run_id = (result.stdout.split() or ["(none)"])[-1]
+            argv = dict(argvs).get(run_id, [])
+            message = "\n".join(f"    {line}" for line in result.stderr.strip().splitlines()[-20:])
+            errors.append(f"{script} refuses the flags of run {run_id} ({shlex.join(argv)}):\n{message}")
+    return errors
+
+
 def hold_lock(folder: Path):
     """An exclusive lock on the sweep's folder for as long as this launcher runs (the kernel drops it when the process
     ends, however it ends), so that two launchers never run the same runs at once."""
@@ -997,6 +1051,7 @@ def main(args: Args) -> int:
     args.name = name
     folder = Path(args.sweeps_dir).resolve() / name
     runs = expand(arms, name, folder, args.threads)
+    exit_on_errors(flag_errors([run for run in runs if run.status().get("state") != "done"], args.python, args.backend))
     if args.dry_run:
         for run in runs:
             print(f"{run.run_id}: cd {run.folder} && {shlex.join(command_of(run, args.python))}")
@@ -1066,6 +1121,12 @@ def cli(argv: list[str]) -> Args:
         argv, extra = argv[: argv.index("--")], argv[argv.index("--") + 1 :]
     args = tyro.cli(Args, args=argv, description=__doc__)
     args.flags = f"{args.flags} {shlex.join(extra)}".strip()
+    given = {word.split("=", 1)[0] for word in argv}
+    lists = [name for name, value in vars(args).items() if isinstance(value, list)]
+    empty = [
+        f"--{name.replace('_', '-')}" for name in lists if f"--{name.replace('_', '-')}" in given and not getattr(args, name)
+    ]
+    exit_on_errors([f"{flag} was given no value: give at least one, or leave it out for the preset's own" for flag in empty])
     return args
 
 

@@ -201,6 +201,15 @@ def test_the_amigo_presets_keep_the_goal_channel_their_documented_runs_had(prese
         (["--preset", "smoke", "--backend", "slurm", "--sbatch", "account"], "--sbatch account: give KEY=VALUE"),
         (["--preset", "smoke", "--name", "my sweep"], "--name 'my sweep': use letters"),
         (["--preset", "smoke", "--flags", "'unclosed"], '--flags "\'unclosed": No closing quotation'),
+        (["--preset", "smoke", "--seeds", "--dry-run"], "--seeds was given no value: give at least one"),
+        (
+            ["--script", "dgrl_goal_dqn.py", "--groups", "0", "--seeds", "1", "--dry-run", "--", "--bogus-flag", "3"],
+            "dgrl_goal_dqn.py refuses the flags of run goal_dqn__G0__s1 (--groups 0 --seed 1 --bogus-flag 3",
+        ),
+        (
+            ["--preset", "smoke", "--groups", "3", "--dry-run"],
+            "--groups must be 0 (baseline) or divide --embed-dim 64",
+        ),
     ],
 )
 def test_bad_flags_exit_2_with_a_message_before_anything_runs(flags, message, tmp_path):
@@ -208,6 +217,28 @@ def test_bad_flags_exit_2_with_a_message_before_anything_runs(flags, message, tm
     assert result.returncode == 2, result.stdout + result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "sweeps").exists()
+
+
+def test_the_flag_check_leaves_what_fast_needs_to_the_slurm_node():
+    """Checked on the launching machine (no CUDA here), --fast cudagraphs is refused for a local sweep and left to the
+    node for a Slurm one; an out-of-range flag is refused for both."""
+    runs = launch.expand((launch.Arm("dgrl_mnist.py", (), (0,), (1,), "--fast cudagraphs"),), "check", Path("/nowhere"), 1)
+    (local,) = launch.flag_errors(runs, sys.executable, "local")
+    assert "dgrl_mnist.py refuses the flags of run mnist__G0__s1" in local and "--fast cudagraphs needs a CUDA" in local
+    assert launch.flag_errors(runs, sys.executable, "slurm") == []
+    runs = launch.expand((launch.Arm("dgrl_mnist.py", (), (0,), (1,), "--epochs 0"),), "check", Path("/nowhere"), 1)
+    assert all("--epochs must be >= 1" in error for error in launch.flag_errors(runs, sys.executable, "slurm"))
+
+
+def test_the_table_counts_a_runs_time_left_down_between_its_progress_lines(tmp_path):
+    run = launch.Run("r", "dgrl_goal_dqn.py", [], tmp_path)
+    (tmp_path / "log.txt").write_text("step       500/3000  train 0.00 success  SPS 292  20s elapsed, 400s left\n")
+    assert 399 <= launch.progress_of(run)["left"] <= 400
+    os.utime(tmp_path / "log.txt", (time.time() - 100, time.time() - 100))  # 100 s without a line
+    assert 299 <= launch.progress_of(run)["left"] <= 300 and launch.progress_of(run)["step"] == 500
+    os.utime(tmp_path / "log.txt", (time.time() - 1000, time.time() - 1000))
+    assert launch.progress_of(run)["left"] == 0
+    assert re.search(r"^r +running +500/3000 +292 +0:00:00  train", launch.table([run], {"r": "running"}), re.M)
 
 
 def test_dry_run_prints_every_command_and_runs_nothing(tmp_path):
@@ -373,9 +404,10 @@ def test_a_slurm_sweep_of_two_scripts_equals_the_same_sweep_run_locally(tmp_path
     ).read_text()
 
 
-def interrupted_run_resumes_exactly(tmp_path: Path, slurm_flags: list[str], interrupt) -> str:
+def interrupted_run_resumes_exactly(tmp_path: Path, slurm_flags: list[str], interrupt) -> tuple[str, str]:
     """A one-run goal-DQN sweep on Slurm, interrupted by `interrupt(job)` once training is under way (or by its time
-    limit when `interrupt` is None), must requeue, resume and end equal to the same sweep run locally. Returns the log.
+    limit when `interrupt` is None), must requeue, resume and end equal to the same sweep run locally, the launcher
+    waiting for it. Returns the run's log and the launcher's output.
     The first attempt holds at its first progress line until the stop signal reaches it, so that it is interrupted
     mid-run however fast the machine; the requeued attempt runs the plain script."""
     flags = ["--env-ids", "SpiralWorld", "--groups", "4", "--seeds", "1"]
@@ -395,15 +427,29 @@ def interrupted_run_resumes_exactly(tmp_path: Path, slurm_flags: list[str], inte
     log = (sweep / run_id / "log.txt").read_text()
     assert status(sweep, run_id)["attempts"] >= 2 and "resumed at" in log, log[-3000:]
     assert_same_run(run_dir(tmp_path / "local" / "dgrl_goal_dqn", run_id), run_dir(sweep, run_id))
-    return log
+    assert f"done {run_id}" in output and "launch the same command again" not in output, output[-4000:]
+    return log, output
 
 
 @pytest.mark.slurm
 @needs_slurm
 def test_a_preempted_slurm_job_requeues_and_ends_equal_to_an_uninterrupted_run(tmp_path):
     """submitit's preemption path (SIGTERM, then its USR2): the run stops with its resume file, the job requeues."""
-    log = interrupted_run_resumes_exactly(tmp_path, [], lambda job: job._interrupt(timeout=False))
+    log, _ = interrupted_run_resumes_exactly(tmp_path, [], lambda job: job._interrupt(timeout=False))
     assert re.search(r"^stopped: ", log, re.M)
+
+
+@pytest.mark.slurm
+@needs_slurm
+def test_a_task_that_slurm_requeues_itself_is_followed_to_its_end(tmp_path):
+    """`scontrol requeue`, as an administrator or a preempting partition does it: Slurm's SIGTERM stops the run with its
+    resume file and Slurm restarts the task by itself. The launcher shows the run requeued and waits for it; it never
+    asks for a relaunch while Slurm still holds the job."""
+    log, output = interrupted_run_resumes_exactly(
+        tmp_path, [], lambda job: subprocess.run(["scontrol", "requeue", job.job_id], check=True, timeout=60)
+    )
+    assert re.search(r"^stopped: ", log, re.M)
+    assert re.search(r"^requeued goal_dqn__SpiralWorld__G4__s1 \(job \d+(_0)?, Slurm state [A-Z_]+\)$", output, re.M), output
 
 
 @pytest.mark.slurm
@@ -411,7 +457,7 @@ def test_a_preempted_slurm_job_requeues_and_ends_equal_to_an_uninterrupted_run(t
 def test_a_slurm_job_at_its_time_limit_requeues_and_ends_equal_to_an_uninterrupted_run(tmp_path):
     """A 2-minute limit with the stop signal 60 s before it: the run, held at its first progress line, is stopped by it
     and requeued. The signal kills a job still starting Python, so it comes late enough for a loaded machine."""
-    log = interrupted_run_resumes_exactly(tmp_path, ["--time-min", "2", "--signal-delay-s", "60"], None)
+    log, _ = interrupted_run_resumes_exactly(tmp_path, ["--time-min", "2", "--signal-delay-s", "60"], None)
     assert re.search(r"^stopped: ", log, re.M)
 
 

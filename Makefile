@@ -28,7 +28,7 @@ lint: $(VENV)/installed
 	$(VENV)/bin/ruff format --check .
 
 bench-vq: $(VENV)/installed
-	$(PY) benchmark/bench_vq.py
+	$(PY) benchmark/speed/bench_vq.py
 
 study-goal-dqn: $(VENV)/installed
 	$(PY) benchmark/launch.py --preset goal-dqn
@@ -44,7 +44,7 @@ study-ris: $(VENV)/installed
 	$(PY) benchmark/launch.py --preset ris-pointmaze
 
 bench-ris: $(VENV)/installed
-	$(PY) benchmark/bench_ris.py
+	$(PY) benchmark/speed/bench_ris.py
 
 # The scaled-down AMIGo study of docs/dgrl_amigo.md (about 70 min on 2 cores).
 study-amigo: $(VENV)/installed
@@ -54,7 +54,7 @@ study-amigo: $(VENV)/installed
 	$(PY) benchmark/launch.py --preset amigo-nochannel
 
 bench-amigo: $(VENV)/installed
-	$(PY) benchmark/bench_amigo.py
+	$(PY) benchmark/speed/bench_amigo.py
 
 # The short CPU run of docs/dgrl_hrac.md: HRAC and HRAC+DGRL (G = 16) on AntMaze, 300k steps (HRAC 84 min on a core;
 # DGRL about 1.7x that).
@@ -67,12 +67,12 @@ study-ris-sawyer: $(VENV)/installed
 	$(PY) benchmark/launch.py --preset sawyer-cpu
 
 bench-ris-sawyer: $(VENV)/installed
-	$(PY) benchmark/bench_ris_sawyer.py
-	$(PY) benchmark/sawyer_env.py --out docs/img/sawyer_env.png
+	$(PY) benchmark/speed/bench_ris_sawyer.py
+	$(PY) benchmark/figures/sawyer_env.py --out docs/img/sawyer_env.png
 
 bench-hrac: $(VENV)/installed
-	$(PY) benchmark/bench_hrac.py
-	$(PY) benchmark/hrac_envs.py --out docs/img/hrac_envs.png
+	$(PY) benchmark/speed/bench_hrac.py
+	$(PY) benchmark/figures/hrac_envs.py --out docs/img/hrac_envs.png
 
 clean-venv:
 	rm -rf $(VENV)

@@ -20,7 +20,7 @@ run time (rllab's and HIRO's maze generator, rewritten here); AntGather adds app
     python dgrl_hrac.py --env-id AntPush --groups 16 --resume runs/<run_name>   # continue a stopped run, same flags
 
 The studies: python benchmark/launch.py --preset hrac-antmaze-cpu (CPU) or --preset hrac-paper; env speed and renders:
-benchmark/hrac_envs.py. Docs: docs/dgrl_hrac.md.
+benchmark/figures/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """
 
 import copy

@@ -16,7 +16,7 @@ subgoal and rewarded for reaching the raw one (`--dgrl-goal decoded`, ours, give
     python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400 \
         --eval-frequency 5000                           # smoke run (about 30 s)
 
-The study: python benchmark/launch.py --preset keychest; update times: benchmark/bench_hrac_keychest.py. Docs:
+The study: python benchmark/launch.py --preset keychest; update times: benchmark/speed/bench_hrac_keychest.py. Docs:
 docs/dgrl_hrac_keychest.md.
 """
 

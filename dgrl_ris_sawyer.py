@@ -28,8 +28,8 @@ Training resets everywhere in the arena; evaluation on the test configuration, w
     python dgrl_ris_sawyer.py --groups 16 --resume runs/<run_name>   # continue a stopped run (with its flags)
 
 Without a display, rendering is headless (MUJOCO_GL defaults to egl; set it to osmesa where EGL is missing). Env frames/s
-and a picture of state and goal images: benchmark/sawyer_env.py; update times: benchmark/bench_ris_sawyer.py; the CPU
-study: python benchmark/launch.py --preset sawyer-cpu. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
+and a picture of state and goal images: benchmark/figures/sawyer_env.py; update times: benchmark/speed/bench_ris_sawyer.py;
+the CPU study: python benchmark/launch.py --preset sawyer-cpu. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
 """
 
 import copy

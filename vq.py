@@ -162,7 +162,7 @@ class VectorQuantizerEMA(nn.Module):
             self.ema_count.copy_(torch.where(dead.squeeze(1), torch.ones_like(self.ema_count), self.ema_count))
             self.steps_unused.masked_fill_(dead.squeeze(1), 0)
         # Every row written, as copy_ would. Not copy_: torch 2.11's compiler fuses that copy with the forward's gather of
-        # the selected codes, which then reads restarted codes (benchmark/compiled_vq_probe.py); index_copy_ it does not.
+        # the selected codes, which then reads restarted codes (benchmark/speed/compiled_vq_probe.py); index_copy_ it does not.
         self.codebook.index_copy_(0, torch.arange(self.n_embed, device=codebook.device), codebook)
 
     def embed_indices(self, indices: torch.Tensor) -> torch.Tensor:

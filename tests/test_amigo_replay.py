@@ -1,11 +1,12 @@
-"""benchmark/amigo_replay.py: its measurement patch still fits dgrl_amigo.py, and a script without the anchors is refused."""
+"""benchmark/analysis/amigo_replay.py: its measurement patch still fits dgrl_amigo.py, and a script without the anchors
+is refused."""
 
 import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark" / "analysis"))
 
 import amigo_replay
 

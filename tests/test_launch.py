@@ -3,7 +3,6 @@ relaunches that skip what is done), and the Slurm backend against a real cluster
 to the local one, a preempted and a timed-out job that requeue and continue exactly, a failure's traceback, a killed
 job reported). `.ci/slurm.sh` starts a single-node cluster; without one the slurm tests are skipped, with the reason."""
 
-import ast
 import json
 import os
 import re
@@ -22,9 +21,11 @@ from tests.conftest import HANG_TIMEOUT, assert_same_run
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmark"))
 import launch  # noqa: E402
+import presets  # noqa: E402
+import protocol  # noqa: E402
 
 # A goal-DQN run of about 5 s (1 ms a step after a 3 s start), with its checkpoint for assert_same_run.
-GOAL_DQN = launch.SMOKE_GOAL_DQN.split()
+GOAL_DQN = presets.SMOKE_GOAL_DQN.split()
 PROGRESS = re.compile(r"^step +\d+/\d+  train", re.M)
 
 
@@ -113,24 +114,17 @@ def test_the_command_line_replaces_a_presets_axes_and_appends_flags():
     assert arm.flags.endswith("--save-model --batch-size 64")  # after the preset's --batch-size 128: the later one wins
 
 
-def script_fields(script: str) -> set[str]:
-    """The flags of a script's Args dataclass, read from its source."""
-    tree = ast.parse((ROOT / script).read_text())
-    (args,) = [node for node in tree.body if isinstance(node, ast.ClassDef) and node.name == "Args"]
-    return {node.target.id for node in args.body if isinstance(node, ast.AnnAssign)}
-
-
 @pytest.mark.parametrize("name", sorted(launch.PRESETS))
-def test_every_preset_runs_existing_scripts_with_existing_flags(name, tmp_path):
+def test_every_preset_dry_runs_with_flags_its_scripts_accept_and_names_its_page(name, tmp_path, capsys):
+    """--dry-run of the preset, in this process: every run's flags pass its script's own parser and validate (the
+    launcher's check), one command per run is printed; the preset's page exists and gives its command."""
     preset = launch.PRESETS[name]
+    assert launch.main(launch.cli(["--sweeps-dir", str(tmp_path), "--preset", name, "--dry-run"])) == 0
     runs = launch.expand(preset.arms, name, tmp_path, 1)
-    assert runs and preset.description
-    for run in runs:
-        fields = script_fields(run.script)
-        for token in run.argv:
-            if token.startswith("--"):
-                flag = token[2:].replace("-", "_")
-                assert flag in fields or (flag.startswith("no_") and flag[3:] in fields), f"{name}: {run.script} {token}"
+    printed = capsys.readouterr().out.splitlines()
+    assert [line.split(":")[0] for line in printed] == [run.run_id for run in runs] and runs and preset.description
+    assert not (tmp_path / name).exists()
+    assert f"--preset {name}" in (ROOT / preset.page).read_text(), preset.page
 
     def value(run, flag, default):
         return run.argv[run.argv.index(flag) + 1] if flag in run.argv else default
@@ -164,7 +158,7 @@ def test_the_studies_of_the_docs_are_presets_and_no_fan_out_is_left_in_benchmark
         "sawyer-paper",
     ):
         assert name in launch.PRESETS
-    for path in (ROOT / "benchmark").glob("*.sh"):
+    for path in (ROOT / "benchmark").rglob("*.sh"):
         text = path.read_text()
         assert "xargs" not in text and " & " not in text and "&\n" not in text, path
 
@@ -223,11 +217,11 @@ def test_the_flag_check_leaves_what_fast_needs_to_the_slurm_node():
     """Checked on the launching machine (no CUDA here), --fast cudagraphs is refused for a local sweep and left to the
     node for a Slurm one; an out-of-range flag is refused for both."""
     runs = launch.expand((launch.Arm("dgrl_mnist.py", (), (0,), (1,), "--fast cudagraphs"),), "check", Path("/nowhere"), 1)
-    (local,) = launch.flag_errors(runs, sys.executable, "local")
+    (local,) = protocol.flag_errors(runs, sys.executable, "local", ROOT)
     assert "dgrl_mnist.py refuses the flags of run mnist__G0__s1" in local and "--fast cudagraphs needs a CUDA" in local
-    assert launch.flag_errors(runs, sys.executable, "slurm") == []
+    assert protocol.flag_errors(runs, sys.executable, "slurm", ROOT) == []
     runs = launch.expand((launch.Arm("dgrl_mnist.py", (), (0,), (1,), "--epochs 0"),), "check", Path("/nowhere"), 1)
-    assert all("--epochs must be >= 1" in error for error in launch.flag_errors(runs, sys.executable, "slurm"))
+    assert all("--epochs must be >= 1" in error for error in protocol.flag_errors(runs, sys.executable, "slurm", ROOT))
 
 
 def test_the_table_counts_a_runs_time_left_down_between_its_progress_lines(tmp_path):
@@ -241,12 +235,66 @@ def test_the_table_counts_a_runs_time_left_down_between_its_progress_lines(tmp_p
     assert re.search(r"^r +running +500/3000 +292 +0:00:00  train", launch.table([run], {"r": "running"}), re.M)
 
 
+def test_every_tool_of_benchmark_answers_help():
+    """`--help` of every tool in benchmark/'s folders (in one child process: they share their imports) exits 0 and
+    prints its usage, so that each command of the docs at least starts."""
+    tools = sorted(str(path) for path in (ROOT / "benchmark").glob("*/*.py") if path.name != "timing.py")
+    code = (
+        "import json, runpy, sys\n"
+        "codes = {}\n"
+        "for tool in json.loads(sys.argv[1]):\n"
+        "    sys.argv, saved = [tool, '--help'], list(sys.path)\n"
+        "    sys.path.insert(0, tool.rsplit('/', 1)[0])  # as `python TOOL` puts its folder first\n"
+        "    try:\n"
+        "        runpy.run_path(tool, run_name='__main__')\n"
+        "        codes[tool] = 'returned'\n"
+        "    except SystemExit as exit:\n"
+        "        codes[tool] = exit.code\n"
+        "    sys.path[:] = saved\n"
+        "print('CODES', json.dumps(codes))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code, json.dumps(tools)], capture_output=True, text=True, timeout=HANG_TIMEOUT
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    codes = json.loads(result.stdout.rsplit("CODES ", 1)[1])
+    assert len(codes) == len(tools) >= 20 and {tool: code for tool, code in codes.items() if code not in (0, None)} == {}
+    assert result.stdout.count("usage:") >= len(tools), result.stdout[-3000:]
+
+
 def test_dry_run_prints_every_command_and_runs_nothing(tmp_path):
     result = launcher(tmp_path, "--preset", "hrac-paper", "--dry-run")
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     assert len(lines) == 90 and "dgrl_hrac.py --env-id AntGather --groups 32 --seed 3 --total-timesteps 5000000" in lines[-1]
     assert not (tmp_path / "hrac-paper").exists()
+
+
+@pytest.mark.parametrize("script", sorted(path.name for path in ROOT.glob("dgrl_*.py")))
+def test_each_scripts_progress_lines_and_endings_read_as_the_protocol_says(script, capsys):
+    """The script's own Progress prints; protocol.py, the launcher's reader, reads: a progress line, a heartbeat after a
+    silent minute, and the done and stopped lines (each with exit status 0; any other status is a failure)."""
+    import importlib
+
+    progress = importlib.import_module(script.removesuffix(".py")).Progress(total=1000, unit="frame", start_step=100)
+    progress.print_time -= 10
+    progress.line(400, "eval return 0.50  loss 0.10")
+    progress.print_time -= 61  # a silent minute
+    progress.heartbeat(520)
+    progress.finish(True, "KeyChest__G4__x__1__2", "520 frames")
+    progress.finish(False, "KeyChest__G4__x__1__2", "1000 frames")
+    line, heartbeat, stopped, done = capsys.readouterr().out.splitlines()
+    read = protocol.read_progress(line)
+    assert read["step"] == 400 and read["total"] == 1000 and read["figures"] == "eval return 0.50  loss 0.10"
+    assert read["sps"] >= 0 and 0 < read["left"] < 10 * 600 / 300 + 1  # 600 frames left at 300 frames in about 10 s
+    read = protocol.read_progress(heartbeat)
+    assert heartbeat.endswith("(running)") and read["step"] == 520 and read["left"] is not None
+    assert protocol.read_progress(stopped) is None and protocol.read_progress(done) is None
+    assert protocol.ending([line, stopped], 0) == "stopped" and protocol.ending([line, done], 0) == "done"
+    assert protocol.ending([line, done], 1) is None and protocol.ending([line], 0) is None
+    source = (ROOT / script).read_text()
+    assert all(f"signal.{number.name}" in source for number in protocol.STOP_SIGNALS)
+    assert f'RESUME_FILE = "{protocol.RESUME_FILE}"' in source
 
 
 # --- The local backend ----------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""benchmark/plot.py: settings grouped over seeds, mean and std on the common steps, table and figure written."""
+"""benchmark/analysis/plot.py: settings grouped over seeds, mean and std on the common steps, table and figure written."""
 
 import subprocess
 import sys
@@ -27,7 +27,7 @@ def test_plot_groups_seeds_and_summarises_the_common_steps(tmp_path):
     result = subprocess.run(
         [
             sys.executable,
-            str(ROOT / "benchmark/plot.py"),
+            str(ROOT / "benchmark/analysis/plot.py"),
             "--runs-dir",
             str(runs),
             "--match",
@@ -52,7 +52,7 @@ def test_plot_groups_seeds_and_summarises_the_common_steps(tmp_path):
 def test_plot_fails_clearly_when_nothing_matches(tmp_path):
     (tmp_path / "runs").mkdir()
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/plot.py"), "--runs-dir", str(tmp_path / "runs"), "--match", "nothing"],
+        [sys.executable, str(ROOT / "benchmark/analysis/plot.py"), "--runs-dir", str(tmp_path / "runs"), "--match", "nothing"],
         capture_output=True,
         text=True,
         timeout=HANG_TIMEOUT,
@@ -65,9 +65,8 @@ def test_plot_bins_runs_whose_evaluation_steps_differ(tmp_path):
     write_run(runs, "KeyChest__G16__demo__1__100", {0: 0.0, 100: 1.0, 240: 2.0, 390: 3.0, 400: 4.0})
     write_run(runs, "KeyChest__G16__demo__2__200", {10: 1.0, 150: 1.0, 260: 3.0, 300: 5.0, 410: 9.0})
     flags = ["--runs-dir", str(runs), "--match", "__demo__", "--bins", "2", *PLOT_FLAGS, str(tmp_path / "out")]
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/plot.py"), *flags], capture_output=True, text=True, timeout=HANG_TIMEOUT
-    )
+    command = [sys.executable, str(ROOT / "benchmark/analysis/plot.py"), *flags]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=HANG_TIMEOUT)
     assert result.returncode == 0, result.stderr[-2000:]
     row = (tmp_path / "out.md").read_text().splitlines()[2]
     # Shared range [10, 400], bins [10, 205) and [205, 400]. Seed 1: (1.0) then (2, 3, 4) -> 1.0, 3.0;

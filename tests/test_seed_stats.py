@@ -1,4 +1,4 @@
-"""benchmark/seed_stats.py: the statistics against values worked out by hand, and a sweep compared per seed."""
+"""benchmark/analysis/seed_stats.py: the statistics against values worked out by hand, and a sweep compared per seed."""
 
 import subprocess
 import sys
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from torch.utils.tensorboard import SummaryWriter
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark" / "analysis"))
 
 import seed_stats
 from conftest import HANG_TIMEOUT
@@ -86,7 +86,7 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     write_run(tmp_path, "KeyChest__G16__study__4__1", [0.0, 6.0])  # still running: left out
     write_run(tmp_path, "Other__G16__study__1__1", [0.0])  # its group's only run, still running
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
+        [sys.executable, str(ROOT / "benchmark/analysis/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
          "--summaries", "final", "--reach", "eval/return=5", "--markdown", str(tmp_path / "out.md")],
         capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
@@ -105,14 +105,14 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     assert f"| 4 | 1, 1, 1 | 1 +- 0 | -1 [-1, -1] | 1.000 | {1 / comb(6, 3):.3f} |" in keychest
     assert "vs G0" in other and "| 0 | 9, 9, 9 | 9 +- 0 | |" in other and "| 16 |" not in other
     gains = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
+        [sys.executable, str(ROOT / "benchmark/analysis/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
          "--summaries", "final", "--gain-between", "KeyChest__study", "Other__study"],
         capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert gains.returncode == 0 and "gain over G0 in KeyChest__study minus gain over G0 in Other__study" in gains.stdout
     assert "| eval/return, final | 4 |" not in gains.stdout  # Other has no G4 (and its G16 run was left out)
     missing = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
+        [sys.executable, str(ROOT / "benchmark/analysis/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
          "--gain-between", "KeyChest__study", "Nope"],
         capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
@@ -149,7 +149,7 @@ def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_defaul
         write_mnist_run(default, f"ColorMNIST__G2__ten__{seed}__1", (0.1 * seed, 0.6))  # the better swap: 0.6 each
         write_mnist_run(variant, f"ColorMNIST__G2__restart__{seed}__1", (0.1 * seed, 0.0))  # 0.1, 0.2, 0.3
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), str(variant),
+        [sys.executable, str(ROOT / "benchmark/analysis/mnist_seeds.py"), str(default), str(variant),
          "--against", "ColorMNIST__G2__ten", "--markdown", str(tmp_path / "out.md"), "--plot", str(tmp_path / "seeds.png")],
         capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
@@ -163,7 +163,7 @@ def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_defaul
     assert "ColorMNIST__G2__restart vs ColorMNIST__G0__ten: one-sided exact permutation p = 0.0500" in text
     assert (tmp_path / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     bad = subprocess.run(
-        [sys.executable, str(ROOT / "benchmark/mnist_seeds.py"), str(default), "--against", "ColorMNIST__G2__nope"],
+        [sys.executable, str(ROOT / "benchmark/analysis/mnist_seeds.py"), str(default), "--against", "ColorMNIST__G2__nope"],
         capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert bad.returncode != 0 and "--against ColorMNIST__G2__nope: no such mode" in bad.stderr

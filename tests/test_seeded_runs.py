@@ -1,11 +1,11 @@
-"""benchmark/seeded_runs.py: two runs' outputs are equal bit for bit, or every difference is named."""
+"""benchmark/analysis/seeded_runs.py: two runs' outputs are equal bit for bit, or every difference is named."""
 
 import sys
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark" / "analysis"))
 
 import seeded_runs
 

@@ -1,4 +1,4 @@
-"""benchmark/sps_probe.py: the steady-state steps/s of a command from its progress lines, and its clean stop."""
+"""benchmark/speed/sps_probe.py: the steady-state steps/s of a command from its progress lines, and its clean stop."""
 
 import re
 import subprocess
@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmark"))
+sys.path.insert(0, str(ROOT / "benchmark" / "speed"))
 
 import sps_probe  # noqa: E402
 from conftest import HANG_TIMEOUT  # noqa: E402
@@ -52,7 +52,7 @@ def test_probe_kills_a_command_that_outlasts_its_stop_wait():
 
 
 def test_probe_script_prints_one_line():
-    command = [sys.executable, str(ROOT / "benchmark" / "sps_probe.py"), "--seconds", "2", "--skip", "0.5", "--"]
+    command = [sys.executable, str(ROOT / "benchmark" / "speed" / "sps_probe.py"), "--seconds", "2", "--skip", "0.5", "--"]
     result = subprocess.run([*command, sys.executable, "-c", FAKE], capture_output=True, text=True, timeout=HANG_TIMEOUT)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("sps_probe: ") and result.stdout.count("\n") == 1, result.stdout

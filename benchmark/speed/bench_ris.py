@@ -1,7 +1,7 @@
 """Where the time of dgrl_ris.py goes: environment steps/s of every maze, and one RIS update with and without DGRL.
 
-    python benchmark/bench_ris.py                       # about 1 min on 2 CPU cores; run nothing else meanwhile
-    python benchmark/bench_ris.py --device cuda --fast eager compile cudagraphs   # on a GPU, every speed path
+    python benchmark/speed/bench_ris.py                       # about 1 min on 2 CPU cores; run nothing else meanwhile
+    python benchmark/speed/bench_ris.py --device cuda --fast eager compile cudagraphs   # on a GPU, every speed path
 
 Prints one line per measurement (median of 5 blocks): each env id stepped alone with random actions (one env, the
 script's default), acting (actor forward + sampling + env step), and one `ris_update` (HER batch sampled on the device,
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from timing import median_time  # benchmark/timing.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from timing import median_time  # benchmark/speed/timing.py
 
 import dgrl_ris as ris
 

@@ -1,8 +1,8 @@
 """Where the time of dgrl_hrac_keychest.py goes: environment frames/s, the cost of acting, and of each update.
 
-    python benchmark/bench_hrac_keychest.py            # about 15 s on 2 CPU cores; run nothing else meanwhile
-    python benchmark/bench_hrac_keychest.py --fast eager compile   # the default: then each update eager vs compiled
-    python benchmark/bench_hrac_keychest.py --fast eager           # no --fast comparison (no compilation)
+    python benchmark/speed/bench_hrac_keychest.py            # about 15 s on 2 CPU cores; run nothing else meanwhile
+    python benchmark/speed/bench_hrac_keychest.py --fast eager compile   # the default: then each update eager vs compiled
+    python benchmark/speed/bench_hrac_keychest.py --fast eager           # no --fast comparison (no compilation)
 
 Whole-run speed, one run alone on the machine (the SPS of each progress line, and its deltas in the training phase):
 
@@ -32,8 +32,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from timing import median_time  # benchmark/timing.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from timing import median_time  # benchmark/speed/timing.py
 
 import dgrl_hrac_keychest as kc
 

@@ -1,7 +1,7 @@
 """Per-update time of dgrl_goal_dqn.py's two updates and of dgrl_mnist.py's training step, on each --fast path.
 
-    python benchmark/bench_goal_dqn.py                  # about 5 min on one CPU core (most of it compiling); run nothing else
-    python benchmark/bench_goal_dqn.py --device cuda --fast eager compile cudagraphs   # on a GPU, every speed path
+    python benchmark/speed/bench_goal_dqn.py          # about 5 min on one CPU core (most of it compiling); run nothing else
+    python benchmark/speed/bench_goal_dqn.py --device cuda --fast eager compile cudagraphs   # on a GPU, every speed path
 
 Prints one line per update and setting (median of 5 blocks, compilation and CUDA graph capture done before the clock
 starts), at the scripts' default sizes: goal-DQN's `pretrain_step` (Deep InfoMax on random-walk transitions, batch
@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from timing import median_time  # benchmark/timing.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from timing import median_time  # benchmark/speed/timing.py
 
 import dgrl_goal_dqn as gdqn
 

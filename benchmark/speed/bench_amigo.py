@@ -1,7 +1,7 @@
 """Where the time of dgrl_amigo.py goes: environment steps/s, acting, one learner update, and whole training runs.
 
-    python benchmark/bench_amigo.py              # about 3 min on 2 CPU cores (plus compiling); run nothing else meanwhile
-    python benchmark/bench_amigo.py --parts update --fast eager compile   # the updates only, eager against --fast compile
+    python benchmark/speed/bench_amigo.py      # about 3 min on 2 CPU cores (plus compiling); run nothing else meanwhile
+    python benchmark/speed/bench_amigo.py --parts update --fast eager compile  # the updates only, eager against compile
 
 Prints one line per measurement:
 - env: 16 fully observed envs stepped with random actions, as gymnasium's SyncVectorEnv of
@@ -26,12 +26,12 @@ import numpy as np
 import torch
 from minigrid.wrappers import FullyObsWrapper, ImgObsWrapper
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from timing import median_time  # benchmark/timing.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from timing import median_time  # benchmark/speed/timing.py
 
 import dgrl_amigo as amigo
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 ENVS = ("MiniGrid-DoorKey-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-KeyCorridorS3R3-v0")
 

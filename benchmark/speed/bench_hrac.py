@@ -1,10 +1,10 @@
 """Where the time of dgrl_hrac.py goes: acting, one update at each level, and whole training runs, HRAC vs DGRL.
 
-    python benchmark/bench_hrac.py               # about 4 min on a CPU core; run nothing else meanwhile
-    python benchmark/bench_hrac.py --device cuda # the same updates on a GPU (acting and training runs on the CPU path)
-    python benchmark/bench_hrac.py --train-steps 0 --fast eager compile   # only the updates' speed paths side by side
+    python benchmark/speed/bench_hrac.py               # about 4 min on a CPU core; run nothing else meanwhile
+    python benchmark/speed/bench_hrac.py --device cuda # the same updates on a GPU (acting and training runs on the CPU path)
+    python benchmark/speed/bench_hrac.py --train-steps 0 --fast eager compile   # only the updates' speed paths side by side
 
-Prints one line per measurement (env steps/s per env: benchmark/hrac_envs.py):
+Prints one line per measurement (env steps/s per env: benchmark/figures/hrac_envs.py):
 - act: one controller action (state masked, subgoal through the encoder under DGRL), batch 1;
 - controller update: one TD3 step at batch 128 (under DGRL also the encoder, the quantizer and its EMA step);
 - manager update: one TD3 step at batch 128 with HIRO's off-policy correction (12 candidate subgoals rolled through 10
@@ -13,7 +13,7 @@ Prints one line per measurement (env steps/s per env: benchmark/hrac_envs.py):
 - training: the script itself on AntMaze for --train-steps steps, one process on one thread, its final SPS (env steps,
   acting, all updates, one evaluation of 5 episodes; the adjacency network not yet trained);
 - update ... (--fast): each level's update through every speed path of --fast, side by side in one process, as
-  milliseconds per update (the median of benchmark/timing.py, compilation done before the clock starts), at batch 128.
+  milliseconds per update (the median of benchmark/speed/timing.py, compilation done before the clock starts), at batch 128.
 """
 
 import re
@@ -27,12 +27,12 @@ import numpy as np
 import torch
 import tyro
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from timing import median_time  # benchmark/timing.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from timing import median_time  # benchmark/speed/timing.py
 
 import dgrl_hrac as hrac
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass

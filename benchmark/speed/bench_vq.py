@@ -1,7 +1,7 @@
 """Throughput of the DGRL bottleneck next to one Linear(dim, dim) forward on the same batch.
 
-    python benchmark/bench_vq.py                  # the figures in docs/vq.md (batch 2048, dim 128, n_embed 512)
-    python benchmark/bench_vq.py --device cuda    # on a GPU
+    python benchmark/speed/bench_vq.py                  # the figures in docs/vq.md (batch 2048, dim 128, n_embed 512)
+    python benchmark/speed/bench_vq.py --device cuda    # on a GPU
 
 For each G it times three calls on the same (batch, dim) fp32 input: quantization alone (`update=False`, as when
 acting), quantization plus the pooled EMA update (a training call), and that training call with the backward pass of
@@ -21,7 +21,7 @@ import torch
 import torch.nn as nn
 import tyro
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from vq import VectorQuantizerEMA
 
 

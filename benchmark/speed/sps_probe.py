@@ -1,6 +1,6 @@
 """Steps per second of a training command in steady state: run it for a while, then stop it cleanly.
 
-    python benchmark/sps_probe.py --seconds 90 -- python dgrl_ris.py --env-id AntMaze --groups 16
+    python benchmark/speed/sps_probe.py --seconds 90 -- python dgrl_ris.py --env-id AntMaze --groups 16
 
 The command runs in a fresh temporary folder (its runs/ is thrown away). Every progress line a script prints
 (`step N/TOTAL ...`, `frame N/TOTAL ...`, also the `(running)` heartbeat) is timed as it arrives. After `--seconds` the

@@ -1,7 +1,7 @@
 """Learning curves (mean +- std over seeds) and a results table from TensorBoard logs.
 
-    python benchmark/plot.py --runs-dir runs --match "__study__" --tags eval/novel_total_steps eval/train_success_rate \
-        --out docs/img/goal_dqn_study
+    python benchmark/analysis/plot.py --runs-dir runs --match "__study__" \
+        --tags eval/novel_total_steps eval/train_success_rate --out docs/img/goal_dqn_study
 
 A run directory is named `{setting}__{exp_name}__{seed}__{timestamp}` as the scripts name them; runs that differ only
 in seed and timestamp form one setting. Each setting's curves are put on a common step grid (the steps its runs share)

@@ -1,7 +1,7 @@
 """Speed of dgrl_hrac_keychest.py against the original HRAC code's Key-Chest ("discrete") experiment, side by side.
 
-    python benchmark/keychest_vs_original.py --original /tmp/hrac_orig/discrete --seconds 900
-    python benchmark/keychest_vs_original.py --original /tmp/hrac_orig/discrete --seconds 900 --fast eager compile
+    python benchmark/speed/keychest_vs_original.py --original /tmp/hrac_orig/discrete --seconds 900
+    python benchmark/speed/keychest_vs_original.py --original /tmp/hrac_orig/discrete --seconds 900 --fast eager compile
 
 Starts the original and ours (one run per --groups x --fast choice) at the same time, as subprocesses with one thread
 each (OMP_NUM_THREADS=1 and MKL_NUM_THREADS=1; ours also gets `--threads 1` from the preset), lets them run --seconds,
@@ -51,7 +51,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 ORIGINAL_PROGRESS = re.compile(r"^\s*Frames (\d+), Episode #")  # the original's log_train, after every episode
 OURS_PROGRESS = re.compile(r"^frame\s+(\d+)/\d+")  # Progress.line and Progress.heartbeat

@@ -1,7 +1,7 @@
 """Replay an AMIGo run from one of its resume files and measure how far each student update moves the policy.
 
-    python benchmark/amigo_replay.py SNAPSHOT.pt --first 120 --last 136 -- THE RUN'S FLAGS
-    python benchmark/amigo_replay.py snapshots/resume_105808.pt --first 120 --last 136 -- \\
+    python benchmark/analysis/amigo_replay.py SNAPSHOT.pt --first 120 --last 136 -- THE RUN'S FLAGS
+    python benchmark/analysis/amigo_replay.py snapshots/resume_105808.pt --first 120 --last 136 -- \\
         --env-id MiniGrid-KeyCorridorS3R1-v0 --groups 16 --seed 2 --total-timesteps 3000000 \\
         --progress-frequency 50000 --goal-channel on --exp-name amigo-collapse --threads 1
 
@@ -25,7 +25,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 ANCHOR = """    learn(agent.student_optimizer, loss + vq_loss * len(goals), args.max_grad_norm)
 """

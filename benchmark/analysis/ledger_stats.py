@@ -1,22 +1,23 @@
 """The significance statements of docs/claims.md for the studies whose run folders were not kept.
 
-    python benchmark/ledger_stats.py
+    python benchmark/analysis/ledger_stats.py
 
 The studies of docs/claims.md that ran before the current sweeps (AMIGo, RIS, Sawyer) published their per-seed figures
 in the docs pages, taken from the runs' logs; their TensorBoard folders were not kept. This script holds those per-seed
 figures, copied from the tables named with each, and prints for each comparison every seed's value, the means, and a
-one-sided exact permutation p-value in DGRL's favour (benchmark/seed_stats.py's test). With 3 seeds against 3 the
+one-sided exact permutation p-value in DGRL's favour (benchmark/analysis/seed_stats.py's test). With 3 seeds against 3 the
 smallest possible p is 1/20 = 0.05, with 2 against 2 it is 1/6: such studies can show a direction, not significance.
-The studies with kept sweeps are compared by benchmark/seed_stats.py directly (its docstring).
+The studies with kept sweeps are compared by benchmark/analysis/seed_stats.py directly (its docstring).
 """
 
+import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from seed_stats import permutation_p  # benchmark/seed_stats.py
+from seed_stats import permutation_p  # benchmark/analysis/seed_stats.py
 
 # docs/dgrl_amigo.md, "KeyCorridorS3R1, 3M frames": success per 200k frames, one row per seed (15 windows)
 S3R1_3M = {
@@ -63,6 +64,7 @@ def first_window_at(rows: list[list[float]], level: float, width: float) -> list
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     mean_success = {name: [float(np.mean(row)) for row in rows] for name, rows in S3R1_3M.items()}
     reach = {name: first_window_at(rows, 0.9, 0.2) for name, rows in S3R1_3M.items()}
     lines = [

@@ -1,6 +1,6 @@
 """What the teacher proposes: its goal distribution over the cells of a few fresh layouts, from saved checkpoints.
 
-    python benchmark/amigo_teacher.py --checkpoints runs/<run A>/dgrl_amigo.cleanrl_model runs/<run B>/... \
+    python benchmark/analysis/amigo_teacher.py --checkpoints runs/<run A>/dgrl_amigo.cleanrl_model runs/<run B>/... \
         --out docs/img/amigo_teacher.png
 
 One row per checkpoint, one column per layout (env seeds 0, 1, 2, ...): the rendered grid with each cell tinted by the
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import tyro
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import dgrl_amigo as amigo
 
 

@@ -1,6 +1,6 @@
 """Does torch.compile keep the quantizer's order of reads and writes? One VectorQuantizerEMA call, eager and compiled.
 
-    python benchmark/compiled_vq_probe.py          # prints one line per case; exit status 1 if a compiled call differs
+    python benchmark/speed/compiled_vq_probe.py          # prints one line per case; exit status 1 if a compiled call differs
 
 The quantized output must be the codes as they were before the call's EMA update (the codebook moves after it has been
 read). Each case starts from the same state and seed, runs one training call eagerly and one compiled, and says which
@@ -12,6 +12,7 @@ codebook with `copy_`: torch 2.11's inductor fused that write and the gather of 
 version (docs/launch.md). vq.py now writes it with `index_copy_`, which that version does not fuse so.
 """
 
+import argparse
 import copy
 import os
 import sys
@@ -19,7 +20,7 @@ import sys
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from vq import VectorQuantizerEMA
 
 
@@ -47,6 +48,7 @@ def probe(restart: bool) -> bool:
 
 
 if __name__ == "__main__":
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     torch._inductor.config.fallback_random = True  # as the scripts' --fast compile sets it
     results = [probe(restart) for restart in (False, True)]
     raise SystemExit(0 if all(results) else 1)

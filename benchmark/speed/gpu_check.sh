@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # The GPU check: one command, at most 8 minutes on one GPU, nothing downloaded.
 #
-#     bash benchmark/gpu_check.sh                 # from the repository root, on a machine with a CUDA GPU
-#     WHEELS=wheels/ bash benchmark/gpu_check.sh  # install missing packages from local wheel files first (offline)
+#     bash benchmark/speed/gpu_check.sh                 # from the repository root, on a machine with a CUDA GPU
+#     WHEELS=wheels/ bash benchmark/speed/gpu_check.sh  # install missing packages from local wheel files first (offline)
 #
 # It needs the machine's python3 (PYTHON) with a CUDA build of torch, plus gymnasium, mujoco, minigrid, tyro and
-# tensorboard (requirements.txt's versions). Where some are missing, `bash benchmark/gpu_wheels.sh wheels/` on a
+# tensorboard (requirements.txt's versions). Where some are missing, `bash benchmark/speed/gpu_wheels.sh wheels/` on a
 # networked machine downloads their wheels (and their dependencies'), for Python 3.12; pass that folder as WHEELS:
 # they are installed with `pip --no-index --no-deps` into a temporary folder put on PYTHONPATH, and every requirement
 # they declare is checked against what they and the machine have, before any measurement. Everything the check writes
@@ -15,7 +15,7 @@
 # Part 1 (about 3 min), per-update time (median of 5 blocks, compilation and capture done first) at the paper's batch
 # sizes through each speed path: --fast eager, compile (torch.compile, one graph) and cudagraphs (that graph replayed as
 # one CUDA graph): RIS's update at batch 2048 (Ant sizes, G 0 and 16) and goal-DQN's TD update, each benchmark stopped
-# after BENCH_SECONDS (default 180). The other scripts' benchmark/bench_*.py take the same --fast choices where they
+# after BENCH_SECONDS (default 180). The other scripts' benchmark/speed/bench_*.py take the same --fast choices where they
 # take --device. Part 2 (about 5 min), training steps/s of each paper-setting command over SECONDS_PER_RUN (default
 # 45) of wall clock, after its first SKIP (default 25) seconds (start-up, warm-up, compilation), stopped by SIGINT
 # (killed if it has not stopped STOP_WAIT, default 30, seconds later):
@@ -27,7 +27,7 @@
 # (docs/launch.md, "The GPU check on an offline GPU machine", has the commands and times): with the project's
 # Python 3.11 venv and torch 2.13.0, and with Python 3.12 and torch 2.11.0 alone plus the wheels of gpu_wheels.sh.
 set -uo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 SECONDS_PER_RUN=${SECONDS_PER_RUN:-45}
 SKIP=${SKIP:-25}
 PYTHON=${PYTHON:-python3}
@@ -62,7 +62,7 @@ export CUDA_CACHE_PATH=${CUDA_CACHE_PATH:-$SCRATCH/nv}
 SITE=
 if [ -n "${WHEELS:-}" ]; then
     wheels=("$WHEELS"/*.whl)
-    [ -e "${wheels[0]}" ] || { echo "gpu_check: WHEELS=$WHEELS holds no wheels (benchmark/gpu_wheels.sh makes them)"; exit 1; }
+    [ -e "${wheels[0]}" ] || { echo "gpu_check: WHEELS=$WHEELS holds no wheels (benchmark/speed/gpu_wheels.sh makes them)"; exit 1; }
     SITE=$SCRATCH/site
     wheels_started=$(date +%s)
     "$PYTHON" -m pip install -q --disable-pip-version-check --no-cache-dir --no-index --no-deps --no-compile \
@@ -105,7 +105,7 @@ if os.environ["SITE"]:  # every requirement of what the wheels installed, met by
                     done.add((requirement.name, wanted))
                     todo.append((found, wanted))
     if unmet:
-        sys.exit("gpu_check: " + "; ".join(sorted(unmet)) + " (add its wheel: benchmark/gpu_wheels.sh DIR NAME==VERSION)")
+        sys.exit("gpu_check: " + "; ".join(sorted(unmet)) + " (add its wheel: benchmark/speed/gpu_wheels.sh DIR NAME==VERSION)")
 for name in needed:
     importlib.import_module(name)  # a broken package fails here, before any measurement
 if os.environ["DEVICE"] == "cuda" and not torch.cuda.is_available():
@@ -136,8 +136,8 @@ bench() {  # one benchmark script, its figures to the log; a failure or a time-o
 }
 say "== part 1: one update, eager vs compile vs cudagraphs, paper batch sizes"
 FAST="--fast $PATHS --device $DEVICE"
-bench benchmark/bench_ris.py $FAST --no-envs --batches 2048 --goals ant
-bench benchmark/bench_goal_dqn.py $FAST --only td
+bench benchmark/speed/bench_ris.py $FAST --no-envs --batches 2048 --goals ant
+bench benchmark/speed/bench_goal_dqn.py $FAST --only td
 
 say "== part 2: steps/s of the paper commands, ${SECONDS_PER_RUN} s each"
 probe() {
@@ -148,7 +148,7 @@ probe() {
         return
     fi
     [ "$room" -lt "$seconds" ] && seconds=$room
-    "$PYTHON" benchmark/sps_probe.py --seconds "$seconds" --skip "$SKIP" --stop-wait "$STOP_WAIT" -- "$PYTHON" "$@" 2>&1 |
+    "$PYTHON" benchmark/speed/sps_probe.py --seconds "$seconds" --skip "$SKIP" --stop-wait "$STOP_WAIT" -- "$PYTHON" "$@" 2>&1 |
         tee -a "$LOG"
 }
 RIS_PAPER="--batch-size 2048 --start-timesteps 10000 --eval-frequency 1000 --eval-episodes 5"

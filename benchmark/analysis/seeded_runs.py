@@ -1,9 +1,9 @@
 """The seeded outputs of every script, baseline and DGRL: proof that a refactor changed no number.
 
-    python benchmark/seeded_runs.py --out /tmp/after.pt                 # the 14 runs of the working tree
-    python benchmark/seeded_runs.py --rev HEAD~1 --out /tmp/before.pt   # the same runs at another commit
-    python benchmark/seeded_runs.py --compare /tmp/before.pt /tmp/after.pt
-    python benchmark/seeded_runs.py --scripts dgrl_ris.py --out ris.pt  # some scripts only (also with --compare)
+    python benchmark/analysis/seeded_runs.py --out /tmp/after.pt                 # the 14 runs of the working tree
+    python benchmark/analysis/seeded_runs.py --rev HEAD~1 --out /tmp/before.pt   # the same runs at another commit
+    python benchmark/analysis/seeded_runs.py --compare /tmp/before.pt /tmp/after.pt
+    python benchmark/analysis/seeded_runs.py --scripts dgrl_ris.py --out ris.pt  # some scripts only (also with --compare)
 
 Each of the seven scripts runs twice, with `--groups 0` and with its DGRL default, on a small seeded budget that still
 reaches every phase of its loop (the updates, an evaluation, the codebook's updates), with `--save-model`, one thread
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
 # tests/conftest.py: what the resume tests compare, compared here the same way
 from conftest import WALL_CLOCK_TAGS, checkpoint_tensors, tensorboard_scalars  # noqa: E402

@@ -1,9 +1,9 @@
 """Where the time of dgrl_ris_sawyer.py goes: acting (env step with rendering + encoder + actor) and one RIS update from
 pixels, with and without DGRL.
 
-    python benchmark/bench_ris_sawyer.py                 # about 2 min on a CPU core; run nothing else meanwhile
-    python benchmark/bench_ris_sawyer.py --device cuda   # the same on a GPU (the paper's batch 256)
-    python benchmark/bench_ris_sawyer.py --fast eager compile   # also the update alone, eager beside --fast compile
+    python benchmark/speed/bench_ris_sawyer.py                 # about 2 min on a CPU core; run nothing else meanwhile
+    python benchmark/speed/bench_ris_sawyer.py --device cuda   # the same on a GPU (the paper's batch 256)
+    python benchmark/speed/bench_ris_sawyer.py --fast eager compile   # also the update alone, eager beside --fast compile
 
 Prints one line per measurement (median of 5 blocks): one training step's acting (an 84x84 render of the new state, the
 encoder on state and goal images, the actor's sample), and one `ris_update` (HER batch of 4 x batch uint8 images sampled
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from timing import median_time  # benchmark/timing.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from timing import median_time  # benchmark/speed/timing.py
 
 import dgrl_ris_sawyer as sawyer
 

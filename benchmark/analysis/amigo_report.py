@@ -1,8 +1,8 @@
 """The per-window numbers of docs/dgrl_amigo.md, read from the study's TensorBoard logs.
 
-    python benchmark/amigo_report.py --runs-dir sweeps/amigo-doorkey --window 100000 --end 1000000
-    python benchmark/amigo_report.py --runs-dir sweeps/amigo-s3r1-3m --window 200000 --end 3000000
-    python benchmark/amigo_report.py --runs-dir sweeps/amigo-nochannel
+    python benchmark/analysis/amigo_report.py --runs-dir sweeps/amigo-doorkey --window 100000 --end 1000000
+    python benchmark/analysis/amigo_report.py --runs-dir sweeps/amigo-s3r1-3m --window 200000 --end 3000000
+    python benchmark/analysis/amigo_report.py --runs-dir sweeps/amigo-nochannel
 
 (the sweeps of `python benchmark/launch.py --preset amigo-doorkey` and the others). Prints, for every run folder under
 --runs-dir (at any depth) whose name matches: the training success rate averaged in consecutive

@@ -1,8 +1,9 @@
 """Color-MNIST across seeds: how often the two factors separate shape from colour, and what the separating seeds share.
 
     python benchmark/launch.py --preset mnist --seeds 1 2 3 4 5 6 7 8 9 10 --name mnist-10seeds   # 20 runs, ~25 min
-    python benchmark/mnist_seeds.py sweeps/mnist-10seeds
-    python benchmark/mnist_seeds.py sweeps/mnist-10seeds sweeps/mnist-restart50 --against ColorMNIST__G2__mnist-10seeds
+    python benchmark/analysis/mnist_seeds.py sweeps/mnist-10seeds
+    python benchmark/analysis/mnist_seeds.py sweeps/mnist-10seeds sweeps/mnist-restart50 \
+        --against ColorMNIST__G2__mnist-10seeds
 
 Reads every run folder of the sweep (TensorBoard scalars) and prints, per run: the swap test's better assignment (the
 fraction of factor-swapped decodings whose digit comes from one image and colour from the other; chance about 0.0125),
@@ -26,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from plot import load_runs, run_folders  # benchmark/plot.py
-from seed_stats import emit, late_mean, permutation_p, spearman  # benchmark/seed_stats.py
+from plot import load_runs, run_folders  # benchmark/analysis/plot.py
+from seed_stats import emit, late_mean, permutation_p, spearman  # benchmark/analysis/seed_stats.py
 
 SWAPS = ("factor/swap/shape1_colour2", "factor/swap/colour1_shape2")
 FACTORS = [f"factor/factor{i}/{what}_acc" for i in (1, 2) for what in ("digit", "colour")]

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# The wheels an offline GPU machine needs for benchmark/gpu_check.sh and the paper commands, downloaded on a networked one.
+# The wheels an offline GPU machine needs for benchmark/speed/gpu_check.sh and the paper commands, downloaded on a networked one.
 #
-#     bash benchmark/gpu_wheels.sh wheels/                    # carry wheels/ along: WHEELS=wheels/ bash benchmark/gpu_check.sh
-#     bash benchmark/gpu_wheels.sh wheels/ NAME==VERSION ...  # the same, plus more wheels (one the GPU image lacks)
-#     LIMIT_MIB=100 bash benchmark/gpu_wheels.sh wheels/ --all  # also what dgrl_mnist.py and dgrl_ris.py's maze ids need
+#     bash benchmark/speed/gpu_wheels.sh wheels/                    # carry wheels/ along: WHEELS=wheels/ bash benchmark/speed/gpu_check.sh
+#     bash benchmark/speed/gpu_wheels.sh wheels/ NAME==VERSION ...  # the same, plus more wheels (one the GPU image lacks)
+#     LIMIT_MIB=100 bash benchmark/speed/gpu_wheels.sh wheels/ --all  # also what dgrl_mnist.py and dgrl_ris.py's maze ids need
 #
 # It is written for a GPU machine that has Python 3.12, a CUDA build of torch, numpy and tensorboard, and nothing else
 # of requirements.txt. It downloads, as cp312 manylinux x86-64 or pure-Python wheels, gymnasium, mujoco, minigrid and
@@ -19,7 +19,7 @@
 # (no network needed). PYTHON (default python3) is the interpreter whose pip downloads: any Python with pip will do.
 set -euo pipefail
 if [ $# -lt 1 ] || [ -z "$1" ] || [[ "$1" == -* ]]; then
-    echo "usage: bash benchmark/gpu_wheels.sh DIR [--all] [NAME==VERSION ...]" >&2
+    echo "usage: bash benchmark/speed/gpu_wheels.sh DIR [--all] [NAME==VERSION ...]" >&2
     exit 2
 fi
 DIR=$1
@@ -29,7 +29,7 @@ EXTRA=()
 for arg in "$@"; do
     if [ "$arg" = --all ]; then ALL=yes; else EXTRA+=("$arg"); fi
 done
-ROOT=$(cd "$(dirname "$0")/.." && pwd)
+ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 PYTHON=${PYTHON:-python3}
 LIMIT_MIB=${LIMIT_MIB:-50}
 [[ "$LIMIT_MIB" =~ ^[0-9]+$ ]] || { echo "gpu_wheels: LIMIT_MIB=$LIMIT_MIB is not a whole number of MiB" >&2; exit 2; }

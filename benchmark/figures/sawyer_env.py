@@ -1,6 +1,6 @@
 """The Sawyer push-and-reach env of dgrl_ris_sawyer.py: its speed with 84x84 image observations and what the images show.
 
-    python benchmark/sawyer_env.py --out results/sawyer_env.png
+    python benchmark/figures/sawyer_env.py --out results/sawyer_env.png
 
 Prints env frames/s (one env, random actions, every step rendering its 84x84 observation image, resets included: each
 reset also renders the goal image) for the training and the test configuration, and writes one image: a training reset's
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import dgrl_ris_sawyer as sawyer
 
 

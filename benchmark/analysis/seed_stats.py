@@ -2,8 +2,8 @@
 
     python benchmark/launch.py --script dgrl_goal_dqn.py --env-ids SpiralWorld --groups 0 8 16 --seeds 1 2 3 4 5 \\
         --name gdqn-spiral16 -- --n-train-goals 16
-    python benchmark/seed_stats.py sweeps/gdqn-spiral16 --tags eval/novel_success_rate eval/novel_total_steps
-    python benchmark/seed_stats.py sweeps/keychest --tags eval/return --summaries late mean --reach eval/return=5
+    python benchmark/analysis/seed_stats.py sweeps/gdqn-spiral16 --tags eval/novel_success_rate eval/novel_total_steps
+    python benchmark/analysis/seed_stats.py sweeps/keychest --tags eval/return --summaries late mean --reach eval/return=5
 
 Reads every run folder of the sweep (TensorBoard scalars; run names `{env}__...__G{g}__{exp_name}__{seed}__{time}`).
 Runs whose names agree once `G{g}` is taken out form one comparison (e.g. one env and number of goals); within it, for
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from plot import load_runs, run_folders  # benchmark/plot.py
+from plot import load_runs, run_folders  # benchmark/analysis/plot.py
 
 SUMMARIES = ("final", "mean", "late")
 SUMMARY_NAMES = {"final": "final", "mean": "mean over evaluations", "late": "mean over the last tenth of steps"}

@@ -1,11 +1,12 @@
 """Top-down renders of the four Ant mazes of dgrl_ris.py on their test configuration (docs/img/ris_mazes.png).
 
-    python benchmark/ris_mazes.py        # headless too: dgrl_ris sets MUJOCO_GL=egl when there is no display
+    python benchmark/figures/ris_mazes.py        # headless too: dgrl_ris sets MUJOCO_GL=egl when there is no display
 
 Each panel is the script's own MuJoCo scene (walls, ant at a test start, red goal marker at a test goal), rendered by
 the env's `render()`; it lets a reader check the geometry against the maze table of docs/dgrl_ris.md at a glance.
 """
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -14,11 +15,13 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import dgrl_ris as ris
 
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / "docs/img/ris_mazes.png"
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[2] / "docs/img/ris_mazes.png")
+    out = parser.parse_args().out
     figure, axes = plt.subplots(1, 4, figsize=(16, 4.4))
     for axis, (name, shape) in zip(axes, (("AntU", "U"), ("AntFb", "S"), ("AntMaze", "Pi"), ("AntFg", "omega")), strict=True):
         env = ris.AntMazeEnv(name, test=True, render_mode="rgb_array")

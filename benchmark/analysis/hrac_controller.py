@@ -1,6 +1,6 @@
 """How well a dgrl_hrac.py controller reaches subgoals on its own, from checkpoints, against an untrained controller.
 
-    python benchmark/hrac_controller.py sweeps/hrac-antmaze-cpu/*/runs/*/hrac-antmaze-cpu.cleanrl_model
+    python benchmark/analysis/hrac_controller.py sweeps/hrac-antmaze-cpu/*/runs/*/hrac-antmaze-cpu.cleanrl_model
     # the checkpoints of `python benchmark/launch.py --preset hrac-antmaze-cpu` (docs/dgrl_hrac.md)
 
 For each checkpoint (and an untrained agent of the same flags, seed 0) the ant starts from a reset of AntMaze's open
@@ -10,13 +10,14 @@ deterministic actions. Prints the mean final distance to the point (4.0 = the an
 distance covered toward it.
 """
 
+import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import dgrl_hrac as hrac
 
 
@@ -44,9 +45,11 @@ def probe(agent: hrac.Agent, radius: float = 4.0, segments: int = 5, k: int = 10
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoints", nargs="+", help="checkpoints of dgrl_hrac.py runs (--save-model)")
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
-    for path in sys.argv[1:]:
+    for path in parser.parse_args().checkpoints:
         saved = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(saved, dict) or saved.get("script") != "dgrl_hrac.py":
             print(f"{path}: skipped, not a checkpoint of dgrl_hrac.py", file=sys.stderr)

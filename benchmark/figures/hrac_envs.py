@@ -1,6 +1,6 @@
 """The HIRO Ant suite of dgrl_hrac.py: a top-down render of every env and its random-action speed.
 
-    python benchmark/hrac_envs.py --out docs/img/hrac_envs.png   # headless Linux: dgrl_hrac sets MUJOCO_GL=egl
+    python benchmark/figures/hrac_envs.py --out docs/img/hrac_envs.png   # headless Linux: dgrl_hrac sets MUJOCO_GL=egl
 
 Prints env steps/s (one env, random actions, 2,000 steps after a reset) and writes one image with the five envs after a
 reset and ten zero-action steps (AntMaze, AntMazeSparse, AntPush, AntFall, AntGather from left to right; y points up,
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import dgrl_hrac as hrac
 
 

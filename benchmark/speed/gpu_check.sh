@@ -20,7 +20,7 @@
 # 45) of wall clock, after its first SKIP (default 25) seconds (start-up, warm-up, compilation), stopped by SIGINT
 # (killed if it has not stopped STOP_WAIT, default 30, seconds later):
 # `python dgrl_ris.py --env-id AntMaze --groups 16` with eager and with cudagraphs, the other scripts' paper commands
-# (each first run of its paper preset in benchmark/launch.py, with DGRL) with cudagraphs. The whole check keeps inside
+# (each first run of its paper preset in benchmark/presets.py, with DGRL) with cudagraphs. The whole check keeps inside
 # LIMIT_SECONDS (default 450; 0: no limit): a step is shortened to the time left, or skipped with a line saying so.
 # Every line it prints is a figure for the docs' speed tables. DEVICE=cpu tries it out on a machine without a GPU;
 # there the probes see mostly warm-up and compilation, so its figures mean nothing. Tried out on the 2-core CPU

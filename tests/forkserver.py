@@ -40,11 +40,32 @@ def receive(connection: socket.socket) -> tuple[dict, list[int]]:
     return json.loads(payload), fds
 
 
+def run_as_main(file: str) -> int:
+    """Run `file` as __main__ (runpy) and return the exit status `python FILE` would end with: SystemExit's code (a
+    message instead of a code goes to stderr, status 1), 1 with the traceback for an uncaught exception, -SIGINT for a
+    KeyboardInterrupt (Python ends by the signal itself), 0 for a normal end."""
+    import runpy
+    import traceback
+
+    try:
+        runpy.run_path(file, run_name="__main__")
+    except SystemExit as stop:
+        if stop.code is None or isinstance(stop.code, int):
+            return stop.code or 0
+        print(stop.code, file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        traceback.print_exc()
+        return -signal.SIGINT
+    except BaseException:
+        traceback.print_exc()
+        return 1
+    return 0
+
+
 def run(request: dict, fds: list[int]) -> None:
     """In the forked run: become `python FILE ARGS...` in the client's folder, environment and streams; never return."""
     import io
-    import runpy
-    import traceback
 
     signal.signal(signal.SIGINT, signal.default_int_handler)  # as Python starts (and SIGPIPE ignored, as here)
     for number in (signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2, signal.SIGCHLD):
@@ -64,21 +85,7 @@ def run(request: dict, fds: list[int]) -> None:
     extra = [path for path in os.environ.get("PYTHONPATH", "").split(os.pathsep) if path]
     sys.path[:] = [os.path.dirname(os.path.abspath(file)), *extra, *SERVER_PATH]
     sys.argv = [file, *args]
-    code = 0
-    try:
-        runpy.run_path(file, run_name="__main__")
-    except SystemExit as stop:
-        if stop.code is None or isinstance(stop.code, int):
-            code = stop.code or 0
-        else:
-            print(stop.code, file=sys.stderr)
-            code = 1
-    except KeyboardInterrupt:
-        traceback.print_exc()
-        code = -signal.SIGINT  # Python ends by the signal itself, below
-    except BaseException:
-        traceback.print_exc()
-        code = 1
+    code = run_as_main(file)
     import atexit
 
     atexit._run_exitfuncs()

@@ -4,35 +4,27 @@ returned: many refusals of bad input tested for the cost of one start of Python 
     python tests/run_many.py SCRIPT < cases.json      # cases: [{"cwd": folder, "argv": [flag, ...]}, ...]
 
 Each case runs the script afresh as __main__ (runpy) in its own folder, with its own sys.argv. What it ends with is
-recorded as a process would end: the code of SystemExit (a message given instead of a code goes to stderr, status 1),
-1 with the traceback on stderr for an uncaught exception, 0 for a normal end. Printed last, on stdout: one JSON list of
-{"returncode", "stdout", "stderr"}. Meant for runs that end before any training: a case that trains runs to its end."""
+recorded as a process would end (forkserver.run_as_main): the code of SystemExit (a message given instead of a code goes
+to stderr, status 1), 1 with the traceback on stderr for an uncaught exception, 0 for a normal end. Printed last, on
+stdout: one JSON list of {"returncode", "stdout", "stderr"}. Meant for runs that end before any training: a case that
+trains runs to its end."""
 
 import contextlib
 import io
 import json
 import os
-import runpy
 import signal
 import sys
-import traceback
+
+from forkserver import run_as_main  # tests/forkserver.py: how a forked run ends, the same way
 
 
 def run_case(script: str, argv: list[str]) -> dict:
     out, err = io.StringIO(), io.StringIO()
     sys.argv = [script, *argv]
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            runpy.run_path(script, run_name="__main__")
-            code = 0
-        except SystemExit as stop:
-            code = stop.code if isinstance(stop.code, int) or stop.code is None else 1
-            if not isinstance(stop.code, int) and stop.code is not None:
-                print(stop.code, file=sys.stderr)
-        except BaseException:
-            traceback.print_exc()
-            code = 1
-    return {"returncode": code or 0, "stdout": out.getvalue(), "stderr": err.getvalue()}
+        code = run_as_main(script)
+    return {"returncode": code, "stdout": out.getvalue(), "stderr": err.getvalue()}
 
 
 def main() -> None:

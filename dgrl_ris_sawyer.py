@@ -491,7 +491,7 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
         state_z = agent.encoder.head(conv_map)
         with torch.no_grad():
             next_z, goal_z, subgoal_z = agent.encoder(images[batch_size:]).chunk(3)
-        features = torch.cat((state_z, next_z, goal_z, subgoal_z))
+        features = torch.cat((state_z, next_z, goal_z, subgoal_z)) if agent.vq is not None else None  # DGRL
     driml = driml_loss(agent.driml_heads, conv_map, actions, next_z)
     representation_loss = args.driml_coef * driml
     goal_in = goal_z  # what the actor and the critics see of the goal

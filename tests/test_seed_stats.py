@@ -119,6 +119,15 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     assert missing.returncode != 0 and "named Nope; the sweep's: KeyChest__study, Other__study" in missing.stderr
 
 
+def test_a_tag_the_baseline_does_not_log_is_tabulated_without_a_comparison(recwarn):
+    """The codebook's tags: G0 has no codebook, so its row says so and no DGRL row is compared with it (no NaN)."""
+    values = {0: np.array([]), 4: np.array([8.0, 9.0]), 16: np.array([58.0, 60.0])}
+    marks = {group: [""] * len(v) for group, v in values.items()}
+    lines = seed_stats.table(values, marks, True, np.random.default_rng(0))
+    assert lines[2:] == ["| 0 | (not logged) | | | | |", "| 4 | 8, 9 | 8.5 +- 0.5 | | | |", "| 16 | 58, 60 | 59 +- 1 | | | |"]
+    assert not [warning for warning in recwarn if issubclass(warning.category, RuntimeWarning)]
+
+
 def test_ledger_stats_windows_and_its_transcribed_tables():
     import ledger_stats
 

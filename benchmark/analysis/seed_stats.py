@@ -111,9 +111,12 @@ def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bo
         "|---|---|---|---|---|---|",
     ]
     for group, v in values.items():
+        if not len(v):  # a tag this setting does not log (the codebook's, for G0)
+            lines.append(f"| {group} | (not logged) | | | | |")
+            continue
         seeds = ", ".join(f"{mark}{x:.3g}" for mark, x in zip(marks[group], v, strict=True))
         row = f"| {group} | {seeds} | {v.mean():.3g} +- {v.std():.2g} |"
-        if group == 0 or 0 not in values:
+        if group == 0 or 0 not in values or not len(values[0]):
             lines.append(row + " | | |")
             continue
         low, high = bootstrap_interval(v, values[0], rng)

@@ -62,6 +62,7 @@ class GoalGrid:
     blocked: np.ndarray  # (rows, cols) True where no goal is (walls), drawn black
     n_embed: int  # codes in the codebook (k-means clusters for the embedding)
     label: str  # e.g. "G = 16, seed 4"
+    embedding_name: str  # what `embedding` is, for the k-means panel's title
 
 
 def entropy(labels: np.ndarray) -> float:
@@ -135,7 +136,8 @@ def keychest(saved: dict) -> GoalGrid:
         places=kc.FREE_CELLS,
         blocked=kc.WALLS,
         n_embed=args.n_embed,
-        label=f"G = {args.groups}, seed {args.seed}" + ("" if args.groups else " (HRAC: adjacency embedding)"),
+        label=f"G = {args.groups}, seed {args.seed}",
+        embedding_name="encoder" if args.groups else "adjacency",
     )
 
 
@@ -174,7 +176,8 @@ def draw(grids: list[GoalGrid], factors: int, out: str, per_line: int = 9) -> li
         clusters = kmeans(grid.embedding, grid.n_embed)
         (clustered,) = summarise(clusters[:, None], grid.coords, grid.coord_names)
         shares = " ".join(f"{name} {value:.2f}" for name, value in clustered["share"].items())
-        panel(next(cells), grid, clusters, f"{grid.label}\nk-means, {clustered['codes']}: {shares}")
+        title = f"{grid.label}: k-means of its\n{grid.embedding_name}, {clustered['codes']}: {shares}"
+        panel(next(cells), grid, clusters, title)
         for row in rows:
             shares = " ".join(f"{name} {value:.2f}" for name, value in row["share"].items())
             panel(next(cells), grid, grid.codes[:, row["factor"]], f"factor {row['factor']}: {row['codes']} codes\n{shares}")

@@ -111,37 +111,203 @@ def load_script(name: str):
 
 
 # --- The settings: a checkpoint's networks over every goal of the environment -------------------------------------------
+# Each returns one GoalGrid per map (Sawyer two: the hand's and the puck's). Continuous spaces are sampled on a regular xy
+# grid, drawn as a map seen from above (x to the right, y up); the coordinates the shares use are the grid's indices.
+
+CPU = torch.device("cpu")
 
 
-def keychest(saved: dict) -> GoalGrid:
+def xy_grid(xs: np.ndarray, ys: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(points (N, 2) xy, coords (N, 2) x and y indices, places (N, 2) (row, col), blocked) of the free points of a grid
+    with x centres `xs`, y centres `ys` and `free` (len(ys), len(xs)); the top row of the drawing is the largest y."""
+    iy, ix = np.nonzero(free)
+    points = np.stack((xs[ix], ys[iy]), 1)
+    return points, np.stack((ix, iy), 1), np.stack((len(ys) - 1 - iy, ix), 1), ~free[::-1]
+
+
+def quantised(vq, embedding: torch.Tensor, groups: int) -> np.ndarray:
+    """Each factor's code index for a batch of embeddings (the codebook untouched)."""
+    return vq(embedding, update=False)[2].reshape(len(embedding), groups).numpy()
+
+
+def keychest(saved: dict) -> list[GoalGrid]:
     """Key-Chest: every free cell (row, col) as the subgoal, through the subgoal autoencoder's encoder and codebook. For
     HRAC (G = 0), whose low level takes the raw cell, the embedding is its adjacency network's (HRAC's learned metric)."""
     kc = load_script("dgrl_hrac_keychest.py")
     args = kc.Args(**saved["args"])
-    agent = kc.make_agent(args, torch.device("cpu"))
+    agent = kc.make_agent(args, CPU)
     goals = torch.as_tensor(kc.FREE_CELLS, dtype=torch.float32)
     with torch.no_grad():
         if args.groups:
             agent.goal_ae.load_state_dict(saved["goal_autoencoder"])
             embedding = agent.goal_ae.encoder(goals / agent.goal_ae.scale)
-            codes = agent.goal_ae.vq(embedding, update=False)[2].reshape(len(goals), args.groups).numpy()
+            codes = quantised(agent.goal_ae.vq, embedding, args.groups)
         else:
             agent.adjacency.load_state_dict(saved["adjacency"])
             embedding, codes = agent.adjacency(goals), None
-    return GoalGrid(
-        codes=codes,
-        embedding=embedding.numpy(),
-        coords=kc.FREE_CELLS,
-        coord_names=("row", "col"),
-        places=kc.FREE_CELLS,
-        blocked=kc.WALLS,
-        n_embed=args.n_embed,
-        label=f"G = {args.groups}, seed {args.seed}",
-        embedding_name="encoder" if args.groups else "adjacency",
-    )
+    label = f"G = {args.groups}, seed {args.seed}"
+    name = "encoder" if args.groups else "adjacency"
+    cells = kc.FREE_CELLS
+    return [GoalGrid(codes, embedding.numpy(), cells, ("row", "col"), cells, kc.WALLS, args.n_embed, label, name)]
 
 
-SETTINGS = {"dgrl_hrac_keychest.py": keychest}
+def goal_dqn(saved: dict) -> list[GoalGrid]:
+    """goal-DQN's pixel mazes: every cell's image (the agent drawn in it, no noise) as the goal, through phi and its
+    bottleneck; drawn in the maze's 13 x 13 character layout (cells at odd places, walls black, openings white). For the
+    baseline, phi's continuous embedding."""
+    gd = load_script("dgrl_goal_dqn.py")
+    args = gd.Args(**saved["args"])
+    agent = gd.make_agent(args, CPU)
+    agent.rep.load_state_dict(saved["representation"])
+    layout = gd.MazeLayout(args.env_id)
+    with torch.no_grad():
+        embedding = agent.rep.embed(torch.as_tensor(layout.images))
+        codes = quantised(agent.rep.vq, embedding, args.groups) if args.groups else None
+    cells = np.stack(np.divmod(np.arange(layout.n_cells), layout.size), 1)  # (row, col)
+    walls = np.array([[char == "#" for char in line] for line in gd.LAYOUTS[args.env_id]])
+    label = f"{args.env_id} G = {args.groups}, seed {args.seed}"
+    return [GoalGrid(codes, embedding.numpy(), cells, ("row", "col"), 2 * cells + 1, walls, args.n_embed, label, "phi")]
+
+
+def ris(saved: dict, step: float = 0.25) -> list[GoalGrid]:
+    """RIS's mazes: goals on an xy grid (`step` apart) over the maze's free space. PointMaze's goal is the xy itself; an
+    Ant maze's goal is a whole 31-d state, the ant at rest at xy facing yaw 0 (the reference for the other coordinates).
+    For RIS (G = 0), whose networks take the raw goal, the embedding clustered is that goal."""
+    rs = load_script("dgrl_ris.py")
+    args = rs.Args(**saved["args"])
+    if args.env_id in rs.ANT_MAZES:
+        (x0, x1), (y0, y1) = rs.ANT_MAZES[args.env_id]["interior"]
+        xs, ys = np.arange(x0 + step, x1, 2 * step), np.arange(y0 + step, y1, 2 * step)  # 0.5 m apart in an Ant maze
+        points = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+        free = (rs.wall_distance(points, rs.maze_boxes(args.env_id)) > 0).reshape(len(ys), len(xs))
+        points, coords, places, blocked = xy_grid(xs, ys, free)
+        goals = np.stack([rs.goal_state(point, 0.0) for point in points])
+    else:  # a gymnasium-robotics maze: its map's free cells, each sampled on a (1 / step) x (1 / step) grid
+        env = rs.make_env(args.env_id, 0, False, args.max_episode_steps, 0.45)()
+        maze = env.unwrapped.maze
+        walls, scale = np.array(maze.maze_map) == 1, maze.maze_size_scaling
+        per_cell = round(1 / step)
+        xs = (np.arange(walls.shape[1] * per_cell) + 0.5) * scale / per_cell - maze.x_map_center
+        ys = maze.y_map_center - (np.arange(walls.shape[0] * per_cell) + 0.5) * scale / per_cell
+        free = ~walls.repeat(per_cell, 0).repeat(per_cell, 1)
+        order = np.argsort(ys)  # xy_grid wants ys increasing
+        points, coords, places, blocked = xy_grid(xs, ys[order], free[order])
+        goals = points
+        env.close()
+    goals = torch.as_tensor(goals, dtype=torch.float32)
+    codes = None
+    with torch.no_grad():
+        if args.groups:
+            encoder = rs.GoalEncoder(goals.shape[1], args)
+            encoder.load_state_dict(saved["goal_encoder"])
+            embedding = encoder.encoder(goals)
+            codes = quantised(encoder.vq, embedding, args.groups)
+        else:
+            embedding = goals
+    label = f"{args.env_id} G = {args.groups}, seed {args.seed}"
+    name = "encoder" if args.groups else "goal itself"
+    return [GoalGrid(codes, embedding.numpy(), coords, ("x", "y"), places, blocked, args.n_embed, label, name)]
+
+
+def hrac(saved: dict, step: float = 1.0) -> list[GoalGrid]:
+    """HRAC's Ant suite: DGRL quantises the manager's subgoal, an xy offset from the ant within +-subgoal_scale (AntFall's
+    z offset at 0, the reference), so its map is over that square of offsets, `step` apart, with nothing blocked. HRAC
+    (G = 0) gives its controller the raw offset; its learned embedding is the adjacency network's, of absolute 1 m cells
+    of the maze (its blocks black), which is drawn instead."""
+    hr = load_script("dgrl_hrac.py")
+    args = hr.Args(**saved["args"])
+    with torch.no_grad():
+        if args.groups:
+            bounds = hr.subgoal_bounds(args.env_id, args.subgoal_scale)
+            xs = ys = np.arange(-args.subgoal_scale, args.subgoal_scale + step / 2, step)
+            points, coords, places, blocked = xy_grid(xs, ys, np.ones((len(ys), len(xs)), bool))
+            goals = np.concatenate((points, np.zeros((len(points), len(bounds) - 2))), 1)
+            encoder = hr.SubgoalEncoder(bounds, args)
+            encoder.load_state_dict(saved["subgoal_encoder"])
+            embedding = encoder.encoder(torch.as_tensor(goals, dtype=torch.float32) / encoder.scale)
+            codes, name = quantised(encoder.vq, embedding, args.groups), "encoder (subgoal offsets)"
+        else:
+            scaling, structure = hr.STRUCTURES[args.env_id]
+            origin = hr.structure_origin(structure)
+            rows, cols = len(structure), len(structure[0])
+            x0, y0 = hr.cell_centre(0, 0, scaling, origin)
+            xs = np.arange(np.ceil(x0 - scaling / 2), x0 - scaling / 2 + cols * scaling, step)
+            ys = np.arange(np.ceil(y0 - scaling / 2), y0 - scaling / 2 + rows * scaling, step)
+            cell_col = np.floor((xs - x0 + scaling / 2) / scaling).astype(int)
+            cell_row = np.floor((ys - y0 + scaling / 2) / scaling).astype(int)
+            free = np.array([[structure[i][j] not in (1, -1) for j in cell_col] for i in cell_row])
+            points, coords, places, blocked = xy_grid(xs, ys, free)
+            adjacency = hr.AdjacencyNet(2)
+            adjacency.load_state_dict(saved["adjacency"])
+            embedding, codes, name = adjacency(torch.as_tensor(points, dtype=torch.float32)), None, "adjacency (maze cells)"
+    label = f"{args.env_id} G = {args.groups}, seed {args.seed}"
+    return [GoalGrid(codes, embedding.numpy(), coords, ("x", "y"), places, blocked, args.n_embed, label, name)]
+
+
+def amigo(saved: dict, layout_seed: int = 0) -> list[GoalGrid]:
+    """AMIGo's MiniGrid: one layout (the env's reset with `layout_seed`), every cell that is not a wall as the goal,
+    issued on the layout's first frame, through the goal encoder (and its codebook). Besides x and y, the shares measure
+    the object at the goal's cell (empty, door, key, the agent ...). AMIGo's encoder is continuous: k-means of it."""
+    am = load_script("dgrl_amigo.py")
+    args = am.Args(**saved["args"])
+    envs = am.MiniGridVecEnv(args.env_id, 1)
+    frame = envs.reset(seed=layout_seed)[0]["grid"][0]  # (W, H, 3)
+    width, height = frame.shape[:2]
+    x, y = np.divmod(np.arange(width * height), height)  # the teacher's flat goal index is x * H + y
+    objects = frame[x, y, 0]
+    keep = objects != am.OBJECT_TO_IDX["wall"]
+    encoder = am.GoalEncoder(width, height, args)
+    encoder.load_state_dict(saved["goal_encoder"])
+    with torch.no_grad():
+        frames, goals = torch.as_tensor(np.repeat(frame[None], keep.sum(), 0)), torch.as_tensor(np.flatnonzero(keep))
+        embedding = encoder.head(encoder.trunk(encoder.embedding(frames, goals)))  # before the bottleneck
+        codes = quantised(encoder.vq, embedding, args.groups) if args.groups else None
+    coords = np.stack((x[keep], y[keep], objects[keep]), 1)
+    places = np.stack((y[keep], x[keep]), 1)
+    label = f"{args.env_id.removeprefix('MiniGrid-')} G = {args.groups}, seed {args.seed}"
+    blocked = (frame[..., 0] == am.OBJECT_TO_IDX["wall"]).T
+    return [GoalGrid(codes, embedding.numpy(), coords, ("x", "y", "object"), places, blocked, args.n_embed, label, "encoder")]
+
+
+def sawyer(saved: dict, step: float = 0.02) -> list[GoalGrid]:
+    """Sawyer push-and-reach: goal images rendered by the env, two maps: the hand over the arena with the puck at the test
+    goal's centre (the reference), and the puck over the arena with the hand at the test goal's centre; places where the
+    two would overlap (closer than a training goal allows) are blocked. Codes from the image encoder and the bottleneck;
+    for RIS (G = 0), the encoder's continuous features."""
+    sw = load_script("dgrl_ris_sawyer.py")
+    args = sw.Args(**saved["args"])
+    agent = sw.make_agent(sw.IMAGE_SIZE, 2, args, CPU)
+    agent.load_state_dicts(saved)
+    env = sw.SawyerPushAndReachEnv()
+    env.reset(seed=0)
+    reference = {name: np.mean(sw.TEST_BOXES[f"{name}_goal"], 0) for name in ("hand", "puck")}
+    xs = np.arange(sw.ARENA_LOW[0], sw.ARENA_HIGH[0] + step / 2, step)
+    ys = np.arange(sw.ARENA_LOW[1], sw.ARENA_HIGH[1] + step / 2, step)
+    grid = np.stack(np.meshgrid(xs, ys), -1)
+    grids = []
+    for moving, fixed in (("hand", "puck"), ("puck", "hand")):
+        free = np.linalg.norm(grid - reference[fixed], axis=-1) >= sw.GOAL_CLEARANCE
+        points, coords, places, blocked = xy_grid(xs, ys, free)
+        pairs = (points, np.broadcast_to(reference[fixed], points.shape))
+        states = np.concatenate(pairs if moving == "hand" else pairs[::-1], 1)
+        images = np.stack([env.render_state(state) for state in states])
+        with torch.no_grad():
+            embedding = agent.encoder(sw.image_batch(images, CPU))
+            codes = quantised(agent.vq, embedding, args.groups) if args.groups else None
+        label = f"G = {args.groups}, seed {args.seed}: the {moving} moves"
+        grids.append(GoalGrid(codes, embedding.numpy(), coords, ("x", "y"), places, blocked, args.n_embed, label, "encoder"))
+    env.close()
+    return grids
+
+
+SETTINGS = {
+    "dgrl_goal_dqn.py": goal_dqn,
+    "dgrl_ris.py": ris,
+    "dgrl_hrac.py": hrac,
+    "dgrl_hrac_keychest.py": keychest,
+    "dgrl_ris_sawyer.py": sawyer,
+    "dgrl_amigo.py": amigo,
+}
 
 
 # --- The figure and the table ------------------------------------------------------------------------------------------
@@ -206,7 +372,9 @@ def main(args: Args) -> None:
         script = saved.get("script") if isinstance(saved, dict) else None
         if script not in SETTINGS:
             raise SystemExit(f"{path}: a checkpoint of {script}; factor maps exist for {', '.join(SETTINGS)}")
-        grids.append(SETTINGS[script](saved))
+        grids += SETTINGS[script](saved)
+    if len({grid.coord_names for grid in grids}) > 1:
+        raise SystemExit("factor_map.py: give checkpoints of one setting (their goals have other coordinates)")
     print("\n".join(draw(grids, args.factors, args.out)))
     print(f"wrote {args.out}.png and {args.out}.md")
 

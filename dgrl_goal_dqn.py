@@ -722,11 +722,12 @@ def evaluate_checkpoint(args: Args, agent: Agent, embedder: CellEmbedder, layout
 
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
-    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it)."""
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it). One
+    encoder thread: with more, the file's bytes vary from run to run; with one, the same frames give the same file."""
     from moviepy import ImageSequenceClip
 
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None)
+    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None, threads=1)
 
 
 # --- Environment ------------------------------------------------------------------------------------------------------

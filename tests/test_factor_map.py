@@ -95,10 +95,15 @@ def test_the_factor_map_of_a_dgrl_and_a_baseline_checkpoint(script, flags, heade
     """The tool on untrained G = 4 and G = 0 checkpoints of each setting: the figure, and the table it prints and writes,
     with a k-means row, a row per factor and the mean gap for DGRL, the k-means row alone for the baseline."""
     paths = (untrained_checkpoint(script, tmp_path, 4, **flags), untrained_checkpoint(script, tmp_path, 0, **flags))
-    factor_map.main(factor_map.Args(checkpoints=paths, out=str(tmp_path / "map")))
+    factor_map.main(factor_map.Args(checkpoints=paths, out=str(tmp_path / "map"), cut_to=str(tmp_path / "cut")))
     table = (tmp_path / "map.md").read_text().splitlines()
     assert (tmp_path / "map.png").stat().st_size > 10_000 and table == capsys.readouterr().out.splitlines()[: len(table)]
     assert table[0] == header
+    cut = sorted(str(path) for path in (tmp_path / "cut").iterdir())
+    stem = Path(torch.load(paths[0], weights_only=True)["script"]).stem.removeprefix("dgrl_")  # e.g. hrac_keychest
+    assert [Path(path).name for path in cut] == [f"{stem}_G0_s3.pt", f"{stem}_G4_s3.pt"]
+    factor_map.main(factor_map.Args(checkpoints=(cut[1], cut[0]), out=str(tmp_path / "from_cut")))
+    assert (tmp_path / "from_cut.md").read_text().splitlines() == table  # the cut checkpoints draw the same map
     labels = sorted({line.split(" | ")[0].removeprefix("| ") for line in table[2:]})
     assert len(labels) == 2 * maps and all(" G = " in f" {label}" for label in labels)
     for label in labels:

@@ -18,7 +18,10 @@ The summary, the same in every setting (`summarise`), for each factor over the g
 - `gap`: the largest share less the second largest; the figure's `mean gap` averages it over the factors that use
   more than one code: 1 when every factor follows exactly one coordinate, 0 when none prefers one coordinate.
 The baseline (--groups 0) has no codes: for it, and next to each DGRL panel set, the continuous embedding before the
-bottleneck is clustered by k-means into as many clusters as the codebook has codes, drawn as one panel the same way.
+bottleneck is clustered by k-means into as many clusters as a factor uses codes (the median over the run's factors; for a
+baseline, over the factors of the figure's DGRL runs; the codebook's size when there are none), drawn as one panel the
+same way and summarised like a factor: a clustering of the whole embedding is the comparison a factor's codes should beat
+on the gap. Each panel renumbers its values in order, so that up to 20 codes get distinct colours.
 Writes OUT.png and OUT.md (the summary table).
 """
 
@@ -48,6 +51,9 @@ class Args:
     """output path without extension: OUT.png and OUT.md"""
     factors: int = 16
     """panels per checkpoint: the first this many factors"""
+    cut_to: str | None = None
+    """also write each checkpoint cut down to what its map reads (its flags and networks) as DIR/{script}_G{g}_s{seed}.pt,
+    small enough to keep beside a figure (the map of a cut checkpoint is the map of the whole one)"""
 
 
 @dataclass
@@ -277,7 +283,9 @@ def sawyer(saved: dict, step: float = 0.02) -> list[GoalGrid]:
     sw = load_script("dgrl_ris_sawyer.py")
     args = sw.Args(**saved["args"])
     agent = sw.make_agent(sw.IMAGE_SIZE, 2, args, CPU)
-    agent.load_state_dicts(saved)
+    agent.encoder.load_state_dict(saved["encoder"])
+    if args.groups:
+        agent.vq.load_state_dict(saved["vq"])
     env = sw.SawyerPushAndReachEnv()
     env.reset(seed=0)
     reference = {name: np.mean(sw.TEST_BOXES[f"{name}_goal"], 0) for name in ("hand", "puck")}
@@ -300,6 +308,14 @@ def sawyer(saved: dict, step: float = 0.02) -> list[GoalGrid]:
     return grids
 
 
+NEEDS = {  # the networks a setting's map reads from a checkpoint (besides its flags): what --cut-to keeps
+    "dgrl_goal_dqn.py": ("representation",),
+    "dgrl_ris.py": ("goal_encoder",),
+    "dgrl_hrac.py": ("subgoal_encoder", "adjacency"),
+    "dgrl_hrac_keychest.py": ("goal_autoencoder", "adjacency"),
+    "dgrl_ris_sawyer.py": ("encoder", "vq"),
+    "dgrl_amigo.py": ("goal_encoder",),
+}
 SETTINGS = {
     "dgrl_goal_dqn.py": goal_dqn,
     "dgrl_ris.py": ris,
@@ -314,10 +330,12 @@ SETTINGS = {
 
 
 def panel(axis, grid: GoalGrid, values: np.ndarray, title: str) -> None:
+    """The goals' values (code indices, cluster labels) at their places, one colour per value (20 colours, reused beyond
+    20 values: the values are renumbered in order, so that the codes of one factor get distinct colours first)."""
     image = np.full(grid.blocked.shape, np.nan)
-    image[grid.places[:, 0], grid.places[:, 1]] = values
+    image[grid.places[:, 0], grid.places[:, 1]] = np.unique(values, return_inverse=True)[1] % 20
     axis.imshow(np.where(grid.blocked, 1.0, np.nan), cmap="Greys", vmin=0, vmax=1)  # walls black
-    axis.imshow(image, cmap="tab20", vmin=0, vmax=max(19, int(np.nanmax(image))), interpolation="nearest")
+    axis.imshow(image, cmap="tab20", vmin=0, vmax=19, interpolation="nearest")
     axis.set_title(title, fontsize=7)
     axis.axis("on")
     axis.set_xticks([])
@@ -330,7 +348,11 @@ def draw(grids: list[GoalGrid], factors: int, out: str, per_line: int = 9) -> li
     summaries = [[] if grid.codes is None else summarise(grid.codes, grid.coords, grid.coord_names) for grid in grids]
     summaries = [rows[:factors] for rows in summaries]
     lines_of = [math.ceil((1 + len(rows)) / per_line) for rows in summaries]
-    figure, axes = plt.subplots(sum(lines_of), per_line, figsize=(1.7 * per_line, 1.6 * sum(lines_of)), squeeze=False)
+    figure, axes = plt.subplots(sum(lines_of), per_line, figsize=(1.7 * per_line, 1.8 * sum(lines_of)), squeeze=False)
+    # k-means gets as many clusters as a factor uses codes: the median over the run's factors, or for a baseline over the
+    # figure's DGRL runs' factors (the codebook's size when there are none)
+    used = {id(grid): [len(np.unique(column)) for column in grid.codes.T] for grid in grids if grid.codes is not None}
+    every = [count for counts in used.values() for count in counts]
     for axis in axes.flat:
         axis.axis("off")
     table = ["| run | factor | codes | " + " | ".join(f"share {n}" for n in grids[0].coord_names) + " | gap |"]
@@ -339,10 +361,11 @@ def draw(grids: list[GoalGrid], factors: int, out: str, per_line: int = 9) -> li
     for grid, rows, count in zip(grids, summaries, lines_of, strict=True):
         cells = axes[first : first + count].flat
         first += count
-        clusters = kmeans(grid.embedding, grid.n_embed)
+        counts = used.get(id(grid), every)
+        clusters = kmeans(grid.embedding, int(np.median(counts)) if counts else grid.n_embed)
         (clustered,) = summarise(clusters[:, None], grid.coords, grid.coord_names)
         shares = " ".join(f"{name} {value:.2f}" for name, value in clustered["share"].items())
-        title = f"{grid.label}: k-means of its\n{grid.embedding_name}, {clustered['codes']}: {shares}"
+        title = f"{grid.label}:\nk-means of its {grid.embedding_name},\n{clustered['codes']} clusters: {shares}"
         panel(next(cells), grid, clusters, title)
         for row in rows:
             shares = " ".join(f"{name} {value:.2f}" for name, value in row["share"].items())
@@ -373,6 +396,11 @@ def main(args: Args) -> None:
         if script not in SETTINGS:
             raise SystemExit(f"{path}: a checkpoint of {script}; factor maps exist for {', '.join(SETTINGS)}")
         grids += SETTINGS[script](saved)
+        if args.cut_to is not None:
+            kept = {key: saved[key] for key in ("script", "format", "args", *NEEDS[script]) if saved.get(key) is not None}
+            stem = script.removeprefix("dgrl_").removesuffix(".py")
+            Path(args.cut_to).mkdir(parents=True, exist_ok=True)
+            torch.save(kept, Path(args.cut_to) / f"{stem}_G{saved['args']['groups']}_s{saved['args']['seed']}.pt")
     if len({grid.coord_names for grid in grids}) > 1:
         raise SystemExit("factor_map.py: give checkpoints of one setting (their goals have other coordinates)")
     print("\n".join(draw(grids, args.factors, args.out)))

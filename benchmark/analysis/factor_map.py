@@ -28,6 +28,7 @@ Writes OUT.png and OUT.md (the summary table).
 import importlib
 import math
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -365,7 +366,8 @@ def draw(grids: list[GoalGrid], factors: int, out: str, per_line: int = 9) -> li
         clusters = kmeans(grid.embedding, int(np.median(counts)) if counts else grid.n_embed)
         (clustered,) = summarise(clusters[:, None], grid.coords, grid.coord_names)
         shares = " ".join(f"{name} {value:.2f}" for name, value in clustered["share"].items())
-        title = f"{grid.label}:\nk-means of its {grid.embedding_name},\n{clustered['codes']} clusters: {shares}"
+        title = "\n".join(textwrap.wrap(f"{grid.label}: k-means of its {grid.embedding_name},", 26))
+        title += f"\n{clustered['codes']} clusters:\n{shares}"
         panel(next(cells), grid, clusters, title)
         for row in rows:
             shares = " ".join(f"{name} {value:.2f}" for name, value in row["share"].items())

@@ -100,7 +100,9 @@ def test_the_factor_map_of_a_dgrl_and_a_baseline_checkpoint(script, flags, heade
     assert (tmp_path / "map.png").stat().st_size > 10_000 and table == capsys.readouterr().out.splitlines()[: len(table)]
     assert table[0] == header
     cut = sorted(str(path) for path in (tmp_path / "cut").iterdir())
-    stem = Path(torch.load(paths[0], weights_only=True)["script"]).stem.removeprefix("dgrl_")  # e.g. hrac_keychest
+    saved = torch.load(paths[0], weights_only=True)
+    stem = Path(saved["script"]).stem.removeprefix("dgrl_")  # e.g. hrac_keychest, and the env if the script has several
+    stem += f"_{saved['args']['env_id'].removeprefix('MiniGrid-')}" if "env_id" in saved["args"] else ""
     assert [Path(path).name for path in cut] == [f"{stem}_G0_s3.pt", f"{stem}_G4_s3.pt"]
     factor_map.main(factor_map.Args(checkpoints=(cut[1], cut[0]), out=str(tmp_path / "from_cut")))
     assert (tmp_path / "from_cut.md").read_text().splitlines() == table  # the cut checkpoints draw the same map

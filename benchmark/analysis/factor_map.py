@@ -53,8 +53,8 @@ class Args:
     factors: int = 16
     """panels per checkpoint: the first this many factors"""
     cut_to: str | None = None
-    """also write each checkpoint cut down to what its map reads (its flags and networks) as DIR/{script}_G{g}_s{seed}.pt,
-    small enough to keep beside a figure (the map of a cut checkpoint is the map of the whole one)"""
+    """also write each checkpoint cut down to what its map reads (its flags and networks), small enough to keep beside a
+    figure (the map of a cut checkpoint is the map of the whole one): DIR/{script}_{env id}_G{groups}_s{seed}.pt"""
 
 
 @dataclass
@@ -400,7 +400,8 @@ def main(args: Args) -> None:
         grids += SETTINGS[script](saved)
         if args.cut_to is not None:
             kept = {key: saved[key] for key in ("script", "format", "args", *NEEDS[script]) if saved.get(key) is not None}
-            stem = script.removeprefix("dgrl_").removesuffix(".py")
+            env = saved["args"].get("env_id")  # the scripts with several envs name theirs
+            stem = script.removeprefix("dgrl_").removesuffix(".py") + (f"_{env.removeprefix('MiniGrid-')}" if env else "")
             Path(args.cut_to).mkdir(parents=True, exist_ok=True)
             torch.save(kept, Path(args.cut_to) / f"{stem}_G{saved['args']['groups']}_s{saved['args']['seed']}.pt")
     if len({grid.coord_names for grid in grids}) > 1:

@@ -114,7 +114,7 @@ def test_the_factor_map_of_a_dgrl_and_a_baseline_checkpoint(script, flags, heade
         assert rows == expected, label
     saved = torch.load(paths[0], weights_only=True)
     args_n_embed = saved["args"]["n_embed"]
-    for grid in factor_map.SETTINGS[saved["script"]](saved):
+    for grid in factor_map.SETTINGS[saved["script"]][0](saved):
         assert grid.codes.shape == (len(grid.coords), 4) and 0 <= grid.codes.min() <= grid.codes.max() < args_n_embed
         assert len(grid.places) == len(grid.coords) == len(grid.embedding) and not grid.blocked[tuple(grid.places.T)].any()
         assert goals is None or len(grid.coords) == goals

@@ -5,8 +5,13 @@ factor, with a summary of how factorial the codes are.
     # CHECKPOINT: a --save-model checkpoint (runs/{run_name}/{exp_name}.cleanrl_model) of a script of SETTINGS below
 
 For each checkpoint, the script's own networks (rebuilt from the flags the checkpoint holds) encode every goal of a
-grid that covers the environment, and each factor's code index is drawn at the goal's place (walls black). Settings so
-far: Key-Chest (dgrl_hrac_keychest.py), every free cell of its 13 x 17 grid as the subgoal (row, col).
+grid that covers the environment, and each factor's code index is drawn at the goal's place (walls black). The goals of
+each setting (its function below says how they are made):
+- goal-DQN's mazes and Key-Chest's 13 x 17 grid: every free cell as the goal (row, col);
+- RIS's mazes: an xy grid over the free space (an Ant maze's other goal coordinates: the ant at rest, yaw 0);
+- HRAC's Ant suite: an xy grid of subgoal offsets (HRAC's own adjacency embedding over the maze for the baseline);
+- AMIGo: every cell of one layout that is not a wall (x, y and the object there);
+- Sawyer: goal images with the hand moving over the arena (the puck at the test goal), then the puck moving.
 
 The summary, the same in every setting (`summarise`), for each factor over the goals of the grid:
 - `codes`: how many codes of the shared codebook it uses;
@@ -190,7 +195,7 @@ def ris(saved: dict, step: float = 0.25) -> list[GoalGrid]:
         points, coords, places, blocked = xy_grid(xs, ys, free)
         goals = np.stack([rs.goal_state(point, 0.0) for point in points])
     else:  # a gymnasium-robotics maze: its map's free cells, each sampled on a (1 / step) x (1 / step) grid
-        env = rs.make_env(args.env_id, 0, False, args.max_episode_steps, 0.45)()
+        env = rs.make_env(args.env_id, 0, False, args.max_episode_steps, rs.ROBOTICS_THRESHOLD)()
         maze = env.unwrapped.maze
         walls, scale = np.array(maze.maze_map) == 1, maze.maze_size_scaling
         per_cell = round(1 / step)
@@ -269,6 +274,7 @@ def amigo(saved: dict, layout_seed: int = 0) -> list[GoalGrid]:
         frames, goals = torch.as_tensor(np.repeat(frame[None], keep.sum(), 0)), torch.as_tensor(np.flatnonzero(keep))
         embedding = encoder.head(encoder.trunk(encoder.embedding(frames, goals)))  # before the bottleneck
         codes = quantised(encoder.vq, embedding, args.groups) if args.groups else None
+    envs.close()
     coords = np.stack((x[keep], y[keep], objects[keep]), 1)
     places = np.stack((y[keep], x[keep]), 1)
     label = f"{args.env_id.removeprefix('MiniGrid-')} G = {args.groups}, seed {args.seed}"
@@ -309,22 +315,14 @@ def sawyer(saved: dict, step: float = 0.02) -> list[GoalGrid]:
     return grids
 
 
-NEEDS = {  # the networks a setting's map reads from a checkpoint (besides its flags): what --cut-to keeps
-    "dgrl_goal_dqn.py": ("representation",),
-    "dgrl_ris.py": ("goal_encoder",),
-    "dgrl_hrac.py": ("subgoal_encoder", "adjacency"),
-    "dgrl_hrac_keychest.py": ("goal_autoencoder", "adjacency"),
-    "dgrl_ris_sawyer.py": ("encoder", "vq"),
-    "dgrl_amigo.py": ("goal_encoder",),
-}
-SETTINGS = {
-    "dgrl_goal_dqn.py": goal_dqn,
-    "dgrl_ris.py": ris,
-    "dgrl_hrac.py": hrac,
-    "dgrl_hrac_keychest.py": keychest,
-    "dgrl_ris_sawyer.py": sawyer,
-    "dgrl_amigo.py": amigo,
-}
+SETTINGS = {  # script: (the function that makes its goals and encodes them, the networks its map reads besides the flags)
+    "dgrl_goal_dqn.py": (goal_dqn, ("representation",)),
+    "dgrl_ris.py": (ris, ("goal_encoder",)),
+    "dgrl_hrac.py": (hrac, ("subgoal_encoder", "adjacency")),
+    "dgrl_hrac_keychest.py": (keychest, ("goal_autoencoder", "adjacency")),
+    "dgrl_ris_sawyer.py": (sawyer, ("encoder", "vq")),
+    "dgrl_amigo.py": (amigo, ("goal_encoder",)),
+}  # --cut-to keeps the networks a map reads
 
 
 # --- The figure and the table ------------------------------------------------------------------------------------------
@@ -397,9 +395,10 @@ def main(args: Args) -> None:
         script = saved.get("script") if isinstance(saved, dict) else None
         if script not in SETTINGS:
             raise SystemExit(f"{path}: a checkpoint of {script}; factor maps exist for {', '.join(SETTINGS)}")
-        grids += SETTINGS[script](saved)
+        encode, needs = SETTINGS[script]
+        grids += encode(saved)
         if args.cut_to is not None:
-            kept = {key: saved[key] for key in ("script", "format", "args", *NEEDS[script]) if saved.get(key) is not None}
+            kept = {key: saved[key] for key in ("script", "format", "args", *needs) if saved.get(key) is not None}
             env = saved["args"].get("env_id")  # the scripts with several envs name theirs
             stem = script.removeprefix("dgrl_").removesuffix(".py") + (f"_{env.removeprefix('MiniGrid-')}" if env else "")
             Path(args.cut_to).mkdir(parents=True, exist_ok=True)

@@ -44,6 +44,7 @@ PATHS="eager compile cudagraphs"
 [ "$DEVICE" = cpu ] && PATHS="eager compile"
 BEST=cudagraphs
 [ "$DEVICE" = cpu ] && BEST=compile
+GL_CHOSEN=${MUJOCO_GL:+yes}  # a MUJOCO_GL of the caller's is kept as it is
 export MUJOCO_GL=${MUJOCO_GL:-egl} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
 : >"$LOG"
 say() { echo "$@" | tee -a "$LOG"; }
@@ -69,6 +70,13 @@ if [ -n "${WHEELS:-}" ]; then
         --target "$SITE" "${wheels[@]}" || { echo "gpu_check: pip could not install the wheels of $WHEELS"; exit 1; }
     say "gpu_check: ${#wheels[@]} wheels of $WHEELS installed into $SITE in $(( $(date +%s) - wheels_started )) s"
     export PYTHONPATH=$SITE${PYTHONPATH:+:$PYTHONPATH}
+fi
+# A machine without the EGL library fails at `import mujoco` itself with MUJOCO_GL=egl (mujoco's EGL module raises an
+# AttributeError from PyOpenGL, which mujoco does not catch): every MuJoCo script would crash. glfw imports without a
+# display and steps MuJoCo; it cannot render, so the Sawyer probe (pixel observations) fails and says so.
+if [ -z "$GL_CHOSEN" ] && ! "$PYTHON" -c "import mujoco" >/dev/null 2>&1 && MUJOCO_GL=glfw "$PYTHON" -c "import mujoco" 2>/dev/null; then
+    export MUJOCO_GL=glfw
+    say "gpu_check: import mujoco fails with MUJOCO_GL=egl (no EGL library?): MUJOCO_GL=glfw, which cannot render (no Sawyer figure)"
 fi
 DEVICE=$DEVICE SITE=$SITE "$PYTHON" - <<'EOF' | tee -a "$LOG" || exit 1
 import importlib.metadata as metadata, importlib.util, os, sys

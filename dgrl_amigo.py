@@ -23,6 +23,7 @@ The studies: `python benchmark/launch.py --preset amigo-paper` (and the CPU pres
 """
 
 import copy
+import fcntl
 import importlib.util
 import math
 import os
@@ -418,10 +419,11 @@ def main(args: Args) -> None:
     """Train AMIGo (--groups 0) or DGRL on AMIGo (--groups G) with `args`, or evaluate --checkpoint."""
     validate(args)
     args.goal_channel = resolve_goal_channel(args.goal_channel, args.groups)  # saved, matched and resumed as on or off
-    saved = load_resume(args) if args.resume is not None else None
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
+    if args.resume is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
+    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
+    saved = load_resume(args) if args.resume is not None else None
     device = seed_and_device(args)
     envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
     width, height, n_envs, T = envs.width, envs.height, args.num_envs, args.num_steps
@@ -433,6 +435,7 @@ def main(args: Args) -> None:
         return
 
     # A resumed run's TensorBoard drops what the stopped run logged after its resume.pt: it logged up to that step.
+    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
     writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
     print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
     t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
@@ -1215,6 +1218,27 @@ def exit_on_errors(errors: list[str]) -> None:
     if errors:
         print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
         raise SystemExit(2)
+
+
+LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
+
+
+def hold_run_folder(run_name: str):
+    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
+    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
+    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
+    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
+    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "a run that is starting"
+        exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    lock.truncate(0)
+    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+    lock.flush()
+    return lock
 
 
 # --- end of the shared checks -----------------------------------------------------------------------------------------

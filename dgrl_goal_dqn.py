@@ -22,6 +22,7 @@ The whole study (5 seeds; the paper has 3): python benchmark/launch.py --preset 
 """
 
 import copy
+import fcntl
 import importlib.util
 import math
 import os
@@ -433,11 +434,12 @@ def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tup
 def main(args: Args) -> None:
     """Pre-train phi, then train the goal-conditioned DQN (DGRL, or --groups 0 the baseline); or evaluate a --checkpoint."""
     validate(args)
+    run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if args.resume is not None:
+        run_name = os.path.basename(os.path.normpath(args.resume))
+    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
     saved = load_resume(args) if args.resume is not None else None  # another script's file or changed flags: exit 2 here
     dgrl = args.groups > 0
-    run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)  # random walks, replay batches and image noise
 
@@ -459,6 +461,7 @@ def main(args: Args) -> None:
         phase, step_key = ("DQN", "global_step") if saved["loop"]["dqn_phase"] else ("pre-training", "rep_step")
         first_unlogged = max(saved["loop"][step_key], 1)
         resumed = f", resumed at {phase} step {saved['loop'][step_key]}"
+    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
     writer = make_writer(args, run_name, purge_step=first_unlogged)
     goal_text = ", ".join(f"{split} goals {cells.tolist()}" for split, cells in goals.items())
     print(f"{run_name}: {goal_text}, device {device}{resumed}")
@@ -1240,6 +1243,27 @@ def exit_on_errors(errors: list[str]) -> None:
     if errors:
         print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
         raise SystemExit(2)
+
+
+LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
+
+
+def hold_run_folder(run_name: str):
+    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
+    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
+    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
+    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
+    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "a run that is starting"
+        exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    lock.truncate(0)
+    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+    lock.flush()
+    return lock
 
 
 # --- end of the shared checks -----------------------------------------------------------------------------------------

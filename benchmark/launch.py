@@ -17,7 +17,9 @@ exits is protocol.py. docs/launch.md is the manual.
 
 from __future__ import annotations
 
+import ctypes
 import fcntl
+import functools
 import importlib.util
 import json
 import os
@@ -111,6 +113,20 @@ def command_of(run: Run, python: str) -> list[str]:
     return command
 
 
+LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None  # for prctl
+PR_SET_PDEATHSIG = 1
+
+
+def stop_with_launcher(launcher_pid: int) -> None:
+    """Run in the run's process before its script starts: on Linux, the kernel sends it SIGTERM when the launcher ends,
+    however it ends (kill -9, the out-of-memory killer, a closed terminal), so that it stops after its step and writes
+    its resume file, as on Ctrl-C, instead of training on as an orphan that a relaunch would race. (Elsewhere there is
+    no such signal: an orphan trains on, and a relaunch waits for it, as for any run whose folder is locked.)"""
+    LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != launcher_pid:  # the launcher ended before the line above: no signal will come
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 STOPPED_BY = (-signal.SIGTERM, -signal.SIGUSR1)  # the launcher's stop signals, as exit statuses of an unhandled one
 
 
@@ -129,7 +145,9 @@ def start(run: Run, python: str, threads: int) -> Attempt:
     log.flush()
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONUNBUFFERED="1")
     env.setdefault("MUJOCO_GL", "egl")
-    process = subprocess.Popen(command, cwd=run.folder, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    ends_with_us = functools.partial(stop_with_launcher, os.getpid()) if LIBC else None
+    options = {"cwd": run.folder, "stdout": log, "stderr": subprocess.STDOUT, "env": env, "preexec_fn": ends_with_us}
+    process = subprocess.Popen(command, start_new_session=True, **options)
     log.close()
     write_status(
         run,
@@ -169,6 +187,16 @@ def finish(attempt: Attempt) -> dict:
     status["tail"] = lines[-DEFAULT_TAIL:] if state == "failed" else []
     write_status(attempt.run, status)
     return status
+
+
+def last_ending(run: Run) -> str | None:
+    """How the run's latest attempt ended by its log ("done", "stopped" or None): for a run that ended while no launcher
+    watched it (an orphan of a killed launcher, on a system without the parent-death signal)."""
+    try:
+        text = (run.folder / LOG_FILE).read_text(errors="replace")
+    except OSError:
+        return None
+    return protocol.ending(text.rsplit("\n=== attempt ", 1)[-1].splitlines(), 0)
 
 
 def progress_of(run: Run) -> dict:
@@ -250,22 +278,42 @@ def failure_report(run: Run) -> str:
 
 
 def run_local(runs: list[Run], workers: int, python: str, threads: int, table_every: float) -> dict[str, str]:
-    """Run every run, `workers` at a time; Ctrl-C or SIGTERM stops them cleanly (each writes its resume file)."""
+    """Run every run, `workers` at a time; Ctrl-C or SIGTERM stops them cleanly (each writes its resume file). A run
+    whose folder another process holds (a killed launcher's run, still stopping or training) is waited for, then
+    resumed (or recorded as done), never started beside it."""
     states: dict[str, str] = {}
-    pending, active = list(runs), []
+    pending, active, elsewhere = list(runs), [], []  # elsewhere: (run, the lock's holder), a worker's place each
     stop = []
     previous = {number: signal.signal(number, lambda n, f: stop.append(n)) for number in (signal.SIGINT, signal.SIGTERM)}
     last_table = time.time()  # the first table after --table-every seconds, when the runs have something to show
     try:
-        while pending or active:
+        while pending or active or elsewhere:
             if stop:  # the first Ctrl-C or SIGTERM stops the runs cleanly, a second one at once
                 pending.clear()
+                for run, holder in elsewhere:
+                    print(f"left alone {run.run_id}: still running elsewhere ({holder})", flush=True)
+                elsewhere.clear()
                 for attempt in active:
                     if len(stop) > 1 and attempt.process.poll() is None:
                         attempt.process.send_signal(signal.SIGTERM)
                     stop_attempt(attempt)
-            while pending and len(active) < workers:
+            for run, holder in list(elsewhere):
+                if protocol.lock_holder(run.run_dir()) is None:  # it has ended: record it, or resume it next
+                    elsewhere.remove((run, holder))
+                    if last_ending(run) == "done":
+                        write_status(run, {**run.status(), "state": "done", "rc": 0})
+                        states[run.run_id] = "done"
+                        print(f"done {run.run_id} (ended elsewhere)", flush=True)
+                    else:
+                        pending.insert(0, run)
+            while pending and len(active) + len(elsewhere) < workers:
                 run = pending.pop(0)
+                holder = protocol.lock_holder(run.run_dir())
+                if holder is not None:
+                    elsewhere.append((run, holder))
+                    states[run.run_id] = "elsewhere"
+                    print(f"running elsewhere {run.run_id} ({holder}): waiting for it to end, not starting it", flush=True)
+                    continue
                 active.append(start(run, python, threads))
                 states[run.run_id] = "running"
                 print(f"started {run.run_id}", flush=True)
@@ -279,7 +327,7 @@ def run_local(runs: list[Run], workers: int, python: str, threads: int, table_ev
                 )
                 if status["state"] == "failed":
                     print(failure_report(attempt.run), flush=True)
-            if time.time() - last_table >= table_every and (pending or active):
+            if time.time() - last_table >= table_every and (pending or active or elsewhere):
                 print(table(runs, states), flush=True)
                 last_table = time.time()
             time.sleep(0.5)
@@ -491,9 +539,11 @@ def main(args: Args) -> int:
     skipped = sum(state == "skipped" for state in states.values())
     failed_before = [run for run in runs if states.get(run.run_id) == "failed"]
     resuming = sum("--resume" in command_of(run, args.python) for run in todo)
+    busy = sum(protocol.lock_holder(run.run_dir()) is not None for run in todo)
     print(
         f"sweep {name}: {len(runs)} runs in {folder}; {skipped} done before, {len(failed_before)} failed before "
-        f"(--retry runs them again), {len(todo)} to run ({resuming} resuming)",
+        f"(--retry runs them again), {len(todo)} to run ({resuming} resuming)"
+        + (f", {busy} of them still running elsewhere (waited for, never started twice)" if busy else ""),
         flush=True,
     )
     if todo:

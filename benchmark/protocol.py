@@ -12,11 +12,15 @@ A script, run as `python dgrl_x.py FLAGS` in a run folder:
   its checkpoint, prints `stopped: {summary}; {s}s; logs in runs/{run_name}` and exits with status 0 (a second
   signal of the same kind stops it at once);
 - after a full run prints `done: {summary}; {s}s; logs in runs/{run_name}` and exits with status 0;
-- continues a stopped run exactly with `--resume runs/{run_name}`, from the run folder.
+- continues a stopped run exactly with `--resume runs/{run_name}`, from the run folder;
+- holds an exclusive lock (flock) on `runs/{run_name}/run.lock` for as long as it writes the run folder, with `pid N on
+  HOST` in it: a second process on the folder exits 2 naming that holder; the kernel drops the lock when the holder
+  ends, however it ends. The launcher reads the lock (`lock_holder`) to tell a run still alive from a stopped one.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -29,6 +33,7 @@ from pathlib import Path
 EXIT_BAD_FLAGS = 2
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)  # each means "stop after this step" to a script
 RESUME_FILE = "resume.pt"  # in runs/{run_name}/ (the scripts' RESUME_FILE)
+LOCK_FILE = "run.lock"  # in runs/{run_name}/, held by the process that writes the run (the scripts' LOCK_FILE)
 DONE, STOPPED = "done: ", "stopped: "  # how the last line of a finished or stopped run starts
 PROGRESS = re.compile(r"^\S+\s+(\d+)/(\d+)\s+(.*?)\s+SPS (\d+)\s+\d+s elapsed, (?:(\d+)s left|time left unknown)")
 
@@ -40,6 +45,18 @@ def read_progress(line: str) -> dict | None:
         return None
     step, total, figures, sps, left = found.groups()
     return {"step": int(step), "total": int(total), "figures": figures, "sps": int(sps), "left": left and int(left)}
+
+
+def lock_holder(run_dir: Path | None) -> str | None:
+    """Who holds a run folder's lock ("pid N on HOST"), while a process does; None when none does (or no folder)."""
+    if run_dir is None or not (run_dir / LOCK_FILE).is_file():
+        return None
+    with open(run_dir / LOCK_FILE) as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)  # granted only while no process holds it exclusively
+        except BlockingIOError:
+            return lock.read().strip() or "a run that is starting"
+    return None  # (closing the file released the probe)
 
 
 def ending(lines: list[str], rc: int) -> str | None:

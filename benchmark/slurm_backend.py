@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import protocol
 import submitit
 from launch import (
     DEFAULT_TAIL,
@@ -49,13 +50,33 @@ class SlurmTask(Checkpointable):
 
     def __call__(self) -> list[dict]:
         todo = [run for run in self.runs if run.status().get("state") != "done"]
-        self.attempts = [start(run, self.python, self.threads) for run in todo]
+        free = self.free(todo)
+        self.attempts = [start(run, self.python, self.threads) for run in free]
         self.wait()
         statuses = [finish(attempt) for attempt in self.attempts]
-        failed = [run for run, status in zip(todo, statuses, strict=True) if status["state"] != "done"]
+        failed = [run for run, status in zip(free, statuses, strict=True) if status["state"] != "done"]
+        failed += [run for run in todo if run not in free]
         if failed:
             raise RuntimeError("\n".join(failure_report(run) for run in failed))
         return statuses
+
+    def free(self, runs: list[Run]) -> list[Run]:
+        """The runs whose folder no process holds. A requeued task may start while the one before it still writes its
+        resume files (its node slow to let go): each held run is waited for up to `stop_wait` seconds, then refused
+        (recorded as failed, naming the holder), never started beside it."""
+        end = time.time() + self.stop_wait
+        held = {run.run_id: holder for run in runs if (holder := protocol.lock_holder(run.run_dir()))}
+        while held and time.time() < end:
+            time.sleep(1)
+            held = {run.run_id: holder for run in runs if (holder := protocol.lock_holder(run.run_dir()))}
+        for run in runs:
+            if run.run_id in held:
+                why = (
+                    f"runs/{run.run_dir().name} is still held by {held[run.run_id]} after {self.stop_wait:.0f} s: the "
+                    "task before this one has not let go of it; launch the sweep again with --retry once it has ended"
+                )
+                write_status(run, {**run.status(), "state": "failed", "rc": None, "tail": [why]})
+        return [run for run in runs if run.run_id not in held]
 
     def wait(self, timeout: float | None = None) -> None:
         """Until every run has ended; after `timeout` seconds, the ones left are killed."""

@@ -401,6 +401,75 @@ def test_a_second_launcher_of_a_running_sweep_is_refused(tmp_path):
     assert ended["state"] == "stopped" and ended["rc"] == -signal.SIGTERM and ended["seconds"] > 0
 
 
+def hold_lock(run_dir: Path, holder: str):
+    """Take a run folder's lock as a live run holds it (flock, its holder written in), once no process holds it."""
+    import fcntl
+
+    wait_for(lambda: protocol.lock_holder(run_dir) is None, HANG_TIMEOUT, f"{run_dir.name}'s process to end")
+    lock = open(run_dir / protocol.LOCK_FILE, "a+")
+    fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    lock.truncate(0)
+    lock.write(f"{holder}\n")
+    lock.flush()
+    return lock
+
+
+def test_a_killed_launchers_runs_stop_with_it_and_a_relaunch_trains_each_once_exactly(tmp_path):
+    """kill -9 of a launcher with two runs under way (each held at its first progress line): each run gets SIGTERM
+    from the kernel as its launcher dies and stops with its resume file, as on Ctrl-C. The launch again finds one run
+    still held by another process (the test takes its lock, as a run still stopping or an orphan training on would hold
+    it): it says so, waits, never starts it beside the holder, and resumes it once free. Both runs end equal to a
+    straight sweep's, each attempt starting only after the one before it has ended (one writer at a time)."""
+    flags = ["--groups", "0", "4", "--seeds", "1", "--", *GOAL_DQN]
+    straight = popen_launcher(tmp_path / "straight", "--script", "dgrl_goal_dqn.py", *flags)
+    flags = ["--script", str(held_goal_dqn(tmp_path)), *flags]
+    killed = popen_launcher(tmp_path / "killed", *flags)
+    sweep, ids = tmp_path / "killed" / "dgrl_goal_dqn", ["goal_dqn__G0__s1", "goal_dqn__G4__s1"]
+    for run_id in ids:
+        wait_for(lambda run_id=run_id: log_has_progress(sweep, run_id), HANG_TIMEOUT, f"{run_id}'s first progress line")
+    killed.kill()
+    killed.communicate()
+    for run_id in ids:  # the parent-death signal reached the held runs: they stop as on Ctrl-C
+        wait_for(lambda run_id=run_id: "\nstopped: " in (sweep / run_id / "log.txt").read_text(), HANG_TIMEOUT, "a stop")
+    lock = hold_lock(run_dir(sweep, ids[1]), "pid 4242 on elsewhere-host")
+    relaunch = popen_launcher(tmp_path / "killed", *flags)
+    seen = []
+    for line in relaunch.stdout:
+        seen.append(line)
+        if line.startswith("running elsewhere "):
+            break
+    assert seen[-1].startswith(f"running elsewhere {ids[1]} (pid 4242 on elsewhere-host): waiting"), "".join(seen)
+    assert "2 to run (2 resuming), 1 of them still running elsewhere" in "".join(seen)
+    assert "=== attempt 2" not in (sweep / ids[1] / "log.txt").read_text() and status(sweep, ids[1])["attempts"] == 1
+    lock.close()  # the holder ends: the run resumes
+    output = "".join(seen) + relaunch.communicate(timeout=HANG_TIMEOUT)[0]
+    assert relaunch.returncode == 0, output[-3000:]
+    assert straight.wait(timeout=HANG_TIMEOUT) == 0
+    for run_id in ids:
+        log = (sweep / run_id / "log.txt").read_text()
+        attempts = log.split("=== attempt ")[1:]
+        assert len(attempts) == 2 and status(sweep, run_id)["state"] == "done", log[-3000:]
+        assert "\nstopped: " in attempts[0] and "resumed at DQN step" in attempts[1] and "\ndone: " in attempts[1]
+        assert log.count("\ndone: ") == 1 and protocol.lock_holder(run_dir(sweep, run_id)) is None
+        assert_same_run(run_dir(tmp_path / "straight" / "dgrl_goal_dqn", run_id), run_dir(sweep, run_id))
+
+
+def test_a_slurm_task_waits_for_a_held_run_then_refuses_it_naming_the_holder(tmp_path):
+    """A requeued Slurm task that finds a run's folder still held (the task before it not yet gone) does not start it
+    beside the holder: after its bounded wait (none here) the run is recorded as failed, naming the holder."""
+    from slurm_backend import SlurmTask
+
+    run = launch.expand((launch.Arm("dgrl_goal_dqn.py", (), (4,), (1,), shlex.join(GOAL_DQN)),), "s", tmp_path, 1)[0]
+    (run.folder / "runs" / "held_run").mkdir(parents=True)
+    lock = hold_lock(run.folder / "runs" / "held_run", "pid 4242 on node-7")
+    with pytest.raises(RuntimeError, match="FAILED goal_dqn__G4__s1"):
+        SlurmTask([run], sys.executable, 1, stop_wait=0)()
+    ended = run.status()
+    assert ended["state"] == "failed" and "held by pid 4242 on node-7 after 0 s" in ended["tail"][0]
+    assert not (run.folder / "log.txt").exists()  # never started
+    lock.close()
+
+
 # --- The Slurm backend, on a real cluster ------------------------------------------------------------------------------
 
 

@@ -26,7 +26,7 @@ SHARED_NAMES = [
     "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
     "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS",
     "fast_update", "CudaGraphUpdate",  # the run-management appendix
-    "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors",  # the checks every script makes
+    "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors", "LOCK_FILE", "hold_run_folder",  # checks
     "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
 BLOCK_START = "# --- Run management: identical in every script (tests/test_skeleton.py) "
@@ -482,6 +482,62 @@ def test_ctrl_c_stops_after_the_step_and_the_run_resumes_under_its_own_flags_onl
     command = signal_at_line("SIGINT", first_line, script, *case["flags"], "--save-model", *free, *resume)
     resumed = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT)
     assert resumed.returncode == 0 and re.search(case["stopped"], resumed.stdout), resumed.stdout[-2000:] + resumed.stderr
+
+
+# --- One writer per run folder ------------------------------------------------------------------------------------------
+
+
+def folder_snapshot(folder: Path) -> dict:
+    return {path.name: (path.read_bytes(), path.stat().st_mtime_ns) for path in sorted(folder.iterdir())}
+
+
+def test_a_second_process_on_a_run_folder_is_refused_by_every_script_without_touching_it(tmp_path):
+    """While another process holds runs/NAME (its lock file taken, as a live run holds it), `--resume runs/NAME` exits 2
+    in every script, naming the holder's pid and host, before reading or writing anything there (the resume file here
+    is not even a torch file: reading it would fail otherwise)."""
+    import fcntl
+
+    folder = tmp_path / "runs" / "held_run"
+    folder.mkdir(parents=True)
+    (folder / "resume.pt").write_bytes(b"not read")
+    lock = open(folder / "run.lock", "a+")
+    fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    lock.write("pid 4242 on elsewhere-host\n")
+    lock.flush()
+    before = folder_snapshot(folder)
+    for script in SCRIPTS:
+        (refused,) = run_many(script, [(tmp_path, [*CTRL_C[script]["flags"], "--resume", "runs/held_run"])])
+        assert refused.returncode == 2 and "Traceback" not in refused.stderr, (script, refused.stderr[-2000:])
+        assert "runs/held_run is in use by pid 4242 on elsewhere-host" in refused.stderr, (script, refused.stderr)
+        assert folder_snapshot(folder) == before, script
+    lock.close()
+
+
+def test_a_running_run_holds_its_folder_and_a_sigkill_frees_it_at_once(tmp_path):
+    """A goal-DQN run holds its folder while it trains: a second `--resume` of it is refused, naming the run's pid. Once
+    the run is SIGKILLed (no handler runs), the lock is free as soon as the process is gone, and --resume proceeds."""
+    sys.path.insert(0, str(ROOT / "benchmark"))
+    import protocol
+
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    flags = CTRL_C["dgrl_goal_dqn.py"]["flags"]
+    command = [sys.executable, str(ROOT / "tests" / "signal_at_line.py"), "hold", CTRL_C["dgrl_goal_dqn.py"]["at"]]
+    held = subprocess.Popen([*command, str(ROOT / "dgrl_goal_dqn.py"), *flags], cwd=tmp_path, env=env, stdout=subprocess.PIPE)
+    for line in held.stdout:  # the run waits at this line (its DQN phase has written resume.pt) until a signal comes
+        if re.search(CTRL_C["dgrl_goal_dqn.py"]["at"], line.decode()):
+            break
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert protocol.lock_holder(run_dir) == f"pid {held.pid} on {os.uname().nodename}"
+    (refused,) = run_many("dgrl_goal_dqn.py", [(tmp_path, [*flags, "--resume", f"runs/{run_dir.name}"])])
+    assert refused.returncode == 2 and f"is in use by pid {held.pid} on " in refused.stderr, refused.stderr[-2000:]
+    held.kill()
+    held.wait()
+    assert protocol.lock_holder(run_dir) is None
+    stopped = subprocess.run(
+        signal_at_line("SIGINT", "resumed at DQN step", "dgrl_goal_dqn.py", *flags, "--resume", f"runs/{run_dir.name}"),
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=HANG_TIMEOUT,
+    )  # fmt: skip
+    assert stopped.returncode == 0 and "stopped: " in stopped.stdout, stopped.stdout[-2000:] + stopped.stderr[-2000:]
 
 
 # --- Progress: the time left stays current, the step-based resume trigger ----------------------------------------------

@@ -240,14 +240,16 @@ class GoalEncoder(nn.Module):
 
 
 class Teacher(nn.Module):
-    """AMIGo's goal generator: embedded full grid (10 channels), four 3x3 stride-1 convs 10-16-16-16-1 with ELU, one
-    logit per grid cell (flat index x * H + y, walls included), and a baseline Linear(W * H -> 1) on the logits."""
+    """AMIGo's goal generator: embedded full grid (10 channels), four 3x3 stride-1 convs 10-16-16-16-1, each followed by
+    an ELU (the last one too, as in the original: no cell's logit is below -1, so the teacher cannot drive a cell's
+    probability to zero), one logit per grid cell (flat index x * H + y, walls included), and a baseline
+    Linear(W * H -> 1) on the logits."""
 
     def __init__(self, width: int, height: int):
         super().__init__()
         self.embedding = GridEmbedding()
         convs = [nn.Conv2d(cin, cout, 3, stride=1, padding=1) for cin, cout in ((10, 16), (16, 16), (16, 16), (16, 1))]
-        self.net = nn.Sequential(convs[0], nn.ELU(), convs[1], nn.ELU(), convs[2], nn.ELU(), convs[3], nn.Flatten())
+        self.net = nn.Sequential(convs[0], nn.ELU(), convs[1], nn.ELU(), convs[2], nn.ELU(), convs[3], nn.ELU(), nn.Flatten())
         self.baseline = nn.Linear(width * height, 1)
 
     def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -323,12 +325,13 @@ def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts):
 
 
 def actor_critic_loss(logits, values, actions, vs, advantages, baseline_coef: float, entropy_coef: float):
-    """IMPALA's loss, summed over the batch as in torchbeast: policy gradient + baseline_coef * 0.5 * (v_s - V)^2 -
-    entropy_coef * entropy. Returns (total, policy, baseline, entropy)."""
+    """IMPALA's loss on (T, B) tensors, each term averaged over the batch and summed over time as AMIGo's code reduces
+    it: policy gradient + baseline_coef * 0.5 * (v_s - V)^2 - entropy_coef * entropy. RMSprop's eps (0.01) and the
+    gradient clip (40) are set for this scale. Returns (total, policy, baseline, entropy)."""
     log_probs = F.log_softmax(logits, -1)
-    policy_loss = -(log_probs.gather(-1, actions[..., None]).squeeze(-1) * advantages).sum()
-    baseline_loss = 0.5 * ((vs - values) ** 2).sum()
-    entropy = -(log_probs.exp() * log_probs).sum()
+    policy_loss = -(log_probs.gather(-1, actions[..., None]).squeeze(-1) * advantages).mean(1).sum()
+    baseline_loss = 0.5 * ((vs - values) ** 2).mean(1).sum()
+    entropy = -(log_probs.exp() * log_probs).sum(-1).mean(1).sum()
     return policy_loss + baseline_coef * baseline_loss - entropy_coef * entropy, policy_loss, baseline_loss, entropy
 
 
@@ -350,7 +353,7 @@ def teacher_loss(teacher: Teacher, batch: dict[str, torch.Tensor], *, baseline_c
     total, policy, base, entropy = actor_critic_loss(
         logits[None], baseline[None], goals[None], vs[None], advantages[None], baseline_coef, entropy_coef
     )
-    return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy / len(goals)}
+    return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy}  # (one step: the mean)
 
 
 def teacher_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict:
@@ -386,15 +389,23 @@ def student_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> 
     loss, policy_loss, baseline_loss, entropy = actor_critic_loss(
         logits, values[:T], actions, vs, advantages, args.baseline_coef, args.entropy_coef
     )
-    # DGRL: the commitment loss summed over the batch's goals like the RL losses (zero for AMIGo)
-    learn(agent.student_optimizer, loss + vq_loss * len(goals), args.max_grad_norm)
-    metrics = {"policy_loss": policy_loss, "baseline_loss": baseline_loss, "entropy": entropy / (T * B)}
+    # DGRL: the commitment loss over the batch's goals reduced like the RL losses, summed over time and averaged over
+    # the batch (its mean over the (T + 1) * B goals times T + 1); zero for AMIGo
+    learn(agent.student_optimizer, loss + vq_loss * (len(goals) / B), args.max_grad_norm)
+    metrics = {"policy_loss": policy_loss, "baseline_loss": baseline_loss, "entropy": entropy / T}
     return {name: value.detach() for name, value in metrics.items()} | {"vq_loss": vq_loss.detach(), "codes": codes}
 
 
 def linear_decay(frames: int, total: int) -> float:
     """The learning-rate factor after `frames` of a `total`-frame run: 1 at the start, 0 at the end."""
     return max(1.0 - frames / total, 0.0)
+
+
+def update_lr_factor(updates: int, frames_per_update: int, total: int) -> float:
+    """AMIGo's schedule, for the student and the teacher alike: the `updates`-th update of an optimizer (counting it)
+    steps at linear_decay(updates * frames_per_update), frames_per_update being one student batch (T * B): the
+    student's factor follows the frames, and the teacher's, which updates far less often, stays near 1 all run."""
+    return linear_decay(updates * frames_per_update, total)
 
 
 def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
@@ -427,6 +438,7 @@ def main(args: Args) -> None:
     device = seed_and_device(args)
     envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
     width, height, n_envs, T = envs.width, envs.height, args.num_envs, args.num_steps
+    batch_frames = T * args.batch_envs  # one student batch: AMIGo's learning-rate schedules count in these
     agent = make_agent(width, height, envs.n_actions, args, device)
     stop = stop_on_signals()
 
@@ -501,14 +513,14 @@ def main(args: Args) -> None:
                 loop.video = [goal_frame(envs.render()[0], book.goal[0], height)] if loop.record else []
 
         # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
-        student_lr = args.learning_rate * linear_decay(loop.step - n_envs * T, args.total_timesteps)  # at collection start
-        set_learning_rate(agent.student_optimizer, student_lr)
         rollout = {key: np.stack([step[key] for step in steps]) for key in steps[0]}
         last = {"grids": loop.obs["grid"], "carried": loop.obs["carried"], "goal_frames": book.frame, "goals": book.goal}
         for first in range(0, n_envs, args.batch_envs):
             part = slice(first, first + args.batch_envs)
             rollout_part = {key: value[:, part] for key, value in rollout.items()}
             last_part = {key: value[part] for key, value in last.items()}
+            student_lr = args.learning_rate * update_lr_factor(loop.student_updates + 1, batch_frames, args.total_timesteps)
+            set_learning_rate(agent.student_optimizer, student_lr)
             metrics = update_student(agent, student_batch(rollout_part, last_part, device), args)
             loop.student_updates += 1
 
@@ -517,7 +529,9 @@ def main(args: Args) -> None:
             batch = outcomes.pop(args.teacher_batch_size)
             reward_flags = (t_star.value, args.teacher_reward_negative, args.teacher_reward_positive)
             rewards = teacher_reward(batch["reached"], batch["steps"], batch["extrinsic_success"], *reward_flags)
-            teacher_lr = args.teacher_learning_rate * linear_decay(loop.step, args.total_timesteps)
+            teacher_lr = args.teacher_learning_rate * update_lr_factor(
+                loop.teacher_updates + 1, batch_frames, args.total_timesteps
+            )
             set_learning_rate(agent.teacher_optimizer, teacher_lr)
             losses = update_teacher(agent, teacher_tensors(batch, rewards, device), args)
             loop.teacher_updates += 1

@@ -536,18 +536,20 @@ def test_vtrace_at_the_learners_size_matches_the_recursion_without_a_time_loop()
     assert (discounts == 0).any() and (np.exp(target - behaviour) > 1).any()
 
 
-def test_actor_critic_loss_by_hand():
-    logits = torch.zeros(1, 2, 2, requires_grad=True)  # T = 1, B = 2, two actions: log-probabilities -ln 2
-    values = torch.tensor([[0.5, 1.0]], requires_grad=True)
-    actions, vs, advantages = torch.tensor([[0, 1]]), torch.tensor([[1.0, 0.0]]), torch.tensor([[1.0, -2.0]])
+def test_actor_critic_loss_by_hand_averages_over_the_batch_and_sums_over_time():
+    """AMIGo's reduction ("Take the mean over batch, sum over time"), on T = 2 steps of B = 2 rollouts, typed in."""
+    logits = torch.zeros(2, 2, 2, requires_grad=True)  # two actions: log-probabilities -ln 2, entropy ln 2 a step
+    values = torch.tensor([[0.5, 1.0], [0.0, 2.0]], requires_grad=True)
+    actions, vs = torch.tensor([[0, 1], [1, 1]]), torch.tensor([[1.0, 0.0], [1.0, 2.0]])
+    advantages = torch.tensor([[1.0, -2.0], [3.0, 0.0]])
     total, policy, baseline, entropy = amigo.actor_critic_loss(logits, values, actions, vs, advantages, 0.5, 0.01)
     ln2 = math.log(2)
-    assert policy.item() == pytest.approx(-(-ln2 * 1.0 + -ln2 * -2.0))
-    assert baseline.item() == pytest.approx(0.5 * (0.5**2 + 1.0**2))
-    assert entropy.item() == pytest.approx(2 * ln2)
-    assert total.item() == pytest.approx(-ln2 + 0.5 * 0.625 - 0.01 * 2 * ln2)
+    assert policy.item() == pytest.approx(ln2 * ((1.0 - 2.0) / 2 + (3.0 + 0.0) / 2))  # -log pi * A, per step
+    assert baseline.item() == pytest.approx(0.5 * ((0.5**2 + 1.0**2) / 2 + (1.0**2 + 0.0) / 2))
+    assert entropy.item() == pytest.approx(2 * ln2)  # ln 2 a step, averaged over 2 rollouts, summed over 2 steps
+    assert total.item() == pytest.approx(policy.item() + 0.5 * baseline.item() - 0.01 * 2 * ln2)
     total.backward()
-    torch.testing.assert_close(values.grad, 0.5 * (values - vs).detach())  # d/dV of 0.5 * 0.5 * (vs - V)^2
+    torch.testing.assert_close(values.grad, 0.5 * (values - vs).detach() / 2)  # d/dV of 0.5 * 0.5 * (vs - V)^2 / B
 
 
 def test_actor_critic_loss_on_random_numbers():
@@ -556,9 +558,9 @@ def test_actor_critic_loss_on_random_numbers():
     actions, vs, advantages = rng.integers(5, size=(3, 2)), rng.normal(size=(3, 2)), rng.normal(size=(3, 2))
     log_probs = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
     chosen = np.take_along_axis(log_probs, actions[..., None], -1)[..., 0]
-    policy = -(chosen * advantages).sum()
-    baseline = 0.5 * ((vs - values) ** 2).sum()
-    entropy = -(np.exp(log_probs) * log_probs).sum()
+    policy = -(chosen * advantages).mean(1).sum()
+    baseline = 0.5 * ((vs - values) ** 2).mean(1).sum()
+    entropy = -(np.exp(log_probs) * log_probs).sum(-1).mean(1).sum()
     out = amigo.actor_critic_loss(*(torch.tensor(a) for a in (logits, values, actions, vs, advantages)), 0.3, 0.2)
     np.testing.assert_allclose([o.item() for o in out], [policy + 0.3 * baseline - 0.2 * entropy, policy, baseline, entropy])
 
@@ -584,11 +586,12 @@ def test_teacher_loss_on_policy_values():
         logits, baseline = teacher(torch.as_tensor(batch["frame"]))
         log_probs = F.log_softmax(logits, -1)
     logp, r = log_probs[:, cell(3, 2, 5)].double(), torch.tensor(rewards)
-    assert losses["policy_loss"].item() == pytest.approx(-(logp * (r - baseline.double())).sum().item(), rel=1e-5)
-    assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((r - baseline.double()) ** 2).sum().item(), rel=1e-5)
+    # one step of a batch of 3 outcomes: each term is the batch's mean (AMIGo's teacher loss)
+    assert losses["policy_loss"].item() == pytest.approx(-(logp * (r - baseline.double())).mean().item(), rel=1e-5)
+    assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((r - baseline.double()) ** 2).mean().item(), rel=1e-5)
     entropy = -(log_probs.exp() * log_probs).sum(-1).mean().item()
     assert losses["entropy"].item() == pytest.approx(entropy, rel=1e-5)
-    total = losses["policy_loss"] + 0.5 * losses["baseline_loss"] - 0.05 * 3 * losses["entropy"]
+    total = losses["policy_loss"] + 0.5 * losses["baseline_loss"] - 0.05 * losses["entropy"]
     assert losses["loss"].item() == pytest.approx(total.item(), rel=1e-5)
 
 
@@ -604,9 +607,9 @@ def test_teacher_loss_off_policy_truncates_the_importance_weight():
         batch = teacher_batch(teacher, 12, 2, behaviour_shift=shift)
         batch = amigo.teacher_tensors(batch, rewards, "cpu")
         losses = amigo.teacher_loss(teacher, batch, baseline_coef=0.5, entropy_coef=0.0)
-        assert losses["policy_loss"].item() == pytest.approx(-(logp * rho * advantage).sum().item(), rel=1e-4)
+        assert losses["policy_loss"].item() == pytest.approx(-(logp * rho * advantage).mean().item(), rel=1e-4)
         vs = baseline.double() + rho * advantage
-        assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((vs - baseline) ** 2).sum().item(), rel=1e-4)
+        assert losses["baseline_loss"].item() == pytest.approx(0.5 * ((vs - baseline) ** 2).mean().item(), rel=1e-4)
 
 
 @pytest.mark.parametrize("direction", [1.0, -1.0])
@@ -801,7 +804,7 @@ def test_student_update_without_dgrl_matches_the_n_step_targets():
     vs, _ = naive_vtrace(rollout["logps"], rollout["logps"], rollout["rewards"], values[:T], values[T], discounts)
     params = {name: p.detach().clone() for name, p in [*student.named_parameters(), *encoder.named_parameters()]}
     metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), STUDENT_ARGS)
-    assert metrics["baseline_loss"].item() == pytest.approx(0.5 * ((vs - values[:T]) ** 2).sum(), rel=1e-4)
+    assert metrics["baseline_loss"].item() == pytest.approx(0.5 * ((vs - values[:T]) ** 2).mean(1).sum(), rel=1e-4)
     assert metrics["codes"] is None and metrics["vq_loss"].item() == 0
     for name, p in [*student.named_parameters(), *encoder.named_parameters()]:
         assert not torch.equal(p, params[name]), name  # the continuous goal encoder learns from the student's loss
@@ -809,6 +812,61 @@ def test_student_update_without_dgrl_matches_the_n_step_targets():
 
 def test_linear_decay_reaches_zero_at_the_budget():
     assert [amigo.linear_decay(frames, 1000) for frames in (0, 250, 1000, 1200)] == [1.0, 0.75, 0.0, 0.0]
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_the_student_step_is_on_the_rl_loss_plus_the_commitment_reduced_the_same_way(groups, monkeypatch):
+    """The loss student_update steps on, caught at `learn`: the three terms as actor_critic_loss reduces them, plus
+    (DGRL) the commitment loss summed over time and averaged over the batch: its mean over the (T + 1) * B goals times
+    T + 1. A batch of each rollout twice steps on the same loss as the batch once (no term grows with B)."""
+    seen = []
+    monkeypatch.setattr(amigo, "learn", lambda optimizer, loss, max_grad_norm: seen.append(loss.detach()))
+    agent = tiny_agent(groups=groups)
+    rollout, last = collect(amigo.MiniGridVecEnv(DOORKEY, 2), agent, steps=4)
+    T = rollout["actions"].shape[0]
+    twice = {key: np.concatenate([value, value], 1) for key, value in rollout.items()}
+    last_twice = {key: np.concatenate([value, value]) for key, value in last.items()}
+    metrics = amigo.student_update(agent, amigo.student_batch(rollout, last, "cpu"), STUDENT_ARGS)
+    rl = metrics["policy_loss"] + 0.5 * metrics["baseline_loss"] - 0.0005 * metrics["entropy"] * T
+    assert seen[0].item() == pytest.approx((rl + metrics["vq_loss"] * (T + 1)).item(), rel=1e-5)
+    assert (metrics["vq_loss"].item() > 0) == (groups > 0)
+    if groups == 0:  # (under DGRL the codebook's EMA moved in the first call)
+        amigo.student_update(agent, amigo.student_batch(twice, last_twice, "cpu"), STUDENT_ARGS)
+        assert seen[1].item() == pytest.approx(seen[0].item(), rel=1e-5)
+
+
+def test_the_teachers_logits_are_never_below_minus_one():
+    """An ELU after the teacher's last conv, as in the original: however large its weights, no cell's logit is below
+    -1, so no cell's probability goes to zero (without it, these weights put logits far below -1)."""
+    teacher = amigo.Teacher(5, 5)
+    with torch.no_grad():
+        for conv in teacher.net:
+            if isinstance(conv, torch.nn.Conv2d):
+                conv.weight.mul_(20.0)
+        frames = amigo.MiniGridVecEnv(DOORKEY, 4).reset(seed=0)[0]["grid"]
+        logits = teacher(torch.as_tensor(frames))[0]
+        before_elu = teacher.net[:-2](teacher.embedding(torch.as_tensor(frames))).flatten(1)
+    assert logits.min().item() >= -1.0 and before_elu.min().item() < -5.0
+    torch.testing.assert_close(logits, F.elu(before_elu))
+
+
+def test_the_learning_rates_step_per_update_as_amigos_schedulers_do(run_script, tmp_path):
+    """Both optimizers follow AMIGo's LambdaLR, stepped once per update of each: the k-th update at 1 - k * T * B / total,
+    T * B one student batch of frames. After a tiny run, each optimizer's rate is its flag's times that factor, k its
+    own update count: the student's follows the frames (0 at the end), the teacher's only its few updates."""
+    result = run_script("dgrl_amigo.py", *TINY, "--checkpoint-every", "0")
+    assert result.returncode == 0, result.stderr[-3000:]
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    saved = torch.load(run_dir / "resume.pt", weights_only=False)
+    loop, args, batch_frames = saved["loop"], saved["args"], 8 * 1  # --num-steps 8, --batch-envs 1
+    for name, updates, lr in (
+        ("student", "student_updates", "learning_rate"),
+        ("teacher", "teacher_updates", "teacher_learning_rate"),
+    ):
+        (group,) = saved[f"{name}_optimizer"]["param_groups"]
+        factor = max(1 - loop[updates] * batch_frames / args["total_timesteps"], 0.0)
+        assert float(group["lr"]) == pytest.approx(args[lr] * factor), (name, loop[updates])
+    assert 0 < loop["teacher_updates"] < loop["student_updates"]  # the teacher's rate stays high, the student's is 0
 
 
 # --- the --fast path --------------------------------------------------------------------------------------------------

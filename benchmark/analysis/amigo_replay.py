@@ -27,14 +27,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 
-ANCHOR = """    learn(agent.student_optimizer, loss + vq_loss * len(goals), args.max_grad_norm)
+ANCHOR = """    learn(agent.student_optimizer, loss + vq_loss * (len(goals) / B), args.max_grad_norm)
 """
 MEASURE = """    named = [(n, q) for n, q in agent.student.named_parameters() if q.requires_grad]
     named += [("goal_encoder." + n, q) for n, q in agent.goal_encoder.named_parameters() if q.requires_grad]
     before = {n: q.detach().clone() for n, q in named}
     state = agent.student_optimizer.state
     square_avg = {n: state[q]["square_avg"].clone() for n, q in named if "square_avg" in state.get(q, {})}
-    learn(agent.student_optimizer, loss + vq_loss * len(goals), args.max_grad_norm)
+    learn(agent.student_optimizer, loss + vq_loss * (len(goals) / B), args.max_grad_norm)
     REPLAY["update"] += 1
     if REPLAY["first"] <= REPLAY["update"] <= REPLAY["last"]:
         with torch.no_grad():
@@ -55,7 +55,7 @@ MEASURE = """    named = [(n, q) for n, q in agent.student.named_parameters() if
             f"its gradient {surprise:.1f}x its running RMS)  "
             f"grad norm {REPLAY['grad_norm']:.0f}  |advantage| max {float(advantages.abs().max()):.2f}  "
             f"rewards {float(batch['rewards'].sum()):.1f}  episode ends {float(batch['dones'].sum()):.0f}  "
-            f"entropy {float(entropy.detach()) / (T * B):.3f}",
+            f"entropy {float(entropy.detach()) / T:.3f}",
             flush=True,
         )
     if REPLAY["update"] >= REPLAY["last"]:

@@ -454,6 +454,20 @@ def test_a_killed_launchers_runs_stop_with_it_and_a_relaunch_trains_each_once_ex
         assert_same_run(run_dir(tmp_path / "straight" / "dgrl_goal_dqn", run_id), run_dir(sweep, run_id))
 
 
+def test_a_run_that_ended_while_no_launcher_watched_is_read_from_its_logs_last_attempt(tmp_path):
+    """What a relaunch records for a run it waited for: the ending of the log's last attempt only."""
+    run = launch.Run("r", "dgrl_goal_dqn.py", [], tmp_path)
+    assert launch.last_ending(run) is None  # no log yet
+    first = "=== attempt 1 at 2026-01-01 00:00:00: python x.py\nstep 1/10  a  SPS 1  1s elapsed, 9s left\n"
+    first += "stopped: 1 step; 1s\n"
+    (tmp_path / "log.txt").write_text(first)
+    assert launch.last_ending(run) == "stopped"
+    (tmp_path / "log.txt").write_text(first + "=== attempt 2 at 2026-01-01 00:01:00: python x.py --resume runs/a\n")
+    assert launch.last_ending(run) is None  # the second attempt has not ended (or crashed): resumed, not recorded done
+    (tmp_path / "log.txt").write_text(first + "=== attempt 2 at 2026-01-01 00:01:00: python x.py\ndone: 10 steps; 9s\n")
+    assert launch.last_ending(run) == "done"
+
+
 def test_a_slurm_task_waits_for_a_held_run_then_refuses_it_naming_the_holder(tmp_path):
     """A requeued Slurm task that finds a run's folder still held (the task before it not yet gone) does not start it
     beside the holder: after its bounded wait (none here) the run is recorded as failed, naming the holder."""

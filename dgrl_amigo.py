@@ -433,7 +433,8 @@ def main(args: Args) -> None:
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if args.resume is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
-    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
+    if args.resume is not None:  # a run still running elsewhere: exit 2 at once, touching nothing
+        hold_run_folder(run_name, check_only=True)
     saved = load_resume(args) if args.resume is not None else None
     device = seed_and_device(args)
     envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
@@ -447,7 +448,7 @@ def main(args: Args) -> None:
         return
 
     # A resumed run's TensorBoard drops what the stopped run logged after its resume.pt: it logged up to that step.
-    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
+    _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
     print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
     t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
@@ -1237,18 +1238,24 @@ def exit_on_errors(errors: list[str]) -> None:
 LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
 
 
-def hold_run_folder(run_name: str):
-    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
-    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
-    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
-    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+def hold_run_folder(run_name: str, check_only: bool = False):
+    """Lock runs/{run_name} for this process's lifetime, before its first write there (an advisory lock the kernel drops
+    when the process ends, however it ends: a SIGKILL leaves no stale lock); keep the returned file. A second process on
+    the folder (--resume twice, a relaunched sweep, a requeued job racing its predecessor) exits 2 naming the holder,
+    before it writes anything. `check_only`: the same refusal at once, creating nothing and holding nothing."""
+    path = os.path.join("runs", run_name, LOCK_FILE)
+    if check_only and not os.path.isfile(path):
+        return None
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    lock = open(path, "r" if check_only else "a+")  # open while the run lives: closing it would unlock
     try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(lock, (fcntl.LOCK_SH if check_only else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
         lock.seek(0)
         holder = lock.read().strip() or "a run that is starting"
         exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    if check_only:
+        return lock.close()
     lock.truncate(0)
     lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
     lock.flush()

@@ -427,7 +427,8 @@ def main(args: Args) -> None:
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if args.resume is not None:  # the stopped run's folder and videos
         run_name = os.path.basename(os.path.normpath(args.resume))
-    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
+    if args.resume is not None:  # a run still running elsewhere: exit 2 at once, touching nothing
+        hold_run_folder(run_name, check_only=True)
     saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     device = seed_and_device(args)
 
@@ -460,7 +461,7 @@ def main(args: Args) -> None:
         loop = restore_training_state(saved, agent, replay, envs, eval_envs)
     diverged = False
 
-    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
+    _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if saved is None else loop.step + 1)  # logs so far: <= step
     print(f"{run_name}: state {state_dim}-d, goal {goal_dim}-d, {args.total_timesteps} steps, device {device}")
     if saved is not None:
@@ -1228,18 +1229,24 @@ def exit_on_errors(errors: list[str]) -> None:
 LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
 
 
-def hold_run_folder(run_name: str):
-    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
-    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
-    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
-    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+def hold_run_folder(run_name: str, check_only: bool = False):
+    """Lock runs/{run_name} for this process's lifetime, before its first write there (an advisory lock the kernel drops
+    when the process ends, however it ends: a SIGKILL leaves no stale lock); keep the returned file. A second process on
+    the folder (--resume twice, a relaunched sweep, a requeued job racing its predecessor) exits 2 naming the holder,
+    before it writes anything. `check_only`: the same refusal at once, creating nothing and holding nothing."""
+    path = os.path.join("runs", run_name, LOCK_FILE)
+    if check_only and not os.path.isfile(path):
+        return None
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    lock = open(path, "r" if check_only else "a+")  # open while the run lives: closing it would unlock
     try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(lock, (fcntl.LOCK_SH if check_only else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
         lock.seek(0)
         holder = lock.read().strip() or "a run that is starting"
         exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    if check_only:
+        return lock.close()
     lock.truncate(0)
     lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
     lock.flush()

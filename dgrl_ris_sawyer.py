@@ -552,7 +552,8 @@ def main(args: Args) -> None:
     run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if args.resume is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
-    lock = hold_run_folder(run_name) if args.resume is not None else None  # a run in use elsewhere: exit 2 at once
+    if args.resume is not None:  # a run still running elsewhere: exit 2 at once, touching nothing
+        hold_run_folder(run_name, check_only=True)
     resumed = None if args.resume is None else load_resume(args)
     device = seed_and_device(args)
     must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups > 0 else ())
@@ -579,7 +580,7 @@ def main(args: Args) -> None:
         loop = restore_training_state(resumed, agent, replay, envs, eval_envs, rng)
 
     # A resumed run drops whatever the stopped one logged after its resume.pt (every figure of `step` came before it).
-    lock = lock or hold_run_folder(run_name)  # one process writes a run folder, for its lifetime
+    _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if resumed is None else loop.step + 1)
     about = f"{image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}"
     print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {loop.step}"))
@@ -1319,18 +1320,24 @@ def exit_on_errors(errors: list[str]) -> None:
 LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
 
 
-def hold_run_folder(run_name: str):
-    """Lock runs/{run_name} for this process's lifetime (an advisory lock the kernel drops when the process ends, however
-    it ends: a SIGKILL leaves no stale lock). A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job racing its predecessor) exits 2 naming the holder, before it writes anything. Keep the returned file."""
-    os.makedirs(os.path.join("runs", run_name), exist_ok=True)
-    lock = open(os.path.join("runs", run_name, LOCK_FILE), "a+")  # open while the run lives: closing it would unlock
+def hold_run_folder(run_name: str, check_only: bool = False):
+    """Lock runs/{run_name} for this process's lifetime, before its first write there (an advisory lock the kernel drops
+    when the process ends, however it ends: a SIGKILL leaves no stale lock); keep the returned file. A second process on
+    the folder (--resume twice, a relaunched sweep, a requeued job racing its predecessor) exits 2 naming the holder,
+    before it writes anything. `check_only`: the same refusal at once, creating nothing and holding nothing."""
+    path = os.path.join("runs", run_name, LOCK_FILE)
+    if check_only and not os.path.isfile(path):
+        return None
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    lock = open(path, "r" if check_only else "a+")  # open while the run lives: closing it would unlock
     try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(lock, (fcntl.LOCK_SH if check_only else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
         lock.seek(0)
         holder = lock.read().strip() or "a run that is starting"
         exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+    if check_only:
+        return lock.close()
     lock.truncate(0)
     lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
     lock.flush()

@@ -104,6 +104,9 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     # G4 ends on 1, 1, 1, below every baseline seed: p = 1 in its favour, 1 / C(6, 3) in the baseline's
     assert f"| 4 | 1, 1, 1 | 1 +- 0 | -1 [-1, -1] | 1.000 | {1 / comb(6, 3):.3f} |" in keychest
     assert "vs G0" in other and "| 0 | 9, 9, 9 | 9 +- 0 | |" in other and "| 16 |" not in other
+    # the family: G4 and G16 of KeyChest, final and first reach (Other has no DGRL run left); each direction counted
+    assert "multiplicity: 4 comparisons with G0; one-sided p <= 0.05 for DGRL in 2, for G0 in 1;" in other
+    assert "| KeyChest__study: eval/return, final, G16 | DGRL | 0.100 | 0.400 |" in other  # 3 at 0.1: 0.1 x 4
     gains = subprocess.run(
         [sys.executable, str(ROOT / "benchmark/analysis/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
          "--summaries", "final", "--gain-between", "KeyChest__study", "Other__study"],
@@ -117,6 +120,23 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
         capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert missing.returncode != 0 and "named Nope; the sweep's: KeyChest__study, Other__study" in missing.stderr
+
+
+def test_holm_multiplies_the_kth_smallest_by_m_minus_k_plus_1_and_keeps_the_order():
+    # sorted: 0.01 x 4 = 0.04, 0.03 x 3 = 0.09, 0.04 x 2 = 0.08 -> 0.09 (never below the one before), 0.2 x 1 = 0.2
+    assert seed_stats.holm([0.01, 0.04, 0.03, 0.2]) == pytest.approx([0.04, 0.09, 0.09, 0.2])
+    assert seed_stats.holm([0.5, 0.6]) == [1.0, 1.0]  # capped at 1
+    assert seed_stats.holm([]) == []
+
+
+def test_the_multiplicity_statement_counts_each_direction_and_adjusts_two_sided_p():
+    family = [("a, G4", 0.004, 1.0), ("a, G16", 0.9, 0.1), ("b, G4", 1.0, 0.02)]
+    lines = seed_stats.multiplicity_lines(family)
+    assert "3 comparisons with G0; one-sided p <= 0.05 for DGRL in 1, for G0 in 1; Holm-adjusted" in lines[1]
+    # two-sided 0.008, 0.2, 0.04: Holm 0.008 x 3 = 0.024, 0.04 x 2 = 0.08, 0.2 x 1 -> 0.2
+    assert "| a, G4 | DGRL | 0.008 | 0.024 |" in lines and "| b, G4 | G0 | 0.040 | 0.080 |" in lines
+    assert "| a, G16 | G0 | 0.200 | 0.200 |" in lines and lines[1].endswith("p <= 0.05 in 1")
+    assert seed_stats.multiplicity_lines([]) == []
 
 
 def test_a_tag_the_baseline_does_not_log_is_tabulated_without_a_comparison(recwarn):

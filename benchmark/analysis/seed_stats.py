@@ -23,6 +23,12 @@ left out, and named. `--gain-between A B` compares the gain of each G over G = 0
 (named as the headers name them, e.g. SpiralWorld__K8__goal-dqn-5seeds and SpiralWorld__K16__goal-dqn-5seeds): the
 difference of the two gains with a 95% bootstrap interval (the seeds of all four groups resampled), the test of
 whether a gain depends on the setting. With --markdown OUT the tables are also written to OUT.
+
+Many comparisons make a small p likely by chance alone, so the output ends with the family of every DGRL-vs-baseline
+comparison it printed (each G, tag, summary and setting): how many favour DGRL and how many the baseline at p <= 0.05,
+and each comparison's two-sided p (twice the smaller one-sided p, at most 1: the direction is chosen after seeing
+the data) beside its Holm-adjusted value over the whole family (Holm's step-down: the k-th smallest of m times
+m - k + 1, kept non-decreasing, at most 1), which controls the chance of any false finding at 0.05.
 """
 
 import argparse
@@ -105,7 +111,49 @@ def bootstrap_interval(treated: np.ndarray, control: np.ndarray, rng: np.random.
     return signed_bootstrap_interval(((1, treated), (-1, control)), rng)
 
 
-def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bool, rng: np.random.Generator) -> list[str]:
+def holm(p_values: list[float]) -> list[float]:
+    """Holm's step-down adjustment, in the given order: the k-th smallest of m p-values times m - k + 1 (k from 1),
+    made non-decreasing in that order and capped at 1."""
+    order = np.argsort(p_values, kind="stable")
+    adjusted, running = np.empty(len(p_values)), 0.0
+    for k, index in enumerate(order):
+        running = max(running, min(1.0, (len(p_values) - k) * p_values[index]))
+        adjusted[index] = running
+    return [float(value) for value in adjusted]
+
+
+def multiplicity_lines(family: list[tuple[str, float, float]]) -> list[str]:
+    """The family of comparisons (name, p in DGRL's favour, p in the baseline's): the counts at p <= 0.05 each way,
+    and per comparison the two-sided p and its Holm-adjusted value."""
+    if not family:
+        return []
+    two_sided = [min(1.0, 2 * min(p, p_worse)) for _, p, p_worse in family]
+    adjusted = holm(two_sided)
+    for_dgrl = sum(p <= 0.05 for _, p, _ in family)
+    for_baseline = sum(p_worse <= 0.05 for _, _, p_worse in family)
+    lines = [
+        "",
+        f"multiplicity: {len(family)} comparisons with G0; one-sided p <= 0.05 for DGRL in {for_dgrl}, for G0 in "
+        f"{for_baseline}; Holm-adjusted two-sided p <= 0.05 in {sum(a <= 0.05 for a in adjusted)}",
+        "",
+    ]
+    lines += ["| comparison | favours | two-sided p | Holm-adjusted |", "|---|---|---|---|"]
+    for (name, p, p_worse), raw, holm_p in zip(family, two_sided, adjusted, strict=True):
+        favours = "DGRL" if p < p_worse else "G0" if p_worse < p else "neither"
+        lines.append(f"| {name} | {favours} | {raw:.3f} | {holm_p:.3f} |")
+    return lines
+
+
+def table(
+    values: dict[int, np.ndarray],
+    marks: dict[int, list[str]],
+    higher: bool,
+    rng: np.random.Generator,
+    family: list | None = None,
+    name: str = "",
+) -> list[str]:
+    """One row per G: its seeds, mean +- std and, for G > 0, the comparison with G0 (appended to `family` as
+    (name, p in DGRL's favour, p in G0's) when given)."""
     lines = [
         "| G | per seed | mean +- std | vs G0: difference [95% bootstrap] | one-sided p, DGRL better | p, G0 better |",
         "|---|---|---|---|---|---|",
@@ -121,6 +169,8 @@ def table(values: dict[int, np.ndarray], marks: dict[int, list[str]], higher: bo
             continue
         low, high = bootstrap_interval(v, values[0], rng)
         p, p_worse = permutation_p(v, values[0], higher), permutation_p(v, values[0], not higher)
+        if family is not None:
+            family.append((f"{name}G{group}", p, p_worse))
         lines.append(row + f" {v.mean() - values[0].mean():+.3g} [{low:+.3g}, {high:+.3g}] | {p:.3f} | {p_worse:.3f} |")
     return lines
 
@@ -202,6 +252,7 @@ def main(
             comparisons.setdefault(context, {}).setdefault(int(match.group(1)), {})[seed] = seeds[0]
     rng = np.random.default_rng(0)
     lines: list[str] = []
+    family: list[tuple[str, float, float]] = []  # every comparison with G0, for the multiplicity statement
     results: dict[tuple[str, str, str], dict[int, np.ndarray]] = {}
     for context, per_group in sorted(comparisons.items()):
         short = drop_short_runs(per_group)
@@ -219,7 +270,8 @@ def main(
                 results[(context, tag, summary)] = values
                 marks = {group: [""] * len(v) for group, v in values.items()}
                 lines += ["", f"{tag}, {SUMMARY_NAMES[summary]} ({'higher' if higher else 'lower'} is better)", ""]
-                lines += table(values, marks, higher, rng)
+                where = f"{context}: " if len(comparisons) > 1 else ""
+                lines += table(values, marks, higher, rng, family, f"{where}{tag}, {SUMMARY_NAMES[summary]}, ")
         for tag, threshold in thresholds:
             reached = {
                 group: [first_reach(c[tag], threshold) for _, c in sorted(seeds.items()) if tag in c]
@@ -228,7 +280,9 @@ def main(
             values = {group: np.array([step for step, _ in pairs]) for group, pairs in reached.items()}
             marks = {group: ["" if hit else ">" for _, hit in pairs] for group, pairs in reached.items()}
             lines += ["", f"first step with {tag} >= {threshold:g} (lower is better; > never reached)", ""]
-            lines += table(values, marks, False, rng)
+            where = f"{context}: " if len(comparisons) > 1 else ""
+            lines += table(values, marks, False, rng, family, f"{where}first step with {tag} >= {threshold:g}, ")
+    lines += multiplicity_lines(family)
     if gain_between:
         lines += gain_lines(results, sorted(comparisons), *gain_between, rng)
     emit(lines, markdown)

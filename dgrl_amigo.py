@@ -379,7 +379,7 @@ def student_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> 
     T, B = batch["actions"].shape
     goals = batch["goals"]
     embedding, vq_loss, codes = agent.goal_encoder(batch["goal_frames"], goals, update=True)  # DGRL: the codebook moves
-    logits, values = agent.student(batch["grids"], batch["carried"], goals, embedding)
+    logits, values = agent.student(batch["grids"], batch["carried"], goals, embedding)  # DGRL: z_q, straight-through
     values = values.view(T + 1, B)  # row T: the bootstrap values
     logits = logits[: T * B].view(T, B, -1)
     actions = batch["actions"]
@@ -605,7 +605,7 @@ def embed_goals(goal_encoder: GoalEncoder, frames: np.ndarray, goals: np.ndarray
 def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Tensor, device):
     """The student's sampled actions and their log-probabilities."""
     grids_t, carry_t, goals_t = tensors(device, obs["grid"], obs["carried"], goals)
-    logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)
+    logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)  # DGRL: z_q of the goal
     actions = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
     return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
 

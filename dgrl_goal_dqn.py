@@ -296,7 +296,7 @@ class CellTable:  # phi's embeddings, the features the agent sees and (DGRL) the
 @torch.no_grad()
 def cell_table(rep: Representation, embedder: CellEmbedder) -> CellTable:
     z = rep.embed(embedder.all_images)
-    features, _, codes = rep(z)  # the codebook does not update
+    features, _, codes = rep(z)  # DGRL: z_q of the cells; the codebook does not update
     return CellTable(z, features, codes)
 
 
@@ -307,7 +307,7 @@ def cell_features(model: Representation, cells: torch.Tensor, table: CellTable |
         codes = None if table.codes is None else table.codes[cells]
         return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
     z = embed_images(model, *observed)
-    features, vq_loss, codes = model(z, update=update)
+    features, vq_loss, codes = model(z, update=update)  # DGRL: z_q; an EMA step only with update
     return features, z, vq_loss, codes
 
 
@@ -408,20 +408,20 @@ def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tup
         next_codes, goal_codes = (None, None) if next_goal_codes is None else next_goal_codes.chunk(2)
         bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)  # DGRL: factor match of s' and g
         rewards = batch.rewards + args.bonus_coef * bonus
-        target_q = agent.target_q_network(*next_goal_features.chunk(2))
+        target_q = agent.target_q_network(*next_goal_features.chunk(2))  # DGRL: z_q(s'), z_q(g), no gradient
         if args.double_dqn:
             online_features = next_goal_features
             if finetune:
                 online_features = cell_features(agent.rep, next_goal_cells, table, online_next_goal)[0]
-            next_actions = agent.q_network(*online_features.chunk(2)).argmax(1, keepdim=True)
+            next_actions = agent.q_network(*online_features.chunk(2)).argmax(1, keepdim=True)  # DGRL: z_q(s'), z_q(g)
             next_values = target_q.gather(1, next_actions).squeeze(1)
         else:
             next_values = target_q.max(1).values
         td_target = rewards + args.gamma * (1 - batch.terminated) * next_values
     # State and goal in one call: one pooled codebook update, and the mean of their commitment losses.
     state_goal_cells = torch.cat([batch.cells[:, 0], batch.cells[:, 2]])
-    state_goal_features, _, vq_loss, _ = cell_features(agent.rep, state_goal_cells, table, state_goal, update=finetune)
-    q_values = agent.q_network(*state_goal_features.chunk(2)).gather(1, batch.actions.unsqueeze(1)).squeeze(1)
+    state_goal_features, _, vq_loss, _ = cell_features(agent.rep, state_goal_cells, table, state_goal, update=finetune)  # DGRL
+    q_values = agent.q_network(*state_goal_features.chunk(2)).gather(1, batch.actions.unsqueeze(1)).squeeze(1)  # DGRL
     td_loss = F.smooth_l1_loss(q_values, td_target)
     learn(agent.q_optimizer, td_loss + vq_loss)  # DGRL: vq_loss is zero unless the codebook is fine-tuned
     metrics = {"td_loss": td_loss, "q_values": q_values.mean(), "bonus": bonus.mean(), "vq_loss": vq_loss}
@@ -523,7 +523,7 @@ def main(args: Args) -> None:
     if loop.rep_step == args.rep_steps and not loop.dqn_phase:  # pre-training has just ended (a stop skips this)
         report_pretraining(writer, loop, pretrained, layout, args, pretraining.start_time)
         if args.finetune:
-            update_target(agent.target_rep, agent.rep)  # the target starts from the pre-trained phi and codebook
+            update_target(agent.target_rep, agent.rep)  # DGRL: the target starts from the pre-trained phi and codebook
         loop.dqn_phase = True
         write_resume()  # the phases share TensorBoard's steps: a pre-training file must not stay
     if args.finetune:
@@ -564,7 +564,7 @@ def main(args: Args) -> None:
             if loop.train_steps % args.target_network_frequency == 0:
                 update_target(agent.target_q_network, agent.q_network)
                 if agent.target_rep is not None:
-                    update_target(agent.target_rep, agent.rep)  # the codebook buffers are copied too
+                    update_target(agent.target_rep, agent.rep)  # DGRL: the codebook buffers are copied too
             if loop.train_steps >= loop.next_train_log:
                 loop.next_train_log += 100
                 writer.add_scalar("losses/td_loss", metrics["td_loss"].item(), loop.global_step)
@@ -626,8 +626,8 @@ def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, in
     else:
         images = np.concatenate([observations["observation"], observations["desired_goal"]])
         z = agent.rep.embed(torch.as_tensor(images, device=next(agent.q_network.parameters()).device))
-        state_features, goal_features = agent.rep(z, update=False)[0].chunk(2)
-    return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()
+        state_features, goal_features = agent.rep(z, update=False)[0].chunk(2)  # DGRL: z_q, no EMA step
+    return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()  # DGRL: z_q(s), z_q(g)
 
 
 @torch.no_grad()
@@ -640,7 +640,7 @@ def evaluate(rep, q_network, embedder, layout: "MazeLayout", goal_cells: np.ndar
     table = None
 
     def features(cells: torch.Tensor) -> torch.Tensor:
-        return rep(embedder(rep, cells))[0] if table is None else table[cells]
+        return rep(embedder(rep, cells))[0] if table is None else table[cells]  # DGRL: z_q
 
     if embedder.noise == 0:  # every observation is one of the maze's distinct images: encode them once, then look up
         table = features(torch.arange(layout.n_cells, device=device))
@@ -650,7 +650,7 @@ def evaluate(rep, q_network, embedder, layout: "MazeLayout", goal_cells: np.ndar
     reached = torch.zeros_like(goals, dtype=torch.bool)
     path = [cells]
     for t in range(max_steps):
-        actions = q_network(features(cells), goal_features).argmax(1)
+        actions = q_network(features(cells), goal_features).argmax(1)  # DGRL: z_q(s), z_q(g)
         cells = torch.where(reached, cells, next_cell[cells, actions])
         path.append(cells)
         arrived = (cells == goals) & ~reached

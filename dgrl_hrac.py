@@ -345,7 +345,7 @@ def off_policy_correction(controller: Actor, states, actions, subgoals, scale, n
     goals_in = torch.stack(goals, 2).float()  # (B, n, k, d)
     observed_in = controller_input(states[:, None, :k]).float().expand(batch, candidates.shape[1], k, states.shape[-1])
     goals_in = controller_goal_input(goal_encoder, goals_in)  # DGRL: the candidates' discrete embeddings
-    predicted = controller(observed_in, goals_in)
+    predicted = controller(observed_in, goals_in)  # DGRL: the candidates' z_q
     log_likelihood = -0.5 * ((predicted - actions[:, None]) ** 2).sum(-1).sum(-1)  # (B, n)
     return candidates[torch.arange(batch, device=candidates.device), log_likelihood.argmax(1)]
 
@@ -437,15 +437,16 @@ def td3_update(level: Level, batch: dict, gamma: float, args: Args, actor_extra=
     max_action = level.actor.max_action
     with torch.no_grad():
         noise = (torch.randn_like(batch["actions"]) * args.policy_noise).clamp(-args.noise_clip, args.noise_clip)
-        next_actions = (level.actor_target(batch["next_states"], batch["next_goals"]) + noise).clamp(-max_action, max_action)
-        target_q = torch.min(*level.critic_target(batch["next_states"], batch["next_goals"], next_actions))
+        next_actions = level.actor_target(batch["next_states"], batch["next_goals"])  # DGRL
+        next_actions = (next_actions + noise).clamp(-max_action, max_action)
+        target_q = torch.min(*level.critic_target(batch["next_states"], batch["next_goals"], next_actions))  # DGRL
         target = batch["rewards"] + gamma * (1.0 - batch["dones"]) * target_q
-    q1, q2 = level.critic(batch["states"], batch["goals"], batch["actions"])
+    q1, q2 = level.critic(batch["states"], batch["goals"], batch["actions"])  # DGRL: the controller's z_q(g), straight-through
     critic_loss = nn.functional.smooth_l1_loss(q1, target) + nn.functional.smooth_l1_loss(q2, target)
     learn(level.critic_optimizer, critic_loss + critic_extra)
-    goals = batch["goals"].detach()
-    actions = level.actor(batch["states"], goals)
-    actor_loss = -level.critic(batch["states"], goals, actions)[0].mean()
+    goals = batch["goals"].detach()  # DGRL: the controller's actor sees z_q(g) without gradient
+    actions = level.actor(batch["states"], goals)  # DGRL: the controller's z_q(g), detached
+    actor_loss = -level.critic(batch["states"], goals, actions)[0].mean()  # DGRL: the controller's z_q(g), detached
     if actor_extra is not None:
         actor_loss = actor_loss + actor_extra(actions)
     learn(level.actor_optimizer, actor_loss)
@@ -767,7 +768,7 @@ def act(agent: Agent, state: np.ndarray, goal: np.ndarray, *, manager: bool, noi
     state = torch.as_tensor(state if manager else controller_input(state), dtype=torch.float32, device=device)[None]
     goal = torch.as_tensor(goal, dtype=torch.float32, device=device)[None]
     goal = goal if manager else controller_goal_input(agent.encoder, goal)  # DGRL: z_q of the subgoal
-    action = actor(state, goal)[0].cpu().numpy().astype(np.float64)
+    action = actor(state, goal)[0].cpu().numpy().astype(np.float64)  # DGRL: the controller sees z_q
     if noise > 0:
         limit = actor.max_action_numpy  # on the host: reading the device buffer back every step would be a sync
         action = np.clip(action + rng.normal(0.0, noise, action.shape), -limit, limit)

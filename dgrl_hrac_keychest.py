@@ -485,7 +485,7 @@ def controller_update(agent: Agent, states, goals, actions, next_states, discoun
         figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)
     intrinsic = args.ctrl_reward_scale * goal_reached(next_states, target_goals, args.goal_threshold, args.reach_rule)
     returns = segment_returns(intrinsic, discounts).float()
-    logits, values = agent.controller(states, goal_inputs)
+    logits, values = agent.controller(states, goal_inputs)  # DGRL: the embedding or the decoded subgoal, detached
     loss, policy_loss, value_loss, entropy = a2c_loss(logits, values, actions, returns, args.ctrl_entropy)
     learn(agent.controller_optimizer, loss)
     figures |= {"losses/ctrl_policy_loss": policy_loss.detach(), "losses/ctrl_value_loss": value_loss.detach()}
@@ -758,7 +758,7 @@ class ControllerRollout:
         self.envs, self.agent, self.choose_subgoals, self.k, self.observations = envs, agent, choose_subgoals, k, observations
         self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
         self.goals = torch.zeros(envs.num_envs, 2, device=next(agent.controller.parameters()).device)
-        self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]
+        self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]  # DGRL
 
     def step(self):
         agent = self.agent
@@ -769,7 +769,7 @@ class ControllerRollout:
             self.goals[index] = self.choose_subgoals(states[index])
             self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]  # DGRL
         with torch.no_grad():
-            logits, _ = agent.controller(states, self.goal_inputs)
+            logits, _ = agent.controller(states, self.goal_inputs)  # DGRL: z_q or the decoded subgoal
             actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
         next_observations, rewards, terminations, truncations, infos = self.envs.step(actions)
         done = terminations | truncations
@@ -803,11 +803,11 @@ def evaluate(envs: "KeyChestVecEnv", agent: Agent, args: Args, frames: list | No
         states = torch.as_tensor(observations, device=device)
         if step % args.k == 0:
             raw_goals = uniform_subgoals(n, device) if random_subgoals else agent.actor(states)
-            goal_inputs, goals, _ = controller_goals(agent.goal_ae, raw_goals, agent.dgrl_goal)  # acting: update=False
+            goal_inputs, goals, _ = controller_goals(agent.goal_ae, raw_goals, agent.dgrl_goal)  # DGRL: acting, update=False
             reached_in_segment.zero_()
         if frames is not None and running[0]:
             frames.append(envs.frame(0, goals[0].cpu().numpy()))
-        logits, _ = agent.controller(states, goal_inputs)
+        logits, _ = agent.controller(states, goal_inputs)  # DGRL: z_q or the decoded subgoal
         actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1)
         observations, rewards, terminations, truncations, infos = envs.step(actions.cpu().numpy())
         done = terminations | truncations

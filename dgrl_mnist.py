@@ -164,7 +164,7 @@ def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
     latent, vq_loss, codes = model.autoencoder.quantize(images)  # DGRL: the baseline's vq_loss is 0, its codes None
     # Squared error summed over an image's pixels, averaged over images (see the docs: a per-pixel mean is ~2,000 times
     # smaller, the commitment loss then dominates the encoder and the codebook collapses).
-    reconstruction_loss = F.mse_loss(model.autoencoder.decode(latent), images, reduction="sum") / len(images)
+    reconstruction_loss = F.mse_loss(model.autoencoder.decode(latent), images, reduction="sum") / len(images)  # DGRL: z_q
     learn(model.optimizer, reconstruction_loss + vq_loss)  # DGRL: vq_loss is 0 for the baseline
     metrics = {"reconstruction": reconstruction_loss.detach(), "vq_loss": vq_loss.detach()}
     if codes is not None:  # DGRL: the codes' statistics for the logs
@@ -325,9 +325,9 @@ def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, refere
     digit_classifier, colour_classifier = referees
     autoencoder.eval()
     # Zero substitution: decode with both factors, factor 1 only, factor 2 only; score digit and colour.
-    latent = torch.cat([autoencoder.quantize(chunk)[0] for chunk in images.split(2000)])
+    latent = torch.cat([autoencoder.quantize(chunk)[0] for chunk in images.split(2000)])  # DGRL: z_q, eval mode
     views = {"both": latent, "factor1": keep_factor(latent, 0), "factor2": keep_factor(latent, 1)}
-    decoded = {name: autoencoder.decode(view) for name, view in views.items()}
+    decoded = {name: autoencoder.decode(view) for name, view in views.items()}  # DGRL: z_q's factors
     results = {"test/reconstruction_mse": F.mse_loss(decoded["both"], images).item()}
     for name, reconstructions in ({"real": images} | decoded).items():
         results[f"{name}/digit_acc"] = (predict(digit_classifier, reconstructions) == digits).float().mean().item()
@@ -339,7 +339,7 @@ def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, refere
     differ = (digits[a] != digits[b]) & (colours[a] != colours[b])
     a, b = a[differ][: args.n_swap_pairs], b[differ][: args.n_swap_pairs]
     swapped_latent = swap_factors(latent[a], latent[b])
-    swapped = torch.cat([autoencoder.decode(chunk) for chunk in swapped_latent.split(10000)])  # memory of the test set
+    swapped = torch.cat([autoencoder.decode(chunk) for chunk in swapped_latent.split(10000)])  # DGRL; memory of the test set
     digit, colour = predict(digit_classifier, swapped), predict(colour_classifier, swapped)
     results["swap/shape1_colour2"] = ((digit == digits[a]) & (colour == colours[b])).float().mean().item()
     results["swap/colour1_shape2"] = ((digit == digits[b]) & (colour == colours[a])).float().mean().item()

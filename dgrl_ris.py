@@ -376,13 +376,13 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
     else:
         goal_z, representation_loss = goals, 0.0
     with torch.no_grad():
-        next_actions = actor.sample(next_states, goal_z.detach())
-        next_q = agent.critic_target(next_states, next_actions, goal_z.detach()).min(0).values
+        next_actions = actor.sample(next_states, goal_z.detach())  # DGRL: z_q(g), detached
+        next_q = agent.critic_target(next_states, next_actions, goal_z.detach()).min(0).values  # DGRL: z_q(g), detached
         target_q = rewards + (1.0 - done) * args.gamma * next_q
-    q_values = critic(states, actions, goal_z)
+    q_values = critic(states, actions, goal_z)  # DGRL: z_q(g), straight-through to the encoder
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
     learn(agent.critic_optimizer, critic_loss + representation_loss)  # DGRL: + the representation loss
-    goal_z = goal_z.detach()
+    goal_z = goal_z.detach()  # DGRL: the high level's values and the actor see z_q(g) without gradient
 
     # High level: advantage-weighted regression onto random replay states.
     subgoal_distribution = high(states, goals)
@@ -391,8 +391,8 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
         value_states = torch.cat((states, subgoals, states, proposed))
         value_goals = torch.cat((subgoals[:, :goal_dim], goals, proposed[:, :goal_dim], goals))
         value_goal_z = goal_input(goal_encoder, value_goals)  # DGRL: V(x, y) sees y's discrete embedding
-        value_actions = torch.tanh(actor(value_states, value_goal_z)[0])
-        values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)
+        value_actions = torch.tanh(actor(value_states, value_goal_z)[0])  # DGRL: z_q(y)
+        values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)  # DGRL: z_q(y)
         weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoals).sum(-1)).mean()
     learn(agent.high_optimizer, high_loss)
@@ -401,11 +401,11 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
     with torch.no_grad():
         imagined = high(states, goals).sample((args.n_subgoals,))  # (K, B, state_dim)
         imagined_z = goal_input(goal_encoder, imagined[..., :goal_dim])  # DGRL: the prior sees discrete subgoals
-        prior_mean, prior_std = agent.actor_target(states.expand(args.n_subgoals, -1, -1), imagined_z)
-    mean, std = actor(states, goal_z)
+        prior_mean, prior_std = agent.actor_target(states.expand(args.n_subgoals, -1, -1), imagined_z)  # DGRL: z_q(s_g)
+    mean, std = actor(states, goal_z)  # DGRL: z_q(g), detached
     actions_pre_tanh = mean + std * torch.randn_like(mean)
     kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, args.prior_epsilon)
-    actor_q = critic(states, torch.tanh(actions_pre_tanh), goal_z).min(0).values
+    actor_q = critic(states, torch.tanh(actions_pre_tanh), goal_z).min(0).values  # DGRL: z_q(g), detached
     actor_loss = (args.alpha * kl - actor_q).mean()
     learn(agent.actor_optimizer, actor_loss)
 
@@ -565,7 +565,7 @@ def main(args: Args) -> None:
 def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
     states = torch.as_tensor(observations["state"], device=device)
     goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: quantized, no update
-    actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)
+    actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)  # DGRL
     return actions.cpu().numpy()
 
 

@@ -486,7 +486,7 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
         conv_maps = agent.encoder.conv_map(images)
         conv_map, features = conv_maps[:batch_size], agent.encoder.head(conv_maps)
         state_z = features[:batch_size]
-        next_z, goal_z, subgoal_z = features[batch_size:].detach().chunk(3)
+        next_z, goal_z, subgoal_z = features[batch_size:].detach().chunk(3)  # DGRL: RIS's losses see them detached
     else:
         conv_map = agent.encoder.conv_map(images[:batch_size])
         state_z = agent.encoder.head(conv_map)
@@ -505,10 +505,10 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
 
     # Critic (policy evaluation); its loss also trains the encoder, the DRIML heads (and, under DGRL, commits to codes).
     with torch.no_grad():
-        next_actions = agent.actor.sample(next_z, goal_in)
-        next_q = agent.critic_target(next_z, next_actions, goal_in).min(0).values
+        next_actions = agent.actor.sample(next_z, goal_in)  # DGRL: z_q(g), detached
+        next_q = agent.critic_target(next_z, next_actions, goal_in).min(0).values  # DGRL: z_q(g), detached
         target_q = rewards + (1.0 - done) * args.gamma * next_q
-    q_values = agent.critic(state_z, actions, goal_in)
+    q_values = agent.critic(state_z, actions, goal_in)  # DGRL: z_q(g), detached
     critic_loss = 0.5 * (q_values - target_q).pow(2).sum(0).mean()
     learn(agent.critic_optimizer, critic_loss + representation_loss)
     state_z = state_z.detach()
@@ -519,8 +519,8 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     with torch.no_grad():
         value_states = torch.cat((state_z, subgoal_z, state_z, proposed))
         value_goals = goal_input(agent.vq, torch.cat((subgoal_z, goal_z, proposed, goal_z)))  # DGRL: V(x, y) sees y discrete
-        value_actions = torch.tanh(agent.actor(value_states, value_goals)[0])
-        values = agent.critic(value_states, value_actions, value_goals).min(0).values.view(4, batch_size)
+        value_actions = torch.tanh(agent.actor(value_states, value_goals)[0])  # DGRL: z_q(y)
+        values = agent.critic(value_states, value_actions, value_goals).min(0).values.view(4, batch_size)  # DGRL: z_q(y)
         weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoal_z).sum(-1)).mean()
     learn(agent.high_optimizer, high_loss)
@@ -528,11 +528,11 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
         imagined = goal_input(agent.vq, agent.high.laplace(state_z, goal_z).sample((args.n_subgoals,)))  # DGRL: quantized
-        prior_mean, prior_std = agent.actor_target(state_z.expand(args.n_subgoals, -1, -1), imagined)
-    mean, std = agent.actor(state_z, goal_in)
+        prior_mean, prior_std = agent.actor_target(state_z.expand(args.n_subgoals, -1, -1), imagined)  # DGRL: z_q(s_g)
+    mean, std = agent.actor(state_z, goal_in)  # DGRL: z_q(g), detached
     actions_pre_tanh = mean + std * torch.randn_like(mean)
     kl = prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, args.prior_epsilon)
-    actor_q = agent.critic(state_z, torch.tanh(actions_pre_tanh), goal_in).min(0).values
+    actor_q = agent.critic(state_z, torch.tanh(actions_pre_tanh), goal_in).min(0).values  # DGRL: z_q(g), detached
     actor_loss = (args.alpha * kl - actor_q).mean()
     learn(agent.actor_optimizer, actor_loss)
 
@@ -690,8 +690,8 @@ def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.nda
     state_z, goal_z = features.chunk(2)
     goal_in = goal_input(agent.vq, goal_z)  # DGRL: the goal quantized, no codebook update
     if deterministic:
-        return torch.tanh(agent.actor(state_z, goal_in)[0]).cpu().numpy()
-    return agent.actor.sample(state_z, goal_in).cpu().numpy()
+        return torch.tanh(agent.actor(state_z, goal_in)[0]).cpu().numpy()  # DGRL: z_q(g)
+    return agent.actor.sample(state_z, goal_in).cpu().numpy()  # DGRL: z_q(g)
 
 
 def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=()) -> dict | None:

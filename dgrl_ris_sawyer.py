@@ -101,7 +101,7 @@ class Args:
     her_random_frac: float = 0.4
     """fraction relabelled with a random replay state (the rest: a future state of the same episode)"""
     image_pad: int = 8
-    """random-translate augmentation: pad by this many pixels (edge replication), crop back at a random offset"""
+    """random-translate augmentation: pad by this many pixels (zeros, as RIS), crop back at a random offset"""
 
     # Representation: RIS's image encoder, also trained by DRIML
     feature_dim: int = 16
@@ -279,13 +279,15 @@ def image_batch(images: np.ndarray | torch.Tensor, device) -> torch.Tensor:
 
 
 def translate(images: torch.Tensor, shifts: torch.Tensor) -> torch.Tensor:
-    """Shift each (N, H, W, 3) uint8 image by its (rows, columns) in `shifts` (N, 2), repeating the edge pixels (pad with
-    edge replication and crop back, in one gather); returns image_batch's floats."""
+    """Shift each (N, H, W, 3) uint8 image by its (rows, columns) in `shifts` (N, 2), the border it uncovers black (pad
+    with zeros and crop back, as RIS's augmentation, in one gather); returns image_batch's floats."""
     n, height, width, _ = images.shape
-    rows = (torch.arange(height, device=images.device) - shifts[:, :1]).clamp(0, height - 1)  # output row i reads i - dy
-    columns = (torch.arange(width, device=images.device) - shifts[:, 1:]).clamp(0, width - 1)
+    rows = torch.arange(height, device=images.device) - shifts[:, :1]  # output row i reads row i - dy
+    columns = torch.arange(width, device=images.device) - shifts[:, 1:]
+    inside = ((rows >= 0) & (rows < height))[:, :, None] & ((columns >= 0) & (columns < width))[:, None, :]
     samples = torch.arange(n, device=images.device)[:, None, None]
-    return image_batch(images[samples, rows[:, :, None], columns[:, None, :]], images.device)
+    shifted = images[samples, rows.clamp(0, height - 1)[:, :, None], columns.clamp(0, width - 1)[:, None, :]]
+    return image_batch(shifted * inside[..., None], images.device)
 
 
 def random_translate(images: torch.Tensor, pad: int) -> torch.Tensor:

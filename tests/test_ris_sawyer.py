@@ -269,7 +269,7 @@ def test_translate_shapes_and_uint8_to_float():
     assert not torch.equal(augmented, out)
 
 
-def test_a_shift_moves_the_content_by_its_offset_and_replicates_the_edges():
+def test_a_shift_moves_the_content_by_its_offset_and_fills_the_border_with_zeros_as_ris():
     image = np.zeros((84, 84, 3), np.uint8)
     image[..., 0] = np.arange(84)[:, None]  # rows numbered in red, columns in green
     image[..., 1] = np.arange(84)[None, :]
@@ -279,11 +279,12 @@ def test_a_shift_moves_the_content_by_its_offset_and_replicates_the_edges():
     for sample, (dy, dx) in enumerate(shifts.tolist()):
         blue = np.argwhere(out[sample, 2] == 200)
         assert blue.min(0).tolist() == [40 + dy, 30 + dx] and blue.max(0).tolist() == [42 + dy, 32 + dx]
-        # pad 8 with edge replication, crop at (8 - dy, 8 - dx): the same picture
-        padded = np.pad(image, ((8, 8), (8, 8), (0, 0)), mode="edge")
+        # RIS's augmentation: pad 8 with zeros (F.pad's default), crop at (8 - dy, 8 - dx): the same picture
+        padded = np.pad(image, ((8, 8), (8, 8), (0, 0)), mode="constant")
         crop = padded[8 - dy : 8 - dy + 84, 8 - dx : 8 - dx + 84].transpose(2, 0, 1)
         np.testing.assert_array_equal(out[sample], crop)
-    assert (out[0, 0, :3] == 0).all() and (out[0, 1, :, -5:] == 83).all()  # the uncovered border repeats the edge
+    assert (out[0, :, :3] == 0).all() and (out[0, :, :, -5:] == 0).all()  # the uncovered border is black
+    assert (out[0, 1, 3:, :-5] == np.arange(5, 84)).all()  # column j shows column j + 5 of the image
 
 
 def test_random_translate_gives_each_sample_its_own_shift():

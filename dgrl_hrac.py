@@ -364,9 +364,10 @@ def contrastive_loss(emb_a, emb_b, labels: torch.Tensor, margin_pos: float = 1.0
 
 
 def adjacency_loss(anet: AdjacencyNet, positions: torch.Tensor, subgoals: torch.Tensor, threshold: float = 1.1):
-    """The manager actor's adjacency term (before its weight 20): mean(max(0, ||phi(s_xy) - phi(s_xy + g)|| - 1.1))."""
+    """The manager actor's adjacency term (before its weight 20): mean(max(0, ||phi(s_xy) - phi(s_xy + g)|| - 1.1)),
+    the distance as HRAC takes it (`pairwise_distance`, which adds 1e-6 to each coordinate of the difference)."""
     d = subgoals.shape[-1]
-    distance = (anet(positions[..., :d]) - anet(positions[..., :d] + subgoals)).norm(dim=-1)
+    distance = torch.nn.functional.pairwise_distance(anet(positions[..., :d]), anet(positions[..., :d] + subgoals))
     return (distance - threshold).clamp(min=0).mean()
 
 
@@ -403,7 +404,8 @@ class AdjacencyMemory:
 
 
 class Replay:
-    """A ring of preallocated numpy arrays, one per field (shapes given at construction); `sample` draws uniformly."""
+    """A ring of preallocated numpy arrays, one per field (shapes given at construction); `sample` draws uniformly, or
+    returns every entry while there are no more than a batch (as HRAC's replay does, in the first episodes)."""
 
     def __init__(self, capacity: int, **shapes: tuple[int, ...]):
         self.capacity, self.size, self.position = capacity, 0, 0
@@ -416,7 +418,7 @@ class Replay:
         self.size = min(self.size + 1, self.capacity)
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
-        index = rng.integers(self.size, size=batch_size)
+        index = np.arange(self.size) if self.size <= batch_size else rng.integers(self.size, size=batch_size)
         return {name: array[index] for name, array in self.fields.items()}
 
     def state_dict(self) -> dict:
@@ -564,7 +566,7 @@ def main(args: Args) -> None:
     # multiplies 20x (measured: 27 ms instead of 1.2 ms per batch after 5k steps); flush them to zero.
     torch.set_flush_denormal(True)
 
-    env = HiroAntEnv(args.env_id)
+    env = HiroAntEnv(args.env_id, segment=args.k)
     eval_env = HiroAntEnv(args.env_id, evaluate=True, render_mode="rgb_array" if args.capture_video else None)
     eval_env.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
     if args.capture_video:  # a renderer that cannot start fails here, before any work, not at the first evaluation
@@ -675,12 +677,15 @@ def main(args: Args) -> None:
         loop.episode_return += reward
         loop.seg_reward += man_reward_scale * reward
 
-        # Store the controller's step and, when a segment is whole, the manager's transition (the envs never terminate).
+        # Store the controller's step and, when a segment is whole, the manager's transition. An episode's end is a
+        # terminal for both levels, as in HRAC: the 500-step cut (the observation holds the step count) and AntMazeSparse's
+        # end at the first segment end after a success.
+        done = float(terminated or truncated)
         next_subgoal = subgoal_transition(state, subgoal, next_state)
         ctrl_reward = controller_reward(state, subgoal, next_state)
         loop.ctrl_rewards += ctrl_reward
         transition = {"states": controller_input(state), "goals": subgoal, "actions": action, "rewards": ctrl_reward}
-        ctrl_replay.add(**transition, next_states=controller_input(next_state), next_goals=next_subgoal, dones=0.0)
+        ctrl_replay.add(**transition, next_states=controller_input(next_state), next_goals=next_subgoal, dones=done)
         loop.seg_states[t + 1] = next_state
         loop.seg_actions[t] = action
         loop.positions.append(next_state[:2])
@@ -689,13 +694,13 @@ def main(args: Args) -> None:
         if t == args.k - 1:
             segment = {"states": loop.seg_states[0], "goals": loop.goal, "actions": loop.proposed, "rewards": loop.seg_reward}
             man_replay.add(
-                **segment, next_states=next_state, dones=0.0, state_seq=loop.seg_states, action_seq=loop.seg_actions
+                **segment, next_states=next_state, dones=done, state_seq=loop.seg_states, action_seq=loop.seg_actions
             )
             loop.remaining.append(np.linalg.norm(next_subgoal[:2]))
             loop.proposals.append(np.linalg.norm(loop.proposed[:2]))
         progress.heartbeat(loop.step, f"{loop.episodes} episodes")
 
-        # Episode end: log it, then train both levels (HRAC: 500 controller and 50 manager updates, no warm-up).
+        # Episode end: log it, then train both levels (HRAC: an update per step and per segment of it, no warm-up).
         if terminated or truncated or loop.step >= args.total_timesteps:
             loop.episodes += 1
             memory.add_trajectory(np.array(loop.positions))
@@ -711,13 +716,17 @@ def main(args: Args) -> None:
                 loop.recent["final_distance"].append(info["distance"])
                 writer.add_scalar("charts/final_distance", info["distance"], loop.step)
                 writer.add_scalar("charts/success_rate", float(info["success"]), loop.step)
+            # A replay no larger than a batch is sampled whole, in the first episodes: that batch's other shape takes the
+            # eager update, so that a compiled one (a CUDA graph) keeps the one shape of --batch-size.
             ctrl_metrics, man_metrics = {}, {}
+            ctrl_step = update_controller if ctrl_replay.size > args.batch_size else controller_update
             for _ in range(args.ctrl_updates or loop.episode_steps):
-                ctrl_metrics = update_controller(agent, as_tensors(ctrl_replay.sample(args.batch_size, rng), device), args)
+                ctrl_metrics = ctrl_step(agent, as_tensors(ctrl_replay.sample(args.batch_size, rng), device), args)
+            man_step = update_manager if man_replay.size > args.batch_size else manager_update
             for _ in range((args.man_updates or -(-loop.episode_steps // args.k)) if man_replay.size else 0):
                 sample = man_replay.sample(args.batch_size, rng)  # then the correction's noise, from the same generator
                 batch = manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device)
-                man_metrics = update_manager(agent, batch, args, bounds_tensor)
+                man_metrics = man_step(agent, batch, args, bounds_tensor)
             for level, metrics in (("controller", ctrl_metrics), ("manager", man_metrics)):
                 for name in ("critic_loss", "actor_loss", "q", "adjacency_loss"):  # the manager's adjacency term too
                     if name in metrics:
@@ -945,20 +954,21 @@ class HiroAntEnv(gym.Env):
     (30-d; AntGather: the first 29, 10 apple and 10 bomb range readings, t * 0.01). Action: 8 torques in [-30, 30]. Reset:
     qpos + U(-0.1, 0.1), qvel + 0.1 N(0, 1); AntMazeSparse starts on a random robot cell. Goal: AntMaze trains on
     U([-4, -4], [20, 20]) and evaluates on (0, 16); the others have a fixed one (AntGather none). Reward: -||xy - g||
-    (AntFall xyz), AntMazeSparse 1 within 1 of the goal, AntGather apples - bombs caught. Truncated after 500 steps;
-    info: "success" (the env's success test), "distance" to the goal (not AntGather)."""
+    (AntFall xyz), AntMazeSparse 1 within 1 of the goal, AntGather apples - bombs caught. Truncated after 500 steps; a
+    training episode of AntMazeSparse terminates at the first multiple of `segment` steps after its first success (HRAC's
+    rule, at its manager's period 10). info: "success" (the env's success test), "distance" to the goal (not AntGather)."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
     frame_skip = 5
 
-    def __init__(self, env_id: str, evaluate: bool = False, render_mode: str | None = None):
-        self.env_id, self.evaluate, self.render_mode = env_id, evaluate, render_mode
+    def __init__(self, env_id: str, evaluate: bool = False, render_mode: str | None = None, segment: int = 10):
+        self.env_id, self.evaluate, self.render_mode, self.segment = env_id, evaluate, render_mode, segment
         self.model = mujoco.MjModel.from_xml_string(hiro_ant_xml(env_id))
         self.data = mujoco.MjData(self.model)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (50 if env_id == "AntGather" else 30,), np.float64)
         self.action_space = gym.spaces.Box(-30.0, 30.0, (8,), np.float32)
         self.goal = None if env_id == "AntGather" else np.array(EVAL_GOALS[env_id])
-        self.steps = 0
+        self.steps, self.succeeded = 0, False
         self.objects = np.zeros((0, 2))
         self.kinds = np.zeros(0)  # +1 apple, -1 bomb
         self._renderer = None
@@ -994,7 +1004,7 @@ class HiroAntEnv(gym.Env):
             picks = self.np_random.choice(len(free), GATHER["apples"] + GATHER["bombs"], replace=False)
             self.objects = np.array(free, dtype=np.float64)[picks]
             self.kinds = np.array([1.0] * GATHER["apples"] + [-1.0] * GATHER["bombs"])
-        self.steps = 0
+        self.steps, self.succeeded = 0, False
         mujoco.mj_forward(self.model, self.data)
         return self._observe(), {}
 
@@ -1013,22 +1023,28 @@ class HiroAntEnv(gym.Env):
             success = distance < SUCCESS_DISTANCE[self.env_id]
             reward = float(success) if self.env_id == "AntMazeSparse" else -distance
             info = {"success": success, "distance": distance}
-        return self._observe(), reward, False, self.steps >= EPISODE_STEPS, info
+            self.succeeded |= success
+        stops = self.env_id == "AntMazeSparse" and not self.evaluate and self.succeeded  # HRAC's envs/__init__.py:114-117
+        terminated = stops and self.steps % self.segment == 0
+        return self._observe(), reward, terminated, self.steps >= EPISODE_STEPS, info
 
     def state_dict(self) -> dict:
         """What a resumed run needs to continue this env exactly: MuJoCo's integration state (time, qpos, qvel, warm
-        start, controls, applied forces), the step counter, the goal, AntGather's objects and the random generator."""
+        start, controls, applied forces), the step counter, whether the episode has succeeded, the goal, AntGather's
+        objects and the random generator."""
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         physics = np.empty(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, self.data, physics, spec)
         goal = None if self.goal is None else self.goal.copy()
-        state = {"physics": physics, "steps": self.steps, "goal": goal, "objects": self.objects.copy()}
+        state = {"physics": physics, "steps": self.steps, "succeeded": self.succeeded, "goal": goal}
+        state["objects"] = self.objects.copy()
         return state | {"kinds": self.kinds.copy(), "np_random": self.np_random.bit_generator.state}
 
     def load_state_dict(self, state: dict) -> None:
         mujoco.mj_setState(self.model, self.data, state["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
         mujoco.mj_forward(self.model, self.data)  # the derived quantities (positions of bodies, contacts) for renders
-        self.steps, self.goal, self.objects, self.kinds = state["steps"], state["goal"], state["objects"], state["kinds"]
+        self.steps, self.succeeded, self.goal = state["steps"], state["succeeded"], state["goal"]
+        self.objects, self.kinds = state["objects"], state["kinds"]
         self.np_random.bit_generator.state = state["np_random"]
 
     def render(self):
@@ -1118,7 +1134,7 @@ DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 2  # the layouts of a checkpoint and of resume.pt (2: the loop state as one dict)
+CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1452,8 +1468,7 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "actor_lr critic_lr encoder_lr adj_lr adj_margin_pos adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "subgoal_scale", 0, 100, low_open=True)  # metres; the largest arena is 48 m across
     errors += range_errors(args, "tau", 0, 1, low_open=True)
-    # The envs never terminate (episodes end by time limit only): at a discount of 1 the values would grow without bound.
-    errors += range_errors(args, "ctrl_gamma man_gamma", 0, 1, low_open=True, high_open=True)
+    errors += range_errors(args, "ctrl_gamma man_gamma", 0, 1, low_open=True)  # every episode ends in a terminal
     if args.k >= 1 and EPISODE_STEPS % args.k:
         divisors = [k for k in range(2, EPISODE_STEPS + 1) if EPISODE_STEPS % k == 0]
         errors.append(f"--k must divide the episode length {EPISODE_STEPS} (whole segments): one of {divisors}; got {args.k}")

@@ -318,6 +318,57 @@ def test_off_policy_correction_candidates_are_clipped_to_the_scale():
     np.testing.assert_allclose(chosen, 0.0)  # zero actions are explained exactly by the stored zero subgoal
 
 
+def test_a_sparse_training_episode_terminates_at_the_first_segment_end_after_a_success():
+    """HRAC's AntMazeSparse (envs/__init__.py:114-117): once the ant has been within 1 of the goal, the training episode
+    ends, terminated, at the next multiple of the manager's period; leaving the goal does not undo it. An evaluation
+    episode, and the other envs, never terminate."""
+    env = hrac.HiroAntEnv("AntMazeSparse", segment=10)
+    env.reset(seed=0)
+    ends = []
+    for step in range(1, 31):
+        env.data.qpos[:2] = (2.0, 9.0) if step == 13 else (6.0, 9.0)  # the goal reached at step 13 only
+        _, reward, terminated, truncated, _ = env.step(np.zeros(8))
+        assert reward == float(step == 13) and not truncated
+        ends.append(terminated)
+        if terminated:
+            break
+    assert ends.index(True) == 19 and len(ends) == 20  # step 20: the first multiple of 10 after step 13
+    state = env.state_dict()
+    assert state["succeeded"]
+    env.reset(seed=1)
+    assert not env.succeeded
+    env.load_state_dict(state)
+    assert env.succeeded and env.steps == 20
+    for evaluate, env_id in ((True, "AntMazeSparse"), (False, "AntMaze")):
+        other = hrac.HiroAntEnv(env_id, evaluate=evaluate)
+        other.reset(seed=0)
+        other.data.qpos[:2] = other.goal[:2]
+        assert not any(other.step(np.zeros(8))[2] for _ in range(20))
+
+
+def test_an_episodes_end_is_a_terminal_for_both_levels(tmp_path, monkeypatch):
+    """As in HRAC (train.py: the controller's done is the env's, which its envs/__init__.py:123 sets at 500 steps): the
+    last step of an episode is stored done in the controller's replay, and its segment done in the manager's, so neither
+    level bootstraps past it; the other steps stay not done. With every position a success, each training episode of
+    AntMazeSparse lasts one segment (k = 10 steps); an AntMaze episode lasts 500."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setitem(hrac.SUCCESS_DISTANCE, "AntMazeSparse", 1e9)
+    flags = {"eval_frequency": 10**6, "adj_frequency": 10**6, "hidden_dim": 16, "eval_episodes": 1, "ctrl_updates": 1}
+    hrac.main(hrac.Args(env_id="AntMazeSparse", groups=0, total_timesteps=30, exp_name="sparse", **flags, man_updates=1))
+    (resume,) = tmp_path.glob("runs/*/resume.pt")
+    saved = torch.load(resume, weights_only=False)
+    assert saved["ctrl_replay"]["size"] == 30 and saved["man_replay"]["size"] == 3
+    assert saved["ctrl_replay"]["fields"]["dones"].tolist() == ([0.0] * 9 + [1.0]) * 3
+    assert saved["man_replay"]["fields"]["dones"].tolist() == [1.0] * 3
+    assert saved["loop"]["episodes"] == 3
+    monkeypatch.chdir(tmp_path / "runs")
+    hrac.main(hrac.Args(env_id="AntMaze", groups=0, total_timesteps=510, exp_name="maze", **flags, man_updates=1))
+    (resume,) = tmp_path.glob("runs/runs/*/resume.pt")
+    saved = torch.load(resume, weights_only=False)
+    assert saved["ctrl_replay"]["fields"]["dones"][:510].tolist() == [0.0] * 499 + [1.0] + [0.0] * 10
+    assert saved["man_replay"]["fields"]["dones"][:51].tolist() == [0.0] * 49 + [1.0, 0.0]
+
+
 def test_contrastive_and_adjacency_losses_by_hand():
     a = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
     b = torch.tensor([[3.0, 4.0], [0.6, 0.8], [0.3, 0.4]])  # distances 5, 1, 0.5
@@ -326,9 +377,11 @@ def test_contrastive_and_adjacency_losses_by_hand():
     assert hrac.contrastive_loss(a, b, labels).item() == pytest.approx(4 / 3 + 0.3, abs=1e-5)
     anet = hrac.AdjacencyNet(2)
     positions, subgoals = torch.randn(6, 30), torch.randn(6, 2) * 5
-    distance = (anet(positions[:, :2]) - anet(positions[:, :2] + subgoals)).norm(dim=-1)
+    distance = (anet(positions[:, :2]) - anet(positions[:, :2] + subgoals) + 1e-6).norm(dim=-1)  # HRAC's eps
     expected = (distance - 1.1).clamp(min=0).mean()
-    assert hrac.adjacency_loss(anet, positions, subgoals).item() == pytest.approx(expected.item())
+    assert hrac.adjacency_loss(anet, positions, subgoals).item() == pytest.approx(expected.item(), rel=1e-6)
+    same = torch.zeros(1, 30)  # a zero subgoal: phi(s) - phi(s) = 0, distance sqrt(32) * 1e-6 (32 outputs), not 0
+    assert hrac.adjacency_loss(anet, same, torch.zeros(1, 2), threshold=0.0).item() == pytest.approx(32**0.5 * 1e-6)
 
 
 def test_adjacency_memory_marks_pairs_within_k_steps_of_one_trajectory():
@@ -353,13 +406,20 @@ def test_networks_shapes_and_action_range():
     assert hrac.AdjacencyNet(2)(torch.randn(4, 2)).shape == (4, 32)
 
 
-def test_replay_is_a_ring_of_preallocated_arrays():
-    replay = hrac.Replay(3, states=(2,), rewards=())
-    for i in range(5):
+def test_replay_is_a_ring_of_preallocated_arrays_and_a_small_one_is_sampled_whole():
+    replay = hrac.Replay(5, states=(2,), rewards=())
+    for i in range(3):
         replay.add(states=(i, -i), rewards=float(i))
-    assert replay.size == 3 and sorted(replay.fields["rewards"].tolist()) == [2.0, 3.0, 4.0]
-    batch = replay.sample(7, np.random.default_rng(0))
-    assert batch["states"].shape == (7, 2) and set(batch["rewards"].tolist()) <= {2.0, 3.0, 4.0}
+    rng = np.random.default_rng(0)
+    before = rng.bit_generator.state
+    batch = replay.sample(3, rng)  # no more entries than a batch: all of them, in order, no draw (HRAC's utils.py:34-35)
+    assert batch["rewards"].tolist() == [0.0, 1.0, 2.0] and rng.bit_generator.state == before
+    for i in range(3, 8):
+        replay.add(states=(i, -i), rewards=float(i))
+    assert replay.size == 5 and sorted(replay.fields["rewards"].tolist()) == [3.0, 4.0, 5.0, 6.0, 7.0]
+    batch = replay.sample(4, rng)  # more than a batch: draws with replacement
+    assert batch["states"].shape == (4, 2) and set(batch["rewards"].tolist()) <= {3.0, 4.0, 5.0, 6.0, 7.0}
+    assert rng.bit_generator.state != before
 
 
 def bandit_level(max_action: float) -> hrac.Level:
@@ -601,8 +661,7 @@ def test_manager_update_learns_from_corrected_subgoals_with_the_weighted_adjacen
         bounds=torch.as_tensor(bounds),
     )
     assert seen["level"] is hrac_agent.manager
-    index = np.random.default_rng(2).integers(n, size=n)
-    np.testing.assert_allclose(seen["actions"].numpy(), achieved[index], atol=1e-5)
+    np.testing.assert_allclose(seen["actions"].numpy(), achieved, atol=1e-5)  # n entries, a batch of n: all, in order
     proposals = torch.full((n, 2), 9.0)
     expected = 7.0 * hrac.adjacency_loss(hrac_agent.adjacency, seen["states"][:, :2], proposals, threshold=1.1)
     torch.testing.assert_close(seen["extra"](proposals), expected)
@@ -771,7 +830,7 @@ def assert_clean_refusal(result, *messages: str) -> None:
         ({"k": 7}, ["--k must divide the episode length 500", "got 7"]),
         ({"k": 1}, ["--k must be >= 2; got 1"]),
         ({"k": 0}, ["--k must be >= 2; got 0"]),  # no ZeroDivisionError from the episode-length check
-        ({"ctrl_gamma": 1.0, "man_gamma": 0.0}, ["--ctrl-gamma must be in (0, 1)", "--man-gamma must be in (0, 1)"]),
+        ({"ctrl_gamma": 1.01, "man_gamma": 0.0}, ["--ctrl-gamma must be in (0, 1]", "--man-gamma must be in (0, 1]"]),
         ({"adj_margin_pos": 2.0}, ["--adj-margin-neg (1.2) must be >= --adj-margin-pos (2.0)"]),
         ({"adj_margin_pos": -1.0}, ["--adj-margin-pos must be > 0; got -1.0"]),
         ({"batch_size": 0, "man_noise": -1.0}, ["--batch-size must be >= 1; got 0", "--man-noise must be >= 0; got -1.0"]),
@@ -834,7 +893,7 @@ def test_bad_flags_fail_before_any_work(run_script, tmp_path):
         "--subgoal-scale must be a finite number; got nan",
         "--actor-lr must be > 0; got -1.0",
         "--vq-decay must be in [0, 1); got 1.5",
-        "--ctrl-gamma must be in (0, 1)",
+        "--ctrl-gamma must be in (0, 1]",
         "--batch-size (500) must be <= --buffer-size (100)",
     )
     assert not (tmp_path / "runs").exists()

@@ -622,17 +622,19 @@ def test_files_written_before_a_flag_existed_are_refused(script, tmp_path, capsy
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_resume_file_of_an_older_layout_is_refused(script, tmp_path, capsys):
-    """A resume.pt written before the loop's variables became one LoopState (resume format 1) cannot be restored by this
-    version: refused, saying to continue it with the version that started it, not a traceback halfway into setup."""
+    """A resume.pt of an older layout (format 2, before HRAC's env state held its success flag; 1, before the loop's
+    variables became one LoopState) cannot be restored by this version: refused, saying to continue it with the version
+    that started it, not a traceback halfway into setup."""
     sys.path.insert(0, str(ROOT))
     module = __import__(script[:-3])
-    assert module.RESUME_FORMAT == 2 and module.CHECKPOINT_FORMAT == 1
+    assert module.RESUME_FORMAT == 3 and module.CHECKPOINT_FORMAT == 1
     run_dir = tmp_path / "runs" / "old_run"
     run_dir.mkdir(parents=True)
-    torch.save({"script": script, "format": 1, "args": dict(vars(module.Args()))}, run_dir / module.RESUME_FILE)
-    args = module.Args(resume=str(run_dir))
-    with pytest.raises(SystemExit) as stopped:
-        module.load_resume(args)
-    assert stopped.value.code == 2
-    wanted = f"--resume {run_dir} holds {script} format 1: continue it with the version that started it"
-    assert wanted in capsys.readouterr().err
+    for old in (1, 2):
+        torch.save({"script": script, "format": old, "args": dict(vars(module.Args()))}, run_dir / module.RESUME_FILE)
+        args = module.Args(resume=str(run_dir))
+        with pytest.raises(SystemExit) as stopped:
+            module.load_resume(args)
+        assert stopped.value.code == 2
+        wanted = f"--resume {run_dir} holds {script} format {old}: continue it with the version that started it"
+        assert wanted in capsys.readouterr().err

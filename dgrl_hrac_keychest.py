@@ -387,6 +387,14 @@ def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: floa
     return (offsets.abs() <= threshold).all(1).float()
 
 
+def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.ndarray:
+    """True where no free cell reaches the subgoal point under `rule`: subgoals the low level is never rewarded for (the
+    high level's subgoals are points, not cells; under the Euclidean rule at 0.5 the corners between cells are such)."""
+    cells = torch.as_tensor(FREE_CELLS, dtype=torch.float32).repeat(len(goals), 1)
+    points = torch.as_tensor(goals, dtype=torch.float32).repeat_interleave(len(FREE_CELLS), 0)
+    return (goal_reached(cells, points, threshold, rule).view(len(goals), -1).amax(1) == 0).numpy()
+
+
 def a2c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, returns: torch.Tensor, entropy_coef: float):
     """HRAC's A2C loss: mean of -A log pi(a) + A^2 - c H(pi), A = return - V (the original's unhalved value loss)."""
     log_probs = F.log_softmax(logits, 1)
@@ -640,6 +648,10 @@ def main(args: Args) -> None:
 
         # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
         new_segment = t_episode % args.k == 0
+        if new_segment.any():  # the subgoals just chosen that no free cell reaches, under either rule (logged)
+            loop.subgoals += int(new_segment.sum())
+            for rule in loop.unreachable:
+                loop.unreachable[rule] += int(unreachable_subgoals(goals[new_segment], args.goal_threshold, rule).sum())
         loop.segment_start = np.where(new_segment[:, None], observations, loop.segment_start)
         loop.segment_reward = np.where(new_segment, 0.0, loop.segment_reward) + args.man_reward_scale * rewards
         ends = ((t_episode + 1) % args.k == 0) | done
@@ -699,6 +711,9 @@ def main(args: Args) -> None:
             writer.add_scalar("eval/subgoal_distance", distance, loop.frames)
             writer.add_scalar("eval/subgoal_reach_rate", reach, loop.frames)
             writer.add_scalar("charts/SPS", progress.sps(loop.frames), loop.frames)
+            for rule, count in loop.unreachable.items():  # of the subgoals chosen since the last evaluation
+                writer.add_scalar(f"charts/unreachable_subgoals_{rule}", count / max(loop.subgoals, 1), loop.frames)
+            loop.subgoals, loop.unreachable = 0, dict.fromkeys(loop.unreachable, 0)
             train = np.mean(loop.recent_returns) if loop.recent_returns else float("nan")
             loop.recent_returns = []
             figures = f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train:5.2f}  "
@@ -1005,6 +1020,8 @@ class LoopState:
     evaluations: int = 0
     adj_accuracy: float = float("nan")
     recent_returns: list = field(default_factory=list)  # of the episodes ended since the last evaluation
+    subgoals: int = 0  # the subgoals chosen since the last evaluation, and those no free cell reaches under each rule
+    unreachable: dict = field(default_factory=lambda: {"euclidean": 0, "box": 0})
     figures: dict = field(default_factory=dict)  # the latest update's losses, logged every --log-frequency frames
 
 

@@ -285,6 +285,19 @@ def test_goal_reached_by_euclidean_distance_below_the_threshold_or_by_hracs_box(
     np.testing.assert_array_equal(kc.goal_reached(next_states, goals, 0.5, "box").numpy(), [1, 0, 1, 0, 1, 1, 1])
 
 
+def test_a_subgoal_point_no_free_cell_reaches_is_counted_unreachable_under_its_rule():
+    """(1, 1) is a free cell, (0, 0) a wall. A point 0.4 from a free cell's centre in both coordinates (0.57 away) is
+    reached under HRAC's box only; a wall's centre by no cell under either rule; over the grid, uniform points (the
+    warm-up's subgoals) are unreachable about 54% of the time under the Euclidean rule and 42% under the box."""
+    assert kc.WALLS[0, 0] and not kc.WALLS[1, 1]
+    goals = np.array([[1.0, 1.0], [1.4, 1.4], [0.0, 0.0], [1.45, 1.0]], dtype=np.float32)
+    np.testing.assert_array_equal(kc.unreachable_subgoals(goals, 0.5, "euclidean"), [False, True, True, False])
+    np.testing.assert_array_equal(kc.unreachable_subgoals(goals, 0.5, "box"), [False, False, True, False])
+    uniform = np.random.default_rng(0).uniform((0, 0), kc.GOAL_SCALE, (4000, 2))
+    assert 0.50 < kc.unreachable_subgoals(uniform, 0.5, "euclidean").mean() < 0.58
+    assert 0.38 < kc.unreachable_subgoals(uniform, 0.5, "box").mean() < 0.46
+
+
 def test_the_defaults_are_the_papers_wiring():
     """The paper's appendix: the low level is conditioned on the discrete embedding of the subgoal and rewarded when its
     Euclidean distance to the subgoal is below 0.5; HRAC (G = 0) is rewarded by the same rule."""

@@ -178,7 +178,7 @@ class Args:
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
     fast: str = "eager"
-    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, one CUDA graph; GPU)"""
+    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, replayed as CUDA graphs; GPU)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
     checkpoint_every_steps: int = 0
@@ -592,8 +592,8 @@ def main(args: Args) -> None:
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
 
     # The updates, compiled with --fast (after the restore: fast_update gives each optimizer its state if it has none).
-    # A CUDA graph cannot vary the A2C update's episode length: under cudagraphs it stays compiled. TD3's delay switch,
-    # policy_terms[actor's turn], is then a device tensor that the graph reads.
+    # The A2C update's episode length varies (a recording per length would make hundreds of graphs): under cudagraphs it
+    # stays compiled. TD3's delay switch, policy_terms[actor's turn], is then a device tensor that the graphs read.
     ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder steps in it
     update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
     update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
@@ -1220,48 +1220,25 @@ FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the u
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """`update` as it is (eager), compiled (compile), or compiled and replayed as one CUDA graph (cudagraphs)."""
-    if fast != "eager":  # (the inductor import costs seconds: an eager run never loads it)
-        torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
-    if fast != "cudagraphs":
-        return update if fast == "eager" else torch.compile(update)
-    for optimizer in optimizers:  # capturable: step counts on the device (reloading moves a resumed optimizer's there)
+    """`update` as it is (eager), compiled (compile: torch.compile), or compiled into CUDA graphs that later calls
+    replay (cudagraphs: torch.compile's "reduce-overhead" mode, a recording per input shape); the tensors returned are
+    the caller's to keep."""
+    if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
+        return update
+    torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
+    if fast == "compile":
+        return torch.compile(update)
+    for optimizer in optimizers:  # torch makes fresh optimizers capturable; a resumed one's step counts go to the device
         for group in optimizer.param_groups:
             group["capturable"] = True
         optimizer.load_state_dict(optimizer.state_dict())
-    return CudaGraphUpdate(torch.compile(update))
+    compiled = torch.compile(update, mode="reduce-overhead")
 
+    def replayed(*args, **kwargs):
+        torch.compiler.cudagraph_mark_step_begin()  # a new step: the graphs reuse their outputs' memory, so return copies
+        return torch.utils._pytree.tree_map_only(torch.Tensor, torch.clone, compiled(*args, **kwargs))
 
-class CudaGraphUpdate:
-    """An update as one CUDA graph: `warmup` calls on a side stream, then one recorded on copies of its tensor arguments,
-    which later calls refill and replay (other arguments must not change), returning the recording's tensors."""
-
-    def __init__(self, update, warmup: int = 3):
-        self.update, self.warmup, self.graph = update, warmup, None
-
-    def __call__(self, *args, **kwargs):
-        if self.warmup:
-            self.warmup -= 1
-            stream = torch.cuda.Stream()
-            stream.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(stream):
-                outputs = self.update(*args, **kwargs)
-            torch.cuda.current_stream().wait_stream(stream)
-            return outputs
-        leaves, spec = torch.utils._pytree.tree_flatten((args, kwargs))
-        if self.graph is None:
-            self.static = [leaf.clone() if isinstance(leaf, torch.Tensor) else leaf for leaf in leaves]
-            static_args, static_kwargs = torch.utils._pytree.tree_unflatten(self.static, spec)
-            self.graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(self.graph):
-                self.outputs = self.update(*static_args, **static_kwargs)
-        for static, leaf in zip(self.static, leaves, strict=True):
-            if isinstance(leaf, torch.Tensor):
-                static.copy_(leaf)
-            elif leaf is not static and leaf != static:
-                raise ValueError(f"--fast cudagraphs: a non-tensor argument changed after capture ({static!r} -> {leaf!r})")
-        self.graph.replay()
-        return self.outputs
+    return replayed
 
 
 # --- end of run management --------------------------------------------------------------------------------------------

@@ -275,12 +275,12 @@ def training_tensors(agent) -> dict[str, torch.Tensor]:
     return found
 
 
-def check_fast_update(script, update, agent, call, optimizers, warm: int = 20, updates: int = 10) -> None:
+def check_fast_update(script, update, agent, call, optimizers, warm=20, updates=10, fast="compile") -> None:
     """The contract of a script's --fast path for one update function:
 
     - from the same state and random state, `updates` compiled updates (--fast compile: torch.compile of the update,
-      the optimizers' own steps) equal as many eager ones within rtol = atol = 1e-5: every parameter, buffer (codebooks)
-      and optimizer moment, and every returned metric;
+      the optimizers' own steps; or the `fast` path given) equal as many eager ones within rtol = atol = 1e-5: every
+      parameter, buffer (codebooks) and optimizer moment, and every returned metric;
     - an eager update runs under NoHostSync: nothing in it makes the host wait for the device (what lets --fast
       cudagraphs capture it).
 
@@ -295,7 +295,7 @@ def check_fast_update(script, update, agent, call, optimizers, warm: int = 20, u
     for i in range(warm):
         call(update, agent, i)
     eager_agent, fast_agent = copy.deepcopy(agent), copy.deepcopy(agent)
-    fast = script.fast_update(update, "compile", optimizers(fast_agent))
+    fast = script.fast_update(update, fast, optimizers(fast_agent))
 
     metrics = {}
     for name, function, state in (("eager", update, eager_agent), ("fast", fast, fast_agent)):

@@ -188,6 +188,20 @@ def test_fast_train_step_equals_eager_and_is_free_of_host_syncs(groups):
     check_fast_update(mnist, mnist.train_step, model, call, lambda state: [state.optimizer])
 
 
+def test_fast_cudagraphs_path_computes_the_eager_train_step_where_no_graph_can_be_recorded():
+    """--fast cudagraphs's own path (torch.compile's "reduce-overhead" mode, the step marks and the returned copies) on
+    a CPU, where inductor records no CUDA graph: the same numbers as eager. (Its optimizers stay as they are: a capturable
+    Adam steps only on a GPU.)"""
+    model = mnist.make_model(model_args(2, hidden_dim=32, dead_code_steps=3), CPU)
+    generator = torch.Generator().manual_seed(0)
+    batches = [torch.rand(32, 3, 28, 28, generator=generator) for _ in range(31)]
+
+    def call(function, state, i):
+        return function(state, batches[i])
+
+    check_fast_update(mnist, mnist.train_step, model, call, lambda state: [], fast="cudagraphs")
+
+
 def test_the_referees_stop_before_their_next_step_once_a_signal_came():
     def never(indices):
         raise AssertionError("a classifier trained on after the stop")

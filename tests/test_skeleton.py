@@ -25,7 +25,7 @@ WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
     "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
     "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS",
-    "fast_update", "CudaGraphUpdate",  # the run-management appendix
+    "fast_update",  # the run-management appendix
     "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors", "LOCK_FILE", "hold_run_folder",  # checks
     "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
@@ -35,8 +35,8 @@ REGIONS = [
     (BLOCK_START, BLOCK_END),
     ("# --- Checks: identical in every script (tests/test_skeleton.py) ", "# --- end of the shared checks "),
 ]
-RUN_MANAGEMENT_LINES = 200  # the most the run-management appendix may take, its banners included
-SPEED_SWITCH_LINES = 40  # the most --fast may take: FAST_PATHS through CudaGraphUpdate, blank lines not counted
+RUN_MANAGEMENT_LINES = 180  # the most the run-management appendix may take, its banners included
+SPEED_SWITCH_LINES = 20  # the most --fast may take: FAST_PATHS through fast_update, blank lines not counted
 MUJOCO_GL_DEFAULT = (
     'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'
 )
@@ -117,12 +117,12 @@ def test_shared_pieces_are_identical_in_every_script():
 
 def test_the_run_management_appendix_and_its_speed_switches_stay_short():
     """Read seven times, the run management takes at most RUN_MANAGEMENT_LINES lines (one script's copy: the drift test
-    holds the others to it), and --fast (its choices, fast_update, CudaGraphUpdate) at most SPEED_SWITCH_LINES."""
+    holds the others to it), and --fast (its choices and fast_update) at most SPEED_SWITCH_LINES."""
     lines = (ROOT / "dgrl_ris.py").read_text().splitlines()
     first, last = region(lines, *REGIONS[0])
     assert last - first + 1 <= RUN_MANAGEMENT_LINES
     start = next(i for i in range(first, last) if lines[i].startswith("FAST_PATHS = "))
-    end = next(i for i in range(start, last) if lines[i] == "        return self.outputs")
+    end = next(i for i in range(start, last) if lines[i] == "    return replayed")
     assert sum(1 for line in lines[start : end + 1] if line.strip()) <= SPEED_SWITCH_LINES
 
 
@@ -638,3 +638,39 @@ def test_a_resume_file_of_an_older_layout_is_refused(script, tmp_path, capsys):
         assert stopped.value.code == 2
         wanted = f"--resume {run_dir} holds {script} format {old}: continue it with the version that started it"
         assert wanted in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_fast_cudagraphs_is_torch_compiles_reduce_overhead_mode_with_capturable_optimizers(script, monkeypatch):
+    """--fast cudagraphs, checked without a GPU (torch.compile stood in for): the update goes to torch.compile in its
+    "reduce-overhead" mode (inductor's CUDA graphs), each optimizer becomes capturable with its state kept (a resumed
+    one's too), and each call starts a new step for the graphs and returns copies of the compiled call's tensors (a replay
+    reuses their memory). --fast compile is torch.compile's default mode; eager is the update itself."""
+    sys.path.insert(0, str(ROOT))
+    module = __import__(script[:-3])
+    modes, steps = [], []
+    outputs = {"loss": torch.tensor(1.5), "codes": [torch.arange(3)], "count": 4}
+
+    def fake_compile(function, mode=None):
+        modes.append(mode)
+        return lambda *args, **kwargs: outputs
+
+    monkeypatch.setattr(torch, "compile", fake_compile)
+    monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: steps.append(len(steps)))
+    layer = torch.nn.Linear(2, 1)
+    optimizer = torch.optim.Adam(layer.parameters(), lr=0.1)
+    layer(torch.ones(1, 2)).sum().backward()
+    optimizer.step()  # a state to keep, as a resumed run's optimizer has
+    moment = optimizer.state[layer.weight]["exp_avg"].clone()
+    update = module.fast_update(lambda: None, "cudagraphs", [optimizer])
+    assert modes == ["reduce-overhead"] and all(group["capturable"] for group in optimizer.param_groups)
+    assert torch.equal(optimizer.state[layer.weight]["exp_avg"], moment)
+    for call in range(2):
+        returned = update()
+        assert steps == list(range(call + 1)) and returned["count"] == 4
+        assert torch.equal(returned["loss"], outputs["loss"]) and returned["loss"] is not outputs["loss"]
+        assert returned["codes"][0].data_ptr() != outputs["codes"][0].data_ptr()
+    module.fast_update(lambda: None, "compile", [optimizer])
+    assert modes == ["reduce-overhead", None]
+    plain = lambda: None  # noqa: E731
+    assert module.fast_update(plain, "eager", [optimizer]) is plain and len(modes) == 2

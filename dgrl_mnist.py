@@ -710,6 +710,8 @@ def common_errors(args) -> list[str]:
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
+    if args.threads > (cores := os.cpu_count() or 1):  # torch would start them all, and the machine would crawl
+        errors.append(f"--threads {args.threads} is more than this machine's {cores} cores: use at most {cores}")
     errors += range_errors(args, "vq_beta vq_dead_code_steps checkpoint_every checkpoint_every_steps", 0)
     errors += range_errors(args, "vq_decay", 0, 1, high_open=True)  # at 1 the codebook would never move
     if args.track and importlib.util.find_spec("wandb") is None:

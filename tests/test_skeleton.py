@@ -314,6 +314,11 @@ def test_common_errors_cover_seed_threads_and_the_codebook_flags():
         "--vq-decay must be in [0, 1); got 1.0",
     ]
     assert script.common_errors(script.Args(seed=2**64))[0].endswith("got 18446744073709551616")
+    cores = os.cpu_count()
+    assert script.common_errors(script.Args(threads=cores)) == []
+    assert script.common_errors(script.Args(threads=10_000)) == [
+        f"--threads 10000 is more than this machine's {cores} cores: use at most {cores}"
+    ]
 
 
 OLD_AND_NEW_TORCHES = [("2.10.1+cu128", True), ("2.9.0", True), ("2.11.0+cu130", False), ("2.13.0", False)]

@@ -565,7 +565,10 @@ def main(args: Args) -> None:
 
     envs = make_vector_env(args.num_envs, args.seed, test=False)
     eval_envs = make_vector_env(args.eval_episodes, args.seed + 10_000, test=True)
-    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    try:  # the first render: a renderer that cannot start is refused here, before any work
+        eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    except RenderingError as error:
+        exit_on_errors([str(error)])
     image_shape = envs.single_observation_space["image"].shape
     action_dim = envs.single_action_space.shape[0]
     agent = make_agent(image_shape[0], action_dim, args, device)
@@ -816,6 +819,10 @@ def sawyer_xml() -> str:
 </mujoco>"""
 
 
+class RenderingError(RuntimeError):
+    """MuJoCo's off-screen renderer could not start (the MUJOCO_GL backend is missing or has no display)."""
+
+
 class SawyerPushAndReachEnv(gym.Env):
     """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings, the arm replaced by its end effector.
 
@@ -931,9 +938,8 @@ class SawyerPushAndReachEnv(gym.Env):
                 self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
             except mujoco.FatalError as error:
                 backend = os.environ.get("MUJOCO_GL", "the default")
-                raise RuntimeError(
-                    f"off-screen rendering failed (MUJOCO_GL={backend}): try MUJOCO_GL=egl or osmesa"
-                ) from error
+                advice = "try MUJOCO_GL=egl or osmesa"
+                raise RenderingError(f"off-screen rendering failed (MUJOCO_GL={backend}): {advice}") from error
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._renderer.update_scene(self.data, camera="top")
         return self._renderer.render()

@@ -739,6 +739,14 @@ def test_bad_flags_fail_before_any_work(run_script, tmp_path):
     assert result.stdout == "" and not (tmp_path / "runs").exists()
 
 
+def test_a_renderer_that_cannot_start_is_refused_before_any_work(run_script, tmp_path):
+    """Pixels need MuJoCo's off-screen renderer: glfw without a display cannot give one. One line naming the backend and
+    what to use, exit status 2, no traceback, nothing written."""
+    result = run_script("dgrl_ris_sawyer.py", *TINY, env={"MUJOCO_GL": "glfw"})  # the run_script env has no DISPLAY
+    assert_clean_refusal(result, "off-screen rendering failed (MUJOCO_GL=glfw): try MUJOCO_GL=egl or osmesa")
+    assert not (tmp_path / "runs").exists()
+
+
 TINY = ["--total-timesteps", "300", "--start-timesteps", "100", "--batch-size", "16", "--eval-frequency", "300"]
 TINY += ["--eval-episodes", "2", "--buffer-size", "1000"]
 TAGS = [

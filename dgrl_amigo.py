@@ -151,7 +151,7 @@ class Args:
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
     fast: str = "eager"
-    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, replayed as CUDA graphs; GPU)"""
+    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, as CUDA graphs; GPU)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
     checkpoint_every_steps: int = 0
@@ -423,6 +423,129 @@ def learning_rates_as_tensors(optimizers: list[torch.optim.Optimizer], as_tensor
             group["lr"] = torch.tensor(lr, dtype=torch.float32, device=group["params"][0].device) if as_tensors else lr
 
 
+# --- Acting: the student on its goals ---------------------------------------------------------------------------------
+
+
+def tensors(device, *arrays: np.ndarray) -> list[torch.Tensor]:
+    return [torch.as_tensor(array, device=device) for array in arrays]
+
+
+@torch.no_grad()
+def embed_goals(goal_encoder: GoalEncoder, frames: np.ndarray, goals: np.ndarray, device) -> torch.Tensor:
+    """Goal embeddings for acting, computed once per goal."""
+    return goal_encoder(*tensors(device, frames, goals), update=False)[0]  # DGRL: acting never moves the codebook
+
+
+@torch.no_grad()
+def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Tensor, device):
+    """The student's sampled actions and their log-probabilities."""
+    grids_t, carry_t, goals_t = tensors(device, obs["grid"], obs["carried"], goals)
+    logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)  # DGRL: z_q of the goal
+    actions = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
+    return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
+
+
+@torch.no_grad()
+def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndarray, goal_embedding: torch.Tensor, device):
+    """New teacher goals for the envs in `mask`, sampled and issued on their current frames, and their embeddings."""
+    logits, _ = agent.teacher(torch.as_tensor(grids[mask], device=device))
+    dist = torch.distributions.Categorical(logits=logits, validate_args=False)  # validation reads values back: a sync
+    goals = dist.sample()
+    book.issue(mask, grids[mask], goals.cpu().numpy(), dist.log_prob(goals).cpu().numpy())
+    embeddings = embed_goals(agent.goal_encoder, book.frame[mask], book.goal[mask], device)
+    goal_embedding[torch.as_tensor(np.flatnonzero(mask), device=device)] = embeddings  # a boolean index would sync
+
+
+# --- The teacher's curriculum: goals, rewards, difficulty, outcomes ---------------------------------------------------
+
+
+class GoalBook:
+    """Per-env goals in numpy: the cell (flat index x * H + y), the frame it was issued on, its log-prob, steps since."""
+
+    def __init__(self, num_envs: int, width: int, height: int):
+        self.height = height
+        self.goal = np.zeros(num_envs, dtype=np.int64)
+        self.frame = np.zeros((num_envs, width, height, 3), dtype=np.uint8)
+        self.logp = np.zeros(num_envs, dtype=np.float32)
+        self.steps = np.zeros(num_envs, dtype=np.int64)
+
+    def reached(self, frames: np.ndarray) -> np.ndarray:
+        """The goal test of AMIGo's published runs: the goal cell's [object, colour, state] differs from the same cell
+        in the goal frame (the agent stepped on it or turned there, a door there opened, an object there was moved)."""
+        rows = np.arange(len(self.goal))
+        x, y = np.divmod(self.goal, self.height)
+        return (frames[rows, x, y] != self.frame[rows, x, y]).any(-1)
+
+    def advance(self, after: np.ndarray) -> np.ndarray:  # the frame right after the step, before any autoreset
+        self.steps += 1
+        return self.reached(after)
+
+    def issue(self, mask: np.ndarray, frames: np.ndarray, goals: np.ndarray, logps: np.ndarray) -> None:
+        self.goal[mask] = goals
+        self.frame[mask] = frames
+        self.logp[mask] = logps
+        self.steps[mask] = 0
+
+
+def intrinsic_reward(reached: np.ndarray, steps: np.ndarray, max_steps: int, coef: float) -> np.ndarray:
+    """AMIGo's goal reward: 1 - 0.9 * (steps since the goal was issued) / (episode step limit), on reaching it."""
+    return coef * reached * (1.0 - 0.9 * steps / max_steps)
+
+
+def student_reward(extrinsic: np.ndarray, intrinsic: np.ndarray) -> np.ndarray:
+    """AMIGo's student reward: extrinsic + intrinsic clipped to [-1, 1], plus 1 more on extrinsic success."""
+    return np.clip(extrinsic + intrinsic, -1.0, 1.0) + (extrinsic > 0)
+
+
+def teacher_reward(reached, steps, extrinsic_success, t_star: int, negative: float = -0.3, positive: float = 1.0):
+    """AMIGo's teacher reward per goal outcome: `negative`, plus `positive` if the goal was reached after at least t*
+    steps, clipped to [-1, 1]; 1 whenever the episode's extrinsic reward came in the outcome's step."""
+    rewards = np.clip(negative + positive * (reached & (steps >= t_star)), -1.0, 1.0)
+    return np.where(extrinsic_success, 1.0, rewards)
+
+
+class TStar:
+    """AMIGo's difficulty schedule: after each teacher update, a mean teacher reward >= threshold extends a streak
+    (anything lower ends it); a streak of `patience` raises t* by one (up to `maximum`) and starts a new streak."""
+
+    def __init__(self, start: int, threshold: float, patience: int, maximum: int):
+        self.value, self.threshold, self.patience, self.maximum, self.streak = start, threshold, patience, maximum, 0
+
+    def update(self, mean_teacher_reward: float) -> int:
+        self.streak = self.streak + 1 if mean_teacher_reward >= self.threshold else 0
+        if self.streak >= self.patience:
+            self.value = min(self.value + 1, self.maximum)
+            self.streak = 0
+        return self.value
+
+
+class OutcomeBuffer:
+    """Goal outcomes waiting for a teacher update: one per reached goal and one per episode end (goal not reached)."""
+
+    def __init__(self):
+        self.parts, self.size = [], 0
+
+    def add(self, **columns: np.ndarray) -> None:
+        n = len(next(iter(columns.values())))
+        if n:
+            self.parts.append(columns)
+            self.size += n
+
+    def pop(self, n: int) -> dict[str, np.ndarray]:
+        """The oldest n outcomes; the rest stay for the next update."""
+        merged = {key: np.concatenate([part[key] for part in self.parts]) for key in self.parts[0]}
+        self.parts = [{key: value[n:] for key, value in merged.items()}] if self.size > n else []
+        self.size = max(self.size - n, 0)
+        return {key: value[:n] for key, value in merged.items()}
+
+
+# --- The run's constants ----------------------------------------------------------------------------------------------
+
+MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # a checkpoint's networks and what it is run on
+LOSS_LOG_UPDATES = 10  # student updates between two writes of the student's losses
+VIDEO_FPS = 8
+
+
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
 
 
@@ -588,37 +711,7 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Acting and evaluation --------------------------------------------------------------------------------------------
-
-
-def tensors(device, *arrays: np.ndarray) -> list[torch.Tensor]:
-    return [torch.as_tensor(array, device=device) for array in arrays]
-
-
-@torch.no_grad()
-def embed_goals(goal_encoder: GoalEncoder, frames: np.ndarray, goals: np.ndarray, device) -> torch.Tensor:
-    """Goal embeddings for acting, computed once per goal."""
-    return goal_encoder(*tensors(device, frames, goals), update=False)[0]  # DGRL: acting never moves the codebook
-
-
-@torch.no_grad()
-def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Tensor, device):
-    """The student's sampled actions and their log-probabilities."""
-    grids_t, carry_t, goals_t = tensors(device, obs["grid"], obs["carried"], goals)
-    logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)  # DGRL: z_q of the goal
-    actions = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
-    return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
-
-
-@torch.no_grad()
-def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndarray, goal_embedding: torch.Tensor, device):
-    """New teacher goals for the envs in `mask`, sampled and issued on their current frames, and their embeddings."""
-    logits, _ = agent.teacher(torch.as_tensor(grids[mask], device=device))
-    dist = torch.distributions.Categorical(logits=logits, validate_args=False)  # validation reads values back: a sync
-    goals = dist.sample()
-    book.issue(mask, grids[mask], goals.cpu().numpy(), dist.log_prob(goals).cpu().numpy())
-    embeddings = embed_goals(agent.goal_encoder, book.frame[mask], book.goal[mask], device)
-    goal_embedding[torch.as_tensor(np.flatnonzero(mask), device=device)] = embeddings  # a boolean index would sync
+# --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
 def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.ndarray:
@@ -811,86 +904,6 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
 NOT_ENV_STATE = ("window", "clock", "render_mode", "spec", "gen_obs")  # renderer, free --capture-video, spec, our patch
 
 
-class GoalBook:
-    """Per-env goals in numpy: the cell (flat index x * H + y), the frame it was issued on, its log-prob, steps since."""
-
-    def __init__(self, num_envs: int, width: int, height: int):
-        self.height = height
-        self.goal = np.zeros(num_envs, dtype=np.int64)
-        self.frame = np.zeros((num_envs, width, height, 3), dtype=np.uint8)
-        self.logp = np.zeros(num_envs, dtype=np.float32)
-        self.steps = np.zeros(num_envs, dtype=np.int64)
-
-    def reached(self, frames: np.ndarray) -> np.ndarray:
-        """The goal test of AMIGo's published runs: the goal cell's [object, colour, state] differs from the same cell
-        in the goal frame (the agent stepped on it or turned there, a door there opened, an object there was moved)."""
-        rows = np.arange(len(self.goal))
-        x, y = np.divmod(self.goal, self.height)
-        return (frames[rows, x, y] != self.frame[rows, x, y]).any(-1)
-
-    def advance(self, after: np.ndarray) -> np.ndarray:  # the frame right after the step, before any autoreset
-        self.steps += 1
-        return self.reached(after)
-
-    def issue(self, mask: np.ndarray, frames: np.ndarray, goals: np.ndarray, logps: np.ndarray) -> None:
-        self.goal[mask] = goals
-        self.frame[mask] = frames
-        self.logp[mask] = logps
-        self.steps[mask] = 0
-
-
-def intrinsic_reward(reached: np.ndarray, steps: np.ndarray, max_steps: int, coef: float) -> np.ndarray:
-    """AMIGo's goal reward: 1 - 0.9 * (steps since the goal was issued) / (episode step limit), on reaching it."""
-    return coef * reached * (1.0 - 0.9 * steps / max_steps)
-
-
-def student_reward(extrinsic: np.ndarray, intrinsic: np.ndarray) -> np.ndarray:
-    """AMIGo's student reward: extrinsic + intrinsic clipped to [-1, 1], plus 1 more on extrinsic success."""
-    return np.clip(extrinsic + intrinsic, -1.0, 1.0) + (extrinsic > 0)
-
-
-def teacher_reward(reached, steps, extrinsic_success, t_star: int, negative: float = -0.3, positive: float = 1.0):
-    """AMIGo's teacher reward per goal outcome: `negative`, plus `positive` if the goal was reached after at least t*
-    steps, clipped to [-1, 1]; 1 whenever the episode's extrinsic reward came in the outcome's step."""
-    rewards = np.clip(negative + positive * (reached & (steps >= t_star)), -1.0, 1.0)
-    return np.where(extrinsic_success, 1.0, rewards)
-
-
-class TStar:
-    """AMIGo's difficulty schedule: after each teacher update, a mean teacher reward >= threshold extends a streak
-    (anything lower ends it); a streak of `patience` raises t* by one (up to `maximum`) and starts a new streak."""
-
-    def __init__(self, start: int, threshold: float, patience: int, maximum: int):
-        self.value, self.threshold, self.patience, self.maximum, self.streak = start, threshold, patience, maximum, 0
-
-    def update(self, mean_teacher_reward: float) -> int:
-        self.streak = self.streak + 1 if mean_teacher_reward >= self.threshold else 0
-        if self.streak >= self.patience:
-            self.value = min(self.value + 1, self.maximum)
-            self.streak = 0
-        return self.value
-
-
-class OutcomeBuffer:
-    """Goal outcomes waiting for a teacher update: one per reached goal and one per episode end (goal not reached)."""
-
-    def __init__(self):
-        self.parts, self.size = [], 0
-
-    def add(self, **columns: np.ndarray) -> None:
-        n = len(next(iter(columns.values())))
-        if n:
-            self.parts.append(columns)
-            self.size += n
-
-    def pop(self, n: int) -> dict[str, np.ndarray]:
-        """The oldest n outcomes; the rest stay for the next update."""
-        merged = {key: np.concatenate([part[key] for part in self.parts]) for key in self.parts[0]}
-        self.parts = [{key: value[n:] for key, value in merged.items()}] if self.size > n else []
-        self.size = max(self.size - n, 0)
-        return {key: value[:n] for key, value in merged.items()}
-
-
 # --- Resuming ---------------------------------------------------------------------------------------------------------
 
 
@@ -937,13 +950,6 @@ def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book
     t_star.value, t_star.streak = saved["t_star"]["value"], saved["t_star"]["streak"]
     outcomes.parts, outcomes.size = saved["outcomes"]["parts"], saved["outcomes"]["size"]
     return LoopState(**saved["loop"])
-
-
-# --- The run's constants ----------------------------------------------------------------------------------------------
-
-MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # a checkpoint's networks and what it is run on
-LOSS_LOG_UPDATES = 10  # student updates between two writes of the student's losses
-VIDEO_FPS = 8
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------

@@ -178,7 +178,7 @@ class Args:
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
     fast: str = "eager"
-    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, replayed as CUDA graphs; GPU)"""
+    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, as CUDA graphs; GPU)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
     checkpoint_every_steps: int = 0
@@ -530,6 +530,71 @@ def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, pol
     }
 
 
+# --- Acting: the high level's subgoals and the low level's roll-out ---------------------------------------------------
+
+
+def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
+    """`count` uniformly random points of [0, 13] x [0, 17]: HRAC's subgoals before the high level trains."""
+    return torch.rand(count, 2, device=device) * torch.as_tensor(GOAL_SCALE, device=device)
+
+
+@torch.no_grad()
+def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, explore: bool, n_noisy_goals: int, noise: float):
+    """HRAC's subgoal choice. Exploring: n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's output,
+    clipped to the grid; a uniform pick among those the adjacency network deems k-step reachable, else the output."""
+    raw = actor(states)
+    if not explore:
+        return raw
+    noise_shape = (len(states), max(n_noisy_goals, 1), 2)
+    noisy = torch.minimum((raw.unsqueeze(1) + noise * torch.randn(noise_shape, device=raw.device)).clamp(min=0), actor.scale)
+    if n_noisy_goals == 0:
+        return noisy[:, 0]
+    distances = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2)
+    reachable = distances < threshold
+    pick = torch.where(reachable, torch.rand(reachable.shape, device=raw.device), -1.0).argmax(1)
+    chosen = noisy[torch.arange(len(states)), pick]
+    return torch.where(reachable.any(1, keepdim=True), chosen, raw)
+
+
+class ControllerRollout:
+    """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
+    moves the codebook). `step()` returns (observations, each env's step in its episode, raw subgoals, actions, true next
+    observations, rewards, terminations, terminations | truncations, infos)."""
+
+    def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
+        self.envs, self.agent, self.choose_subgoals, self.k, self.observations = envs, agent, choose_subgoals, k, observations
+        self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
+        self.goals = torch.zeros(envs.num_envs, 2, device=next(agent.controller.parameters()).device)
+        self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]  # DGRL
+
+    def step(self):
+        agent = self.agent
+        states = torch.as_tensor(self.observations, device=self.goals.device)
+        new_segment = self.t_episode % self.k == 0
+        if new_segment.any():
+            index = torch.as_tensor(np.flatnonzero(new_segment), device=self.goals.device)
+            self.goals[index] = self.choose_subgoals(states[index])
+            self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]  # DGRL
+        with torch.no_grad():
+            logits, _ = agent.controller(states, self.goal_inputs)  # DGRL: z_q or the decoded subgoal
+            actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
+        next_observations, rewards, terminations, truncations, infos = self.envs.step(actions)
+        done = terminations | truncations
+        real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
+        goals = self.goals.cpu().numpy().copy()
+        step = (self.observations, self.t_episode.copy(), goals, actions, real_next, rewards, terminations, done, infos)
+        self.t_episode = np.where(done, 0, self.t_episode + 1)
+        self.observations = next_observations
+        return step
+
+    def state(self) -> dict:  # goal_inputs: as the autoencoder of the time the subgoals were chosen computed them
+        return {key: getattr(self, key) for key in ("observations", "t_episode", "goals", "goal_inputs")}
+
+    def load_state(self, state: dict) -> None:
+        for key, value in state.items():
+            setattr(self, key, value.to(self.goals.device) if isinstance(value, torch.Tensor) else value)
+
+
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
 
 
@@ -738,69 +803,7 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Acting and evaluation --------------------------------------------------------------------------------------------
-
-
-def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
-    """`count` uniformly random points of [0, 13] x [0, 17]: HRAC's subgoals before the high level trains."""
-    return torch.rand(count, 2, device=device) * torch.as_tensor(GOAL_SCALE, device=device)
-
-
-@torch.no_grad()
-def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, explore: bool, n_noisy_goals: int, noise: float):
-    """HRAC's subgoal choice. Exploring: n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's output,
-    clipped to the grid; a uniform pick among those the adjacency network deems k-step reachable, else the output."""
-    raw = actor(states)
-    if not explore:
-        return raw
-    noise_shape = (len(states), max(n_noisy_goals, 1), 2)
-    noisy = torch.minimum((raw.unsqueeze(1) + noise * torch.randn(noise_shape, device=raw.device)).clamp(min=0), actor.scale)
-    if n_noisy_goals == 0:
-        return noisy[:, 0]
-    distances = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2)
-    reachable = distances < threshold
-    pick = torch.where(reachable, torch.rand(reachable.shape, device=raw.device), -1.0).argmax(1)
-    chosen = noisy[torch.arange(len(states)), pick]
-    return torch.where(reachable.any(1, keepdim=True), chosen, raw)
-
-
-class ControllerRollout:
-    """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
-    moves the codebook). `step()` returns (observations, each env's step in its episode, raw subgoals, actions, true next
-    observations, rewards, terminations, terminations | truncations, infos)."""
-
-    def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
-        self.envs, self.agent, self.choose_subgoals, self.k, self.observations = envs, agent, choose_subgoals, k, observations
-        self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
-        self.goals = torch.zeros(envs.num_envs, 2, device=next(agent.controller.parameters()).device)
-        self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]  # DGRL
-
-    def step(self):
-        agent = self.agent
-        states = torch.as_tensor(self.observations, device=self.goals.device)
-        new_segment = self.t_episode % self.k == 0
-        if new_segment.any():
-            index = torch.as_tensor(np.flatnonzero(new_segment), device=self.goals.device)
-            self.goals[index] = self.choose_subgoals(states[index])
-            self.goal_inputs[index] = controller_goals(agent.goal_ae, self.goals[index], agent.dgrl_goal)[0]  # DGRL
-        with torch.no_grad():
-            logits, _ = agent.controller(states, self.goal_inputs)  # DGRL: z_q or the decoded subgoal
-            actions = torch.multinomial(F.softmax(logits, 1), 1).squeeze(1).cpu().numpy()
-        next_observations, rewards, terminations, truncations, infos = self.envs.step(actions)
-        done = terminations | truncations
-        real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
-        goals = self.goals.cpu().numpy().copy()
-        step = (self.observations, self.t_episode.copy(), goals, actions, real_next, rewards, terminations, done, infos)
-        self.t_episode = np.where(done, 0, self.t_episode + 1)
-        self.observations = next_observations
-        return step
-
-    def state(self) -> dict:  # goal_inputs: as the autoencoder of the time the subgoals were chosen computed them
-        return {key: getattr(self, key) for key in ("observations", "t_episode", "goals", "goal_inputs")}
-
-    def load_state(self, state: dict) -> None:
-        for key, value in state.items():
-            setattr(self, key, value.to(self.goals.device) if isinstance(value, torch.Tensor) else value)
+# --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
 @torch.no_grad()

@@ -110,7 +110,7 @@ class Args:
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
     fast: str = "eager"
-    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, replayed as CUDA graphs; GPU)"""
+    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, as CUDA graphs; GPU)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
     checkpoint_every_steps: int = 0

@@ -356,6 +356,16 @@ def teacher_loss(teacher: Teacher, batch: dict[str, torch.Tensor], *, baseline_c
     return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy}  # (one step: the mean)
 
 
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        params = [param for group in optimizer.param_groups for param in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    optimizer.step()
+
+
 def teacher_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict:
     """One teacher step on teacher_tensors' batch: tensors in, detached loss tensors out, free of host syncs."""
     coefs = {"baseline_coef": args.teacher_baseline_coef, "entropy_coef": args.teacher_entropy_coef}
@@ -1091,16 +1101,6 @@ def load_resume(args) -> dict:
     """--resume's state (on the CPU), saved by this script with the same flags but FREE_FLAGS (otherwise exit 2)."""
     must_match = tuple(key for key in vars(args) if key not in FREE_FLAGS)
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
-
-
-def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
-    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
-    optimizer.zero_grad()
-    loss.backward()
-    if max_grad_norm is not None:
-        params = [param for group in optimizer.param_groups for param in group["params"]]
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
-    optimizer.step()
 
 
 FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once

@@ -364,6 +364,16 @@ def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], row
     return images, image_rows, actions[rows], clean_images
 
 
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        params = [param for group in optimizer.param_groups for param in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    optimizer.step()
+
+
 def pretrain_step(agent: Agent, images: torch.Tensor, image_rows: torch.Tensor | None, actions: torch.Tensor, clean_images):
     """One Adam step of phi's self-supervised objective plus, for DGRL, the commitment loss and one EMA update of the
     codebook. Returns the detached metrics (the objective's loss, the commitment loss, DGRL's perplexity)."""
@@ -426,6 +436,22 @@ def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tup
     learn(agent.q_optimizer, td_loss + vq_loss)  # DGRL: vq_loss is zero unless the codebook is fine-tuned
     metrics = {"td_loss": td_loss, "q_values": q_values.mean(), "bonus": bonus.mean(), "vq_loss": vq_loss}
     return {name: value.detach() for name, value in metrics.items()}
+
+
+# --- Acting: greedy actions on the goal -------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, infos: dict) -> np.ndarray:
+    """The Q-network's actions on the features of the actual observations and goals (the codebook never updates here)."""
+    if table is not None:
+        state_features = table.features[infos["cell"]]
+        goal_features = table.features[infos["goal_cell"]]
+    else:
+        images = np.concatenate([observations["observation"], observations["desired_goal"]])
+        z = agent.rep.embed(torch.as_tensor(images, device=next(agent.q_network.parameters()).device))
+        state_features, goal_features = agent.rep(z, update=False)[0].chunk(2)  # DGRL: z_q, no EMA step
+    return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()  # DGRL: z_q(s), z_q(g)
 
 
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
@@ -614,20 +640,7 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Acting and evaluation --------------------------------------------------------------------------------------------
-
-
-@torch.no_grad()
-def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, infos: dict) -> np.ndarray:
-    """The Q-network's actions on the features of the actual observations and goals (the codebook never updates here)."""
-    if table is not None:
-        state_features = table.features[infos["cell"]]
-        goal_features = table.features[infos["goal_cell"]]
-    else:
-        images = np.concatenate([observations["observation"], observations["desired_goal"]])
-        z = agent.rep.embed(torch.as_tensor(images, device=next(agent.q_network.parameters()).device))
-        state_features, goal_features = agent.rep(z, update=False)[0].chunk(2)  # DGRL: z_q, no EMA step
-    return agent.q_network(state_features, goal_features).argmax(1).cpu().numpy()  # DGRL: z_q(s), z_q(g)
+# --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
 @torch.no_grad()
@@ -1096,16 +1109,6 @@ def load_resume(args) -> dict:
     """--resume's state (on the CPU), saved by this script with the same flags but FREE_FLAGS (otherwise exit 2)."""
     must_match = tuple(key for key in vars(args) if key not in FREE_FLAGS)
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
-
-
-def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
-    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
-    optimizer.zero_grad()
-    loss.backward()
-    if max_grad_norm is not None:
-        params = [param for group in optimizer.param_groups for param in group["params"]]
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
-    optimizer.step()
 
 
 FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once

@@ -432,6 +432,16 @@ class Replay:
             array[: self.size] = state["fields"][name].numpy()
 
 
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        params = [param for group in optimizer.param_groups for param in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    optimizer.step()
+
+
 def td3_update(level: Level, batch: dict, gamma: float, args: Args, actor_extra=None, critic_extra=0.0) -> dict:
     """One TD3 step as HRAC runs it at both levels: clipped target-action noise, the min of the target critics, a Huber
     critic loss plus `critic_extra` (DGRL: the encoder's losses, `goals` carrying its graph), the actor updated at every
@@ -546,6 +556,25 @@ def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, de
         predicted = (anet(cells_a) - anet(cells_b)).norm(dim=-1) < sum(margins) / 2
         accuracy = (predicted.float() == labels).float().mean().item()
     return epochs, torch.stack(losses).mean().item(), accuracy
+
+
+# --- Acting: the manager's subgoals and the controller's actions ------------------------------------------------------
+
+
+@torch.no_grad()
+def act(agent: Agent, state: np.ndarray, goal: np.ndarray, *, manager: bool, noise: float, rng: np.random.Generator):
+    """The manager's subgoal for (state, task goal) or the controller's torques for (xy-masked state, subgoal; DGRL: its
+    z_q, codebook untouched), plus Gaussian noise of std `noise` clipped to the actor's range (subgoal bounds, or 30)."""
+    actor = agent.manager.actor if manager else agent.controller.actor
+    device = actor.max_action.device
+    state = torch.as_tensor(state if manager else controller_input(state), dtype=torch.float32, device=device)[None]
+    goal = torch.as_tensor(goal, dtype=torch.float32, device=device)[None]
+    goal = goal if manager else controller_goal_input(agent.encoder, goal)  # DGRL: z_q of the subgoal
+    action = actor(state, goal)[0].cpu().numpy().astype(np.float64)  # DGRL: the controller sees z_q
+    if noise > 0:
+        limit = actor.max_action_numpy  # on the host: reading the device buffer back every step would be a sync
+        action = np.clip(action + rng.normal(0.0, noise, action.shape), -limit, limit)
+    return action
 
 
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
@@ -765,23 +794,7 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Acting and evaluation --------------------------------------------------------------------------------------------
-
-
-@torch.no_grad()
-def act(agent: Agent, state: np.ndarray, goal: np.ndarray, *, manager: bool, noise: float, rng: np.random.Generator):
-    """The manager's subgoal for (state, task goal) or the controller's torques for (xy-masked state, subgoal; DGRL: its
-    z_q, codebook untouched), plus Gaussian noise of std `noise` clipped to the actor's range (subgoal bounds, or 30)."""
-    actor = agent.manager.actor if manager else agent.controller.actor
-    device = actor.max_action.device
-    state = torch.as_tensor(state if manager else controller_input(state), dtype=torch.float32, device=device)[None]
-    goal = torch.as_tensor(goal, dtype=torch.float32, device=device)[None]
-    goal = goal if manager else controller_goal_input(agent.encoder, goal)  # DGRL: z_q of the subgoal
-    action = actor(state, goal)[0].cpu().numpy().astype(np.float64)  # DGRL: the controller sees z_q
-    if noise > 0:
-        limit = actor.max_action_numpy  # on the host: reading the device buffer back every step would be a sync
-        action = np.clip(action + rng.normal(0.0, noise, action.shape), -limit, limit)
-    return action
+# --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
 @torch.no_grad()
@@ -1271,16 +1284,6 @@ def load_resume(args) -> dict:
     """--resume's state (on the CPU), saved by this script with the same flags but FREE_FLAGS (otherwise exit 2)."""
     must_match = tuple(key for key in vars(args) if key not in FREE_FLAGS)
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
-
-
-def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
-    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
-    optimizer.zero_grad()
-    loss.backward()
-    if max_grad_norm is not None:
-        params = [param for group in optimizer.param_groups for param in group["params"]]
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
-    optimizer.step()
 
 
 FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once

@@ -421,6 +421,16 @@ def mark_adjacent(adjacency: np.ndarray, visited: np.ndarray, cells: np.ndarray,
         adjacency[cells[offset:], cells[:-offset]] = True
 
 
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        params = [param for group in optimizer.param_groups for param in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    optimizer.step()
+
+
 def train_adjacency(agent: Agent, adjacency: np.ndarray, visited: np.ndarray, epochs: int, args: Args, rng) -> float:
     """`epochs` passes over every pair of visited cells in shuffled batches; returns the last epoch's mean loss (NaN if
     no epoch ran or fewer than two cells were visited)."""
@@ -1207,16 +1217,6 @@ def load_resume(args) -> dict:
     """--resume's state (on the CPU), saved by this script with the same flags but FREE_FLAGS (otherwise exit 2)."""
     must_match = tuple(key for key in vars(args) if key not in FREE_FLAGS)
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
-
-
-def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
-    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
-    optimizer.zero_grad()
-    loss.backward()
-    if max_grad_norm is not None:
-        params = [param for group in optimizer.param_groups for param in group["params"]]
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
-    optimizer.step()
 
 
 FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once

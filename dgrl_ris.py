@@ -357,6 +357,16 @@ def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float)
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        params = [param for group in optimizer.param_groups for param in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    optimizer.step()
+
+
 def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor]:
     """One RIS update (critic, high level, actor, targets) with DGRL's representation loss, on EpisodeReplay.sample's
     batch (a state's goal-space projection: its first goal_dim entries); returns detached metrics."""
@@ -415,6 +425,17 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
     metrics |= dict(critic_loss=critic_loss, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean())
     metrics |= dict(q_values=q_values.mean(), high_weight_max=weights.max(), subgoal_distance=subgoal_distance)
     return {name: value.detach() for name, value in metrics.items()}
+
+
+# --- Acting: the actor on the goal ------------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
+    states = torch.as_tensor(observations["state"], device=device)
+    goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: quantized, no update
+    actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)  # DGRL
+    return actions.cpu().numpy()
 
 
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
@@ -558,15 +579,7 @@ def main(args: Args) -> None:
         raise SystemExit(1)
 
 
-# --- Acting and evaluation --------------------------------------------------------------------------------------------
-
-
-@torch.no_grad()
-def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
-    states = torch.as_tensor(observations["state"], device=device)
-    goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: quantized, no update
-    actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)  # DGRL
-    return actions.cpu().numpy()
+# --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
 def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=None) -> tuple | None:
@@ -1076,16 +1089,6 @@ def load_resume(args) -> dict:
     """--resume's state (on the CPU), saved by this script with the same flags but FREE_FLAGS (otherwise exit 2)."""
     must_match = tuple(key for key in vars(args) if key not in FREE_FLAGS)
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
-
-
-def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
-    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
-    optimizer.zero_grad()
-    loss.backward()
-    if max_grad_norm is not None:
-        params = [param for group in optimizer.param_groups for param in group["params"]]
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
-    optimizer.step()
 
 
 FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once

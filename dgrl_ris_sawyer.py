@@ -270,6 +270,59 @@ def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.T
     return features if vq is None else vq(features, update=False)[0]  # DGRL
 
 
+@dataclass
+class Agent:
+    """RIS from pixels: the networks, the actor and critic targets, the optimizers and, under DGRL, the codebook.
+
+    The critic's optimizer also trains the encoder (at --encoder-lr) and the DRIML heads (at --q-lr: at --encoder-lr the
+    DRIML loss stayed at log(batch) for the first thousand updates); the codebook moves by EMA, in no optimizer."""
+
+    encoder: ImageEncoder
+    driml_heads: DrimlHeads
+    actor: Policy
+    critic: TwinCritic
+    high: Policy
+    actor_target: Policy
+    critic_target: TwinCritic
+    critic_optimizer: torch.optim.Adam
+    actor_optimizer: torch.optim.Adam
+    high_optimizer: torch.optim.Adam
+    vq: VectorQuantizerEMA | None  # the DGRL bottleneck; None under --groups 0
+
+    NETWORKS: ClassVar = {"actor": "actor", "critic": "critic", "high": "high", "encoder": "encoder", "driml": "driml_heads"}
+
+    def state_dicts(self) -> dict[str, dict | None]:
+        """What evaluation needs: the online networks and the codebook with its EMA statistics (None under --groups 0)."""
+        networks = {key: getattr(self, name).state_dict() for key, name in self.NETWORKS.items()}
+        return networks | {"vq": None if self.vq is None else self.vq.state_dict()}
+
+    def load_state_dicts(self, saved: dict) -> None:
+        for key, name in self.NETWORKS.items():
+            getattr(self, name).load_state_dict(saved[key])
+        if self.vq is not None:
+            self.vq.load_state_dict(saved["vq"])
+
+
+def make_agent(image_size: int, action_dim: int, args: Args, device: torch.device) -> Agent:
+    """The agent of a run (the networks are created in this order, so a seed gives the same weights)."""
+    actor = Policy(args.feature_dim, action_dim, args.hidden_dim).to(device)
+    critic = TwinCritic(args.feature_dim, action_dim, args.hidden_dim).to(device)
+    encoder = ImageEncoder(args.feature_dim, image_size).to(device)
+    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
+    high = Policy(args.feature_dim, args.feature_dim, args.hidden_dim).to(device)  # the high level
+    vq = None  # RIS has no bottleneck
+    if args.groups > 0:  # DGRL: the shared-codebook bottleneck on the encoder's features
+        vq = VectorQuantizerEMA(
+            args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
+        ).to(device)
+    adam = partial(torch.optim.Adam, fused=device.type in ("cpu", "cuda"))
+    critic_parameters = [*critic.parameters(), *driml_heads.parameters()]
+    critic_groups = [{"params": critic_parameters, "lr": args.q_lr}, {"params": encoder.parameters(), "lr": args.encoder_lr}]
+    targets = make_target(actor), make_target(critic)
+    optimizers = adam(critic_groups), adam(actor.parameters(), lr=args.actor_lr), adam(high.parameters(), lr=args.h_lr)
+    return Agent(encoder, driml_heads, actor, critic, high, *targets, *optimizers, vq)
+
+
 # --- Augmentation and replay ------------------------------------------------------------------------------------------
 
 
@@ -382,7 +435,7 @@ def reached(states, goals):
     return (hand < SUCCESS_DISTANCE) & (puck < SUCCESS_DISTANCE)
 
 
-# --- Losses -----------------------------------------------------------------------------------------------------------
+# --- Losses and the update --------------------------------------------------------------------------------------------
 
 
 def local_global_infonce(local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
@@ -420,57 +473,14 @@ def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float)
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
-@dataclass
-class Agent:
-    """RIS from pixels: the networks, the actor and critic targets, the optimizers and, under DGRL, the codebook.
-
-    The critic's optimizer also trains the encoder (at --encoder-lr) and the DRIML heads (at --q-lr: at --encoder-lr the
-    DRIML loss stayed at log(batch) for the first thousand updates); the codebook moves by EMA, in no optimizer."""
-
-    encoder: ImageEncoder
-    driml_heads: DrimlHeads
-    actor: Policy
-    critic: TwinCritic
-    high: Policy
-    actor_target: Policy
-    critic_target: TwinCritic
-    critic_optimizer: torch.optim.Adam
-    actor_optimizer: torch.optim.Adam
-    high_optimizer: torch.optim.Adam
-    vq: VectorQuantizerEMA | None  # the DGRL bottleneck; None under --groups 0
-
-    NETWORKS: ClassVar = {"actor": "actor", "critic": "critic", "high": "high", "encoder": "encoder", "driml": "driml_heads"}
-
-    def state_dicts(self) -> dict[str, dict | None]:
-        """What evaluation needs: the online networks and the codebook with its EMA statistics (None under --groups 0)."""
-        networks = {key: getattr(self, name).state_dict() for key, name in self.NETWORKS.items()}
-        return networks | {"vq": None if self.vq is None else self.vq.state_dict()}
-
-    def load_state_dicts(self, saved: dict) -> None:
-        for key, name in self.NETWORKS.items():
-            getattr(self, name).load_state_dict(saved[key])
-        if self.vq is not None:
-            self.vq.load_state_dict(saved["vq"])
-
-
-def make_agent(image_size: int, action_dim: int, args: Args, device: torch.device) -> Agent:
-    """The agent of a run (the networks are created in this order, so a seed gives the same weights)."""
-    actor = Policy(args.feature_dim, action_dim, args.hidden_dim).to(device)
-    critic = TwinCritic(args.feature_dim, action_dim, args.hidden_dim).to(device)
-    encoder = ImageEncoder(args.feature_dim, image_size).to(device)
-    driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
-    high = Policy(args.feature_dim, args.feature_dim, args.hidden_dim).to(device)  # the high level
-    vq = None  # RIS has no bottleneck
-    if args.groups > 0:  # DGRL: the shared-codebook bottleneck on the encoder's features
-        vq = VectorQuantizerEMA(
-            args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
-        ).to(device)
-    adam = partial(torch.optim.Adam, fused=device.type in ("cpu", "cuda"))
-    critic_parameters = [*critic.parameters(), *driml_heads.parameters()]
-    critic_groups = [{"params": critic_parameters, "lr": args.q_lr}, {"params": encoder.parameters(), "lr": args.encoder_lr}]
-    targets = make_target(actor), make_target(critic)
-    optimizers = adam(critic_groups), adam(actor.parameters(), lr=args.actor_lr), adam(high.parameters(), lr=args.h_lr)
-    return Agent(encoder, driml_heads, actor, critic, high, *targets, *optimizers, vq)
+def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
+    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        params = [param for group in optimizer.param_groups for param in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
+    optimizer.step()
 
 
 def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]:
@@ -543,6 +553,20 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     metrics.update(critic_loss=critic_loss, driml_loss=driml, high_loss=high_loss, actor_loss=actor_loss, kl=kl.mean())
     metrics.update(q_values=q_values.mean(), high_weight_max=weights.max())
     return {name: value.detach() for name, value in metrics.items()}
+
+
+# --- Acting: the actor on the goal image ------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.ndarray:
+    """Actions for a batch of observations: the un-augmented state and goal images through the encoder."""
+    features = agent.encoder(image_batch(np.concatenate((observations["image"], observations["goal_image"])), device))
+    state_z, goal_z = features.chunk(2)
+    goal_in = goal_input(agent.vq, goal_z)  # DGRL: the goal quantized, no codebook update
+    if deterministic:
+        return torch.tanh(agent.actor(state_z, goal_in)[0]).cpu().numpy()  # DGRL: z_q(g)
+    return agent.actor.sample(state_z, goal_in).cpu().numpy()  # DGRL: z_q(g)
 
 
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
@@ -685,18 +709,7 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Acting and evaluation --------------------------------------------------------------------------------------------
-
-
-@torch.no_grad()
-def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.ndarray:
-    """Actions for a batch of observations: the un-augmented state and goal images through the encoder."""
-    features = agent.encoder(image_batch(np.concatenate((observations["image"], observations["goal_image"])), device))
-    state_z, goal_z = features.chunk(2)
-    goal_in = goal_input(agent.vq, goal_z)  # DGRL: the goal quantized, no codebook update
-    if deterministic:
-        return torch.tanh(agent.actor(state_z, goal_in)[0]).cpu().numpy()  # DGRL: z_q(g)
-    return agent.actor.sample(state_z, goal_in).cpu().numpy()  # DGRL: z_q(g)
+# --- Evaluation -------------------------------------------------------------------------------------------------------
 
 
 def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=()) -> dict | None:
@@ -1175,16 +1188,6 @@ def load_resume(args) -> dict:
     """--resume's state (on the CPU), saved by this script with the same flags but FREE_FLAGS (otherwise exit 2)."""
     must_match = tuple(key for key in vars(args) if key not in FREE_FLAGS)
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
-
-
-def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
-    """One step on `loss`: clear the gradients, backpropagate, clip their norm to `max_grad_norm` if given, step."""
-    optimizer.zero_grad()
-    loss.backward()
-    if max_grad_norm is not None:
-        params = [param for group in optimizer.param_groups for param in group["params"]]
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm, foreach=True)
-    optimizer.step()
 
 
 FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once

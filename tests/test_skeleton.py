@@ -24,8 +24,9 @@ MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
 WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
     "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
-    "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "learn", "FAST_PATHS",
+    "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "FAST_PATHS",
     "fast_update",  # the run-management appendix
+    "learn",  # beside the first update that steps an optimizer
     "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors", "LOCK_FILE", "hold_run_folder",  # checks
     "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
@@ -35,7 +36,7 @@ REGIONS = [
     (BLOCK_START, BLOCK_END),
     ("# --- Checks: identical in every script (tests/test_skeleton.py) ", "# --- end of the shared checks "),
 ]
-RUN_MANAGEMENT_LINES = 180  # the most the run-management appendix may take, its banners included
+RUN_MANAGEMENT_LINES = 170  # the most the run-management appendix may take, its banners included
 SPEED_SWITCH_LINES = 20  # the most --fast may take: FAST_PATHS through fast_update, blank lines not counted
 MUJOCO_GL_DEFAULT = (
     'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'
@@ -51,7 +52,7 @@ def region(lines: list[str], start: str, end: str) -> tuple[int, int]:
 def shared_pieces(source: str) -> dict[str, str]:
     """The shared pieces of one script's source: "Args" (the common fields, from --exp-name through
     --checkpoint-every's docstring), each top-level name of the two shared regions (the run management and the checks),
-    and write_video, as source text."""
+    and learn and write_video (each beside its callers), as source text."""
     lines = source.splitlines()
     pieces = {}
     start = next(i for i in range(lines.index("class Args:"), len(lines)) if lines[i].startswith("    exp_name: str"))
@@ -69,8 +70,8 @@ def shared_pieces(source: str) -> dict[str, str]:
                 raise AssertionError(f"a shared region holds a {type(node).__name__}, not a definition")
             pieces[name] = ast.get_source_segment(block, node)
     for node in ast.parse(source).body:
-        if isinstance(node, ast.FunctionDef) and node.name == "write_video":
-            pieces["write_video"] = ast.get_source_segment(source, node)
+        if isinstance(node, ast.FunctionDef) and node.name in ("learn", "write_video"):  # beside what calls them
+            pieces[node.name] = ast.get_source_segment(source, node)
     return pieces
 
 

@@ -647,21 +647,7 @@ def main(args: Args) -> None:
         return propose_subgoals(agent.actor, agent.adjacency, states, threshold=threshold, explore=True, **noise)
 
     rollout = ControllerRollout(envs, envs.reset(seed=args.seed)[0], agent, high_level_subgoals, args.k)
-    explored = -(-args.adj_init_steps // n_envs) * n_envs  # the frame at which the exploration ends
-    loop = LoopState(
-        trajectories=np.zeros((n_envs, max_steps + 1), dtype=np.int64),
-        adjacency=np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool),
-        visited=np.zeros(HEIGHT * WIDTH, dtype=bool),
-        episode_states=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
-        episode_goals=np.zeros((n_envs, max_steps, 2), dtype=np.float32),
-        episode_actions=np.zeros((n_envs, max_steps), dtype=np.int64),
-        episode_next=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
-        segment_start=np.zeros((n_envs, 3), dtype=np.float32),
-        segment_reward=np.zeros(n_envs, dtype=np.float32),
-        next_adjacency=explored + args.adj_frequency,
-        next_log=(explored // args.log_frequency + 1) * args.log_frequency,
-        next_eval=(explored // args.eval_frequency + 1) * args.eval_frequency,
-    )
+    loop = new_loop_state(args)
     if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
         loop = restore_training_state(saved, agent, rng, replay, explore_rollout, rollout, eval_envs)
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
@@ -1036,6 +1022,26 @@ class LoopState:
     subgoals: int = 0  # the subgoals chosen since the last evaluation, and those no free cell reaches under each rule
     unreachable: dict = field(default_factory=lambda: {"euclidean": 0, "box": 0})
     figures: dict = field(default_factory=dict)  # the latest update's losses, logged every --log-frequency frames
+
+
+def new_loop_state(args: Args) -> LoopState:
+    """A new run's loop state: empty episodes, no adjacency, the cadences counted from the end of the exploration."""
+    n_envs, max_steps = args.num_envs, args.max_episode_steps
+    explored = -(-args.adj_init_steps // n_envs) * n_envs  # the frame at which the exploration ends
+    return LoopState(
+        trajectories=np.zeros((n_envs, max_steps + 1), dtype=np.int64),
+        adjacency=np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool),
+        visited=np.zeros(HEIGHT * WIDTH, dtype=bool),
+        episode_states=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
+        episode_goals=np.zeros((n_envs, max_steps, 2), dtype=np.float32),
+        episode_actions=np.zeros((n_envs, max_steps), dtype=np.int64),
+        episode_next=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
+        segment_start=np.zeros((n_envs, 3), dtype=np.float32),
+        segment_reward=np.zeros(n_envs, dtype=np.float32),
+        next_adjacency=explored + args.adj_frequency,
+        next_log=(explored // args.log_frequency + 1) * args.log_frequency,
+        next_eval=(explored // args.eval_frequency + 1) * args.eval_frequency,
+    )
 
 
 def training_state(loop: LoopState, agent: Agent, rng, replay, explore_rollout, rollout, eval_envs) -> dict:

@@ -1,41 +1,45 @@
 #!/usr/bin/env bash
-# The GPU check: one command, at most 8 minutes on one GPU, nothing downloaded.
+# The GPU check: one command, at most 9 minutes on one GPU, nothing downloaded.
 #
 #     bash benchmark/speed/gpu_check.sh                 # from the repository root, on a machine with a CUDA GPU
-#     WHEELS=wheels/ bash benchmark/speed/gpu_check.sh  # install missing packages from local wheel files first (offline)
+#     WHEELS=wheels/ GL_DEBS=debs/ bash benchmark/speed/gpu_check.sh   # offline: packages from local files first
 #
 # It needs the machine's python3 (PYTHON) with a CUDA build of torch, plus gymnasium, mujoco, minigrid, tyro and
 # tensorboard (requirements.txt's versions). Where some are missing, `bash benchmark/speed/gpu_wheels.sh wheels/` on a
 # networked machine downloads their wheels (and their dependencies'), for Python 3.12; pass that folder as WHEELS:
 # they are installed with `pip --no-index --no-deps` into a temporary folder put on PYTHONPATH, and every requirement
-# they declare is checked against what they and the machine have, before any measurement. Everything the check writes
-# outside the repository (those packages, torch's compilation caches, the runs' folders) lies in that temporary folder,
-# removed at the end; in the repository it writes its figures to gpu_check.txt (LOG).
+# they declare is checked against what they and the machine have, before any measurement. A machine image without the
+# EGL library (MuJoCo's headless rendering, which Sawyer's pixels need) takes Debian's libegl1, libglvnd0, libopengl0,
+# libgl1, libglx0 and libgles2 packages as GL_DEBS=folder: they are unpacked into / (`dpkg -x`, then `ldconfig`; only
+# with GL_DEBS: on a machine of your own install them with its package manager instead), and the NVIDIA driver's EGL
+# vendor file is named if the loader does not find it. Everything else the check writes outside the repository (the
+# wheels' packages, torch's compilation caches, the runs' folders) lies in a temporary folder removed at the end; in
+# the repository it writes its figures to gpu_check.txt (LOG).
 #
-# Part 1 (about 3 min), per-update time (median of 5 blocks, compilation and capture done first) at the paper's batch
-# sizes through each speed path: --fast eager, compile (torch.compile, one graph) and cudagraphs (that graph replayed as
-# one CUDA graph): RIS's update at batch 2048 (Ant sizes, G 0 and 16) and goal-DQN's TD update, each benchmark stopped
-# after BENCH_SECONDS (default 180). The other scripts' benchmark/speed/bench_*.py take the same --fast choices where they
-# take --device. Part 2 (about 5 min), training steps/s of each paper-setting command over SECONDS_PER_RUN (default
-# 45) of wall clock, after its first SKIP (default 25) seconds (start-up, warm-up, compilation), stopped by SIGINT
-# (killed if it has not stopped STOP_WAIT, default 30, seconds later):
-# `python dgrl_ris.py --env-id AntMaze --groups 16` with eager and with cudagraphs, the other scripts' paper commands
-# (each first run of its paper preset in benchmark/presets.py, with DGRL) with cudagraphs. The whole check keeps inside
-# LIMIT_SECONDS (default 450; 0: no limit): a step is shortened to the time left, or skipped with a line saying so.
-# Every line it prints is a figure for the docs' speed tables. DEVICE=cpu tries it out on a machine without a GPU;
-# there the probes see mostly warm-up and compilation, so its figures mean nothing. Tried out on the 2-core CPU
-# (docs/launch.md, "The GPU check on an offline GPU machine", has the commands and times): with the project's
-# Python 3.11 venv and torch 2.13.0, and with Python 3.12 and torch 2.11.0 alone plus the wheels of gpu_wheels.sh.
+# Part 1 (BENCH_SECONDS, default 150): benchmark/speed/gpu_updates.py, training updates at their paper batch through
+# --fast eager, compile and cudagraphs: milliseconds per update, the ratio to eager, and the largest relative difference
+# of every parameter and optimizer state after 10 updates against eager on the GPU and against eager on the CPU. By
+# default RIS's (batch 2048) and HRAC's two levels, with and without DGRL; UPDATE_CASES names others
+# (`python benchmark/speed/gpu_updates.py --help` lists the 21), for a second run of the check. Part 2 (the rest),
+# training steps/s of each paper command over SECONDS_PER_RUN (default 25) of wall clock after its first SKIP (default
+# 20) seconds (start-up, warm-up, compilation), one command at a time, stopped by SIGINT (killed if it has not stopped STOP_WAIT, default 20, seconds
+# later): RIS AntMaze G = 16 eager and cudagraphs and G = 0, Sawyer G = 16 (pixels through EGL), HRAC AntMazeSparse
+# G = 16 and G = 0, Key-Chest and AMIGo KeyCorridorS3R3 (G = 16), with cudagraphs. The whole check keeps inside
+# LIMIT_SECONDS (default 510; 0: no limit): a step is shortened to the time left, or skipped with a line saying so.
+# It ends with one table of every figure. DEVICE=cpu tries it out on a machine without a GPU (eager and compile only);
+# there the probes see mostly warm-up and compilation, so its figures mean nothing.
 set -uo pipefail
 cd "$(dirname "$0")/../.."
-SECONDS_PER_RUN=${SECONDS_PER_RUN:-45}
-SKIP=${SKIP:-25}
+SECONDS_PER_RUN=${SECONDS_PER_RUN:-25}
+SKIP=${SKIP:-20}
 PYTHON=${PYTHON:-python3}
+case $PYTHON in */*) PYTHON=$(cd "$(dirname "$PYTHON")" && pwd)/$(basename "$PYTHON") ;; esac  # the probes run elsewhere
 LOG=${LOG:-gpu_check.txt}
 DEVICE=${DEVICE:-cuda}  # DEVICE=cpu tries the script out on a machine without a GPU (eager and compile only)
-BENCH_SECONDS=${BENCH_SECONDS:-180}
-STOP_WAIT=${STOP_WAIT:-30}
-LIMIT_SECONDS=${LIMIT_SECONDS:-450}
+BENCH_SECONDS=${BENCH_SECONDS:-150}
+UPDATE_CASES=${UPDATE_CASES:-ris_G0 ris_G16 hrac_controller_G0 hrac_controller_G16 hrac_manager_G0 hrac_manager_G16}
+STOP_WAIT=${STOP_WAIT:-20}
+LIMIT_SECONDS=${LIMIT_SECONDS:-510}
 [ "$DEVICE" = cuda ] || [ "$DEVICE" = cpu ] || { echo "gpu_check: DEVICE=$DEVICE: cuda or cpu"; exit 2; }
 for name in SECONDS_PER_RUN SKIP BENCH_SECONDS STOP_WAIT LIMIT_SECONDS; do
     [[ "${!name}" =~ ^[0-9]+$ ]] || { echo "gpu_check: $name=${!name}: a whole number of seconds"; exit 2; }
@@ -70,6 +74,17 @@ if [ -n "${WHEELS:-}" ]; then
         --target "$SITE" "${wheels[@]}" || { echo "gpu_check: pip could not install the wheels of $WHEELS"; exit 1; }
     say "gpu_check: ${#wheels[@]} wheels of $WHEELS installed into $SITE in $(( $(date +%s) - wheels_started )) s"
     export PYTHONPATH=$SITE${PYTHONPATH:+:$PYTHONPATH}
+fi
+if [ -n "${GL_DEBS:-}" ]; then  # the EGL and GL libraries, unpacked into / (a bare machine image lacks them)
+    debs=("$GL_DEBS"/*.deb)
+    [ -e "${debs[0]}" ] || { echo "gpu_check: GL_DEBS=$GL_DEBS holds no .deb packages"; exit 1; }
+    for deb in "${debs[@]}"; do dpkg -x "$deb" / || { echo "gpu_check: dpkg -x $deb failed"; exit 1; }; done
+    ldconfig
+    vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+    if [ -z "${__EGL_VENDOR_LIBRARY_FILENAMES:-}" ] && [ -e "$vendor" ] && ! ls /usr/share/glvnd/egl_vendor.d/*nvidia* >/dev/null 2>&1; then
+        export __EGL_VENDOR_LIBRARY_FILENAMES=$vendor
+    fi
+    say "gpu_check: ${#debs[@]} packages of $GL_DEBS unpacked (EGL vendor file: ${__EGL_VENDOR_LIBRARY_FILENAMES:-found by the loader})"
 fi
 # A machine without the EGL library fails at `import mujoco` itself with MUJOCO_GL=egl (mujoco's EGL module raises an
 # AttributeError from PyOpenGL, which mujoco does not catch): every MuJoCo script would crash. glfw imports without a
@@ -143,9 +158,8 @@ bench() {  # one benchmark script, its figures to the log; a failure or a time-o
     fi
 }
 say "== part 1: one update, eager vs compile vs cudagraphs, paper batch sizes"
-FAST="--fast $PATHS --device $DEVICE"
-bench benchmark/speed/bench_ris.py $FAST --no-envs --batches 2048 --goals ant
-bench benchmark/speed/bench_goal_dqn.py $FAST --only td
+# shellcheck disable=SC2086  # the case names are words
+bench benchmark/speed/gpu_updates.py --device "$DEVICE" --paths $PATHS --out "$SCRATCH/updates.txt" --cases $UPDATE_CASES
 
 say "== part 2: steps/s of the paper commands, ${SECONDS_PER_RUN} s each"
 probe() {
@@ -162,9 +176,22 @@ probe() {
 RIS_PAPER="--batch-size 2048 --start-timesteps 10000 --eval-frequency 1000 --eval-episodes 5"
 probe "$PWD/dgrl_ris.py" --env-id AntMaze --groups 16 $RIS_PAPER --fast eager
 probe "$PWD/dgrl_ris.py" --env-id AntMaze --groups 16 $RIS_PAPER --fast $BEST
-probe "$PWD/dgrl_ris_sawyer.py" --groups 16 --eval-frequency 5000 --fast $BEST
+probe "$PWD/dgrl_ris.py" --env-id AntMaze --groups 0 $RIS_PAPER --fast $BEST
 probe "$PWD/dgrl_hrac.py" --env-id AntMazeSparse --groups 16 --fast $BEST
+probe "$PWD/dgrl_hrac.py" --env-id AntMazeSparse --groups 0 --fast $BEST
+probe "$PWD/dgrl_ris_sawyer.py" --groups 16 --eval-frequency 5000 --fast $BEST
 probe "$PWD/dgrl_hrac_keychest.py" --groups 16 --fast $BEST
 probe "$PWD/dgrl_amigo.py" --env-id MiniGrid-KeyCorridorS3R3-v0 --groups 16 --progress-frequency 50000 --fast $BEST
+
+say "== table: every figure of this check (LOG=$LOG)"
+"$PYTHON" - "$LOG" <<'TABLE' | tee -a "$LOG.table"
+import re, sys
+lines = open(sys.argv[1]).read().splitlines()
+rows = [line for line in lines if line.startswith(("update ", "sps_probe:", "gpu_check: Python"))]
+for line in rows:
+    match = re.match(r"sps_probe: (\d+) steps/s .*?; \d+ s in all; (.*)", line)
+    print(f"{match.group(1):>8} steps/s  {match.group(2)}" if match else line)
+TABLE
+cat "$LOG.table" >>"$LOG" && rm -f "$LOG.table"
 
 say "gpu_check: $(( $(date +%s) - started )) s in all"

@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: run demo-vq test lint bench-vq study-goal-dqn study-mnist study-hrac-keychest study-ris bench-ris study-amigo bench-amigo study-hrac bench-hrac study-ris-sawyer bench-ris-sawyer clean-venv
+.PHONY: run demo-vq test test-all lint bench-vq study-goal-dqn study-mnist study-hrac-keychest study-ris bench-ris study-amigo bench-amigo study-hrac bench-hrac study-ris-sawyer bench-ris-sawyer clean-venv
 
 $(VENV)/installed: requirements.txt requirements-nodeps.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,8 +19,13 @@ run: $(VENV)/installed
 demo-vq: $(VENV)/installed
 	$(PY) vq.py
 
-# The whole test suite: lint, format check, unit tests and smoke runs.
+# The quick tier (a few minutes on 2 cores): lint, format check, the maths and environment tests, each script's smoke
+# run in both modes, one resume and one bad-input check per script. test-all (what CI runs) adds the tests that
+# tests/conftest.py marks `full`: compiled-equals-eager, kill and exact-resume tests, the launcher's sweeps and Slurm.
 test: lint
+	$(PY) -m pytest -n auto -m "not full"
+
+test-all: lint
 	$(PY) -m pytest -n auto
 
 lint: $(VENV)/installed

@@ -328,3 +328,42 @@ def record_outputs_with_grad(module: torch.nn.Module) -> tuple[list, list]:
 
     module.register_forward_hook(keep)
     return outputs, grads
+
+
+# --- The two test tiers -------------------------------------------------------------------------------------------------
+# `make test` runs every test not marked `full`: each script's smoke run in both modes, the maths and environment tests,
+# one resume check (tests/test_skeleton.py's Ctrl-C test) and one bad-input check per script. `make test-all` (what CI
+# runs) adds the tests below, marked `full` here in one place: the compiled-equals-eager tests (minutes of compilation),
+# the kill tests, the exact-resume tests, the launcher's sweeps and its Slurm tests, and the other smoke variants.
+FULL_TIER = {
+    "compiled equals eager": (
+        "equals_eager_and_is_free_of_host_syncs", "follows_a_decaying_learning_rate_without_recompiling",
+        "fast_cudagraphs_path_computes_the_eager",
+    ),
+    "kill and exact resume": (
+        "kill", "resumes_exactly", "resume_inside_", "resume_from_", "resume_mid_episode", "resume_of_a_gymnasium",
+        "resume_after_", "resumes_to_its_end", "resumes_from_its_last", "resumes_with_the_same_factor_tests",
+        "a_finished_run_resumed_with_free_flags", "resume_refuses_changed_flags",
+    ),
+    "the launcher's sweeps": (
+        "test_a_local_sweep_runs", "test_ctrl_c_stops_a_local_sweep", "flag_check_leaves_what_fast_needs",
+        "every_preset_dry_runs", "every_tool_of_benchmark_answers_help", "test_dry_run_prints_every_command",
+        "test_bad_flags_exit_2_with_a_message_before_anything_runs[flags9", "[flags10",
+    ),
+    "other smoke variants and slow tools": (
+        "test_smoke_run[AntU", "test_smoke_run[AntF", "test_smoke_run[PointMaze", "test_smoke_run[AntMaze_UMaze",
+        "test_smoke_run_every_env_in_both_modes[AntPush", "test_smoke_run_every_env_in_both_modes[AntFall",
+        "test_smoke_run_every_env_in_both_modes[AntGather", "saves_evaluates_refuses_other_settings_and_records_video",
+        "test_smoke_run[baseline-finetune-video]", "test_smoke_run[dgrl-finetune-noise-ae]",
+        "test_smoke_run_trains_evaluates_and_reloads[16-decoded]", "capture_video_writes_an_mp4",
+        "test_the_offline_package_holds_real_mnist", "test_mnist.py::test_bad_flags_fail_before_any_work",
+        "goal_autoencoder_round_trip_separates_cells", "test_factor_map.py::", "test_a_replay_too_large_for_memory",
+    ),
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    patterns = [pattern for group in FULL_TIER.values() for pattern in group]
+    for item in items:
+        if item.get_closest_marker("slurm") or any(pattern in item.nodeid for pattern in patterns):
+            item.add_marker(pytest.mark.full)

@@ -58,7 +58,7 @@ started=$(date +%s)
 # is left as it was. TMPDIR too: torch keeps its precompiled C++ headers in the temporary folder whatever
 # TORCHINDUCTOR_CACHE_DIR says. Triton's home (~/.triton) and CUDA's kernel cache (~/.nv) are moved there as well.
 SCRATCH=$(mktemp -d "${TMPDIR:-/tmp}/dgrl-gpu-check.XXXXXX") || exit 1
-trap 'rm -rf "$SCRATCH"' EXIT
+trap 'rm -rf "$SCRATCH" 2>/dev/null || { sleep 2; rm -rf "$SCRATCH"; }' EXIT  # (a killed probe's child may still write)
 mkdir -p "$SCRATCH/tmp"
 export TMPDIR=$SCRATCH/tmp
 export TORCHINDUCTOR_CACHE_DIR=${TORCHINDUCTOR_CACHE_DIR:-$SCRATCH/inductor}

@@ -709,10 +709,7 @@ def main(args: Args) -> None:
 
         # High-level transitions: one per k-step segment, or per shorter last segment; termination only at the chest.
         new_segment = t_episode % args.k == 0
-        if new_segment.any():  # the subgoals just chosen that no free cell reaches, under either rule (logged)
-            loop.subgoals += int(new_segment.sum())
-            for rule in loop.unreachable:
-                loop.unreachable[rule] += int(unreachable_subgoals(goals[new_segment], args.goal_threshold, rule).sum())
+        loop.chosen_subgoals.append(goals[new_segment])  # tested for reachability at the next evaluation
         loop.segment_start = np.where(new_segment[:, None], observations, loop.segment_start)
         loop.segment_reward = np.where(new_segment, 0.0, loop.segment_reward) + args.man_reward_scale * rewards
         ends = ((t_episode + 1) % args.k == 0) | done
@@ -772,9 +769,10 @@ def main(args: Args) -> None:
             writer.add_scalar("eval/subgoal_distance", distance, loop.frames)
             writer.add_scalar("eval/subgoal_reach_rate", reach, loop.frames)
             writer.add_scalar("charts/SPS", progress.sps(loop.frames), loop.frames)
-            for rule, count in loop.unreachable.items():  # of the subgoals chosen since the last evaluation
-                writer.add_scalar(f"charts/unreachable_subgoals_{rule}", count / max(loop.subgoals, 1), loop.frames)
-            loop.subgoals, loop.unreachable = 0, dict.fromkeys(loop.unreachable, 0)
+            chosen, loop.chosen_subgoals = np.concatenate(loop.chosen_subgoals or [np.zeros((0, 2))]), []
+            for rule in ("euclidean", "box"):  # of the subgoals chosen since the last evaluation
+                share = unreachable_subgoals(chosen, args.goal_threshold, rule).mean() if len(chosen) else 0.0
+                writer.add_scalar(f"charts/unreachable_subgoals_{rule}", share, loop.frames)
             train = np.mean(loop.recent_returns) if loop.recent_returns else float("nan")
             loop.recent_returns = []
             figures = f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train:5.2f}  "
@@ -1019,8 +1017,7 @@ class LoopState:
     evaluations: int = 0
     adj_accuracy: float = float("nan")
     recent_returns: list = field(default_factory=list)  # of the episodes ended since the last evaluation
-    subgoals: int = 0  # the subgoals chosen since the last evaluation, and those no free cell reaches under each rule
-    unreachable: dict = field(default_factory=lambda: {"euclidean": 0, "box": 0})
+    chosen_subgoals: list = field(default_factory=list)  # the training subgoals chosen since the last evaluation
     figures: dict = field(default_factory=dict)  # the latest update's losses, logged every --log-frequency frames
 
 

@@ -383,6 +383,7 @@ FULL_TIER = {
         "goal_autoencoder_round_trip_separates_cells",
         "test_factor_map.py::",
         "test_a_replay_too_large_for_memory",
+        "test_float_paths_runs_one_seeded_command",
     ),
 }
 

@@ -1,5 +1,6 @@
 """benchmark/analysis/seed_stats.py: the statistics against values worked out by hand, and a sweep compared per seed."""
 
+import os
 import subprocess
 import sys
 from math import comb
@@ -11,6 +12,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmark" / "analysis"))
 
+import float_paths
 import seed_stats
 from conftest import HANG_TIMEOUT
 
@@ -122,6 +124,27 @@ def test_a_sweep_is_compared_per_env_against_its_own_baseline(tmp_path):
     assert missing.returncode != 0 and "named Nope; the sweep's: KeyChest__study, Other__study" in missing.stderr
 
 
+def test_against_takes_another_arm_as_the_reference(tmp_path):
+    """--against 16: every other G, the baseline included, is compared with G16 (a ranking among the DGRL arms)."""
+    for seed in (1, 2, 3):
+        write_run(tmp_path, f"Maze__G0__study__{seed}__1", [0.0, 2.0])
+        write_run(tmp_path, f"Maze__G16__study__{seed}__1", [0.0, 6.0 - seed])
+        write_run(tmp_path, f"Maze__G4__study__{seed}__1", [0.0, 1.0])
+    command = [sys.executable, str(ROOT / "benchmark/analysis/seed_stats.py"), str(tmp_path), "--tags", "eval/return",
+               "--summaries", "final"]  # fmt: skip
+    result = subprocess.run([*command, "--against", "16"], capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert result.returncode == 0, result.stderr
+    assert "| G | per seed | mean +- std | vs G16: difference [95% bootstrap] | one-sided p, this G better |" in result.stdout
+    # G16 ends on 5, 4, 3, above every seed of G0 (2) and of G4 (1): each split as extreme is the observed one
+    assert f"| 0 | 2, 2, 2 | 2 +- 0 | -2 [-3, -1] | 1.000 | {1 / comb(6, 3):.3f} |" in result.stdout
+    assert f"| 4 | 1, 1, 1 | 1 +- 0 | -3 [-4, -2] | 1.000 | {1 / comb(6, 3):.3f} |" in result.stdout
+    assert "| 16 | 5, 4, 3 | 4 +- 0.82 | | |" in result.stdout
+    assert "2 comparisons with G16; one-sided p <= 0.05 for the other G in 0, for G16 in 2;" in result.stdout
+    assert "| eval/return, final, G4 | G16 | 0.100 | 0.200 |" in result.stdout
+    missing = subprocess.run([*command, "--against", "8"], capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert missing.returncode != 0 and "--against 8: no run of the sweep has G = 8; its G: [0, 4, 16]" in missing.stderr
+
+
 def test_holm_multiplies_the_kth_smallest_by_m_minus_k_plus_1_and_keeps_the_order():
     # sorted: 0.01 x 4 = 0.04, 0.03 x 3 = 0.09, 0.04 x 2 = 0.08 -> 0.09 (never below the one before), 0.2 x 1 = 0.2
     assert seed_stats.holm([0.01, 0.04, 0.03, 0.2]) == pytest.approx([0.04, 0.09, 0.09, 0.2])
@@ -196,3 +219,25 @@ def test_mnist_seeds_reads_several_sweeps_and_compares_a_variant_with_the_defaul
         capture_output=True, text=True, timeout=HANG_TIMEOUT,
     )  # fmt: skip
     assert bad.returncode != 0 and "--against ColorMNIST__G2__nope: no such mode" in bad.stderr
+
+
+def test_float_paths_runs_one_seeded_command_on_three_floating_point_paths():
+    """benchmark/analysis/float_paths.py: the three paths each run the command to its end and print its curve; on an
+    AVX-512 machine the env variables reach torch (held to AVX2, the capability it reports there changes)."""
+    smoke = ("dgrl_goal_dqn.py --env-id LoopWorld --groups 0 --seed 1 --n-train-goals 4 --total-timesteps 1500 "
+             "--rep-steps 50 --rep-batch-size 16 --rep-transitions 300 --learning-starts 20 --eval-frequency 500 "
+             "--batch-size 16 --buffer-size 1000 --max-episode-steps 50").split()  # fmt: skip
+    tool = ROOT / "benchmark/analysis/float_paths.py"
+    result = subprocess.run([sys.executable, str(tool), "--", *smoke], capture_output=True, text=True, timeout=HANG_TIMEOUT)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    assert lines[0].startswith("dgrl_goal_dqn.py --env-id LoopWorld") and "CPU capability" in lines[0]
+    assert [line.split(":")[0].strip() for line in lines[1:]] == list(float_paths.PATHS)
+    for line in lines[1:]:
+        mean, values = float(line.split("mean ")[1].split()[0]), line.split("; ")[1].split(", ")
+        assert len(values) == 3 and mean == pytest.approx(sum(map(float, values)) / 3, abs=1e-3)
+    capability = subprocess.run(
+        [sys.executable, "-c", "import torch; print(torch.backends.cpu.get_cpu_capability())"],
+        env=dict(os.environ, ATEN_CPU_CAPABILITY="avx2"), capture_output=True, text=True, timeout=HANG_TIMEOUT,
+    ).stdout.strip()  # fmt: skip
+    assert capability in ("AVX2", "DEFAULT")  # the variable the tool sets is the one torch reads

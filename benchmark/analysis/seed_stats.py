@@ -22,7 +22,9 @@ than the censoring itself. Runs whose curves end before the comparison's longest
 left out, and named. `--gain-between A B` compares the gain of each G over G = 0 between two comparisons of the sweep
 (named as the headers name them, e.g. SpiralWorld__K8__goal-dqn-5seeds and SpiralWorld__K16__goal-dqn-5seeds): the
 difference of the two gains with a 95% bootstrap interval (the seeds of all four groups resampled), the test of
-whether a gain depends on the setting. With --markdown OUT the tables are also written to OUT.
+whether a gain depends on the setting. `--against G` takes another arm as the reference instead of G = 0 (e.g.
+`--against 16` tests whether any other G, the baseline included, differs from G = 16: the test of a ranking among the
+DGRL arms). With --markdown OUT the tables are also written to OUT.
 
 Many comparisons make a small p likely by chance alone, so the output ends with the family of every DGRL-vs-baseline
 comparison it printed (each G, tag, summary and setting): how many favour DGRL and how many the baseline at p <= 0.05,
@@ -122,24 +124,26 @@ def holm(p_values: list[float]) -> list[float]:
     return [float(value) for value in adjusted]
 
 
-def multiplicity_lines(family: list[tuple[str, float, float]]) -> list[str]:
-    """The family of comparisons (name, p in DGRL's favour, p in the baseline's): the counts at p <= 0.05 each way,
-    and per comparison the two-sided p and its Holm-adjusted value."""
+def multiplicity_lines(family: list[tuple[str, float, float]], reference: int = 0) -> list[str]:
+    """The family of comparisons (name, p in DGRL's favour, p in the reference's, G0 unless told): the counts at
+    p <= 0.05 each way, and per comparison the two-sided p and its Holm-adjusted value."""
     if not family:
         return []
     two_sided = [min(1.0, 2 * min(p, p_worse)) for _, p, p_worse in family]
     adjusted = holm(two_sided)
     for_dgrl = sum(p <= 0.05 for _, p, _ in family)
     for_baseline = sum(p_worse <= 0.05 for _, _, p_worse in family)
+    other, ref = ("DGRL", "G0") if reference == 0 else ("the other G", f"G{reference}")
     lines = [
         "",
-        f"multiplicity: {len(family)} comparisons with G0; one-sided p <= 0.05 for DGRL in {for_dgrl}, for G0 in "
-        f"{for_baseline}; Holm-adjusted two-sided p <= 0.05 in {sum(a <= 0.05 for a in adjusted)}",
+        f"multiplicity: {len(family)} comparisons with {ref}; one-sided p <= 0.05 for {other} in {for_dgrl}, for "
+        f"{ref} in {for_baseline}; Holm-adjusted two-sided p <= 0.05 in {sum(a <= 0.05 for a in adjusted)}",
         "",
     ]
     lines += ["| comparison | favours | two-sided p | Holm-adjusted |", "|---|---|---|---|"]
     for (name, p, p_worse), raw, holm_p in zip(family, two_sided, adjusted, strict=True):
-        favours = "DGRL" if p < p_worse else "G0" if p_worse < p else "neither"
+        favours = ("DGRL" if reference == 0 else name.rsplit(", ", 1)[-1]) if p < p_worse else ref
+        favours = favours if p != p_worse else "neither"
         lines.append(f"| {name} | {favours} | {raw:.3f} | {holm_p:.3f} |")
     return lines
 
@@ -151,11 +155,14 @@ def table(
     rng: np.random.Generator,
     family: list | None = None,
     name: str = "",
+    reference: int = 0,
 ) -> list[str]:
-    """One row per G: its seeds, mean +- std and, for G > 0, the comparison with G0 (appended to `family` as
-    (name, p in DGRL's favour, p in G0's) when given)."""
+    """One row per G: its seeds, mean +- std and, for each G but the reference (G0 unless told), the comparison with
+    the reference (appended to `family` as (name, p in this G's favour, p in the reference's) when given)."""
+    this = "DGRL" if reference == 0 else "this G"
     lines = [
-        "| G | per seed | mean +- std | vs G0: difference [95% bootstrap] | one-sided p, DGRL better | p, G0 better |",
+        f"| G | per seed | mean +- std | vs G{reference}: difference [95% bootstrap] | one-sided p, {this} better | "
+        f"p, G{reference} better |",
         "|---|---|---|---|---|---|",
     ]
     for group, v in values.items():
@@ -164,14 +171,15 @@ def table(
             continue
         seeds = ", ".join(f"{mark}{x:.3g}" for mark, x in zip(marks[group], v, strict=True))
         row = f"| {group} | {seeds} | {v.mean():.3g} +- {v.std():.2g} |"
-        if group == 0 or 0 not in values or not len(values[0]):
+        base = values.get(reference, np.array([]))
+        if group == reference or not len(base):
             lines.append(row + " | | |")
             continue
-        low, high = bootstrap_interval(v, values[0], rng)
-        p, p_worse = permutation_p(v, values[0], higher), permutation_p(v, values[0], not higher)
+        low, high = bootstrap_interval(v, base, rng)
+        p, p_worse = permutation_p(v, base, higher), permutation_p(v, base, not higher)
         if family is not None:
             family.append((f"{name}G{group}", p, p_worse))
-        lines.append(row + f" {v.mean() - values[0].mean():+.3g} [{low:+.3g}, {high:+.3g}] | {p:.3f} | {p_worse:.3f} |")
+        lines.append(row + f" {v.mean() - base.mean():+.3g} [{low:+.3g}, {high:+.3g}] | {p:.3f} | {p_worse:.3f} |")
     return lines
 
 
@@ -238,6 +246,7 @@ def main(
     reach: list[str],
     markdown: Path | None,
     gain_between: list[str] | None = None,
+    reference: int = 0,
 ) -> None:
     thresholds = [(item.split("=")[0], float(item.split("=")[1])) for item in reach]
     wanted = sorted(set(tags) | {tag for tag, _ in thresholds})
@@ -250,6 +259,9 @@ def main(
         seed = int(run.name.split("__")[-2])
         for seeds in load_runs([run], "", wanted).values():
             comparisons.setdefault(context, {}).setdefault(int(match.group(1)), {})[seed] = seeds[0]
+    groups = sorted({group for per_group in comparisons.values() for group in per_group})
+    if groups and reference not in groups:
+        raise SystemExit(f"--against {reference}: no run of the sweep has G = {reference}; its G: {groups}")
     rng = np.random.default_rng(0)
     lines: list[str] = []
     family: list[tuple[str, float, float]] = []  # every comparison with G0, for the multiplicity statement
@@ -271,7 +283,7 @@ def main(
                 marks = {group: [""] * len(v) for group, v in values.items()}
                 lines += ["", f"{tag}, {SUMMARY_NAMES[summary]} ({'higher' if higher else 'lower'} is better)", ""]
                 where = f"{context}: " if len(comparisons) > 1 else ""
-                lines += table(values, marks, higher, rng, family, f"{where}{tag}, {SUMMARY_NAMES[summary]}, ")
+                lines += table(values, marks, higher, rng, family, f"{where}{tag}, {SUMMARY_NAMES[summary]}, ", reference)
         for tag, threshold in thresholds:
             reached = {
                 group: [first_reach(c[tag], threshold) for _, c in sorted(seeds.items()) if tag in c]
@@ -281,8 +293,9 @@ def main(
             marks = {group: ["" if hit else ">" for _, hit in pairs] for group, pairs in reached.items()}
             lines += ["", f"first step with {tag} >= {threshold:g} (lower is better; > never reached)", ""]
             where = f"{context}: " if len(comparisons) > 1 else ""
-            lines += table(values, marks, False, rng, family, f"{where}first step with {tag} >= {threshold:g}, ")
-    lines += multiplicity_lines(family)
+            name = f"{where}first step with {tag} >= {threshold:g}, "
+            lines += table(values, marks, False, rng, family, name, reference)
+    lines += multiplicity_lines(family, reference)
     if gain_between:
         lines += gain_lines(results, sorted(comparisons), *gain_between, rng)
     emit(lines, markdown)
@@ -295,6 +308,7 @@ if __name__ == "__main__":
     parser.add_argument("--summaries", nargs="+", choices=SUMMARIES, default=["final", "mean"])
     parser.add_argument("--reach", nargs="*", default=[], metavar="TAG=X", help="first step at which TAG >= X")
     parser.add_argument("--markdown", type=Path, help="also write the tables to this file")
+    parser.add_argument("--against", type=int, default=0, metavar="G", help="the reference arm (default: G0)")
     parser.add_argument(
         "--gain-between", nargs=2, metavar=("A", "B"), help="compare each G's gain over G0 between comparisons A and B"
     )
@@ -302,4 +316,12 @@ if __name__ == "__main__":
     bad = [item for item in options.reach if not re.fullmatch(r"[^=]+=[-+0-9.eE]+", item)]
     if bad:
         parser.error(f"--reach takes TAG=NUMBER, got {' '.join(bad)}")
-    main(options.sweep, options.tags, options.summaries, options.reach, options.markdown, options.gain_between)
+    main(
+        options.sweep,
+        options.tags,
+        options.summaries,
+        options.reach,
+        options.markdown,
+        options.gain_between,
+        options.against,
+    )

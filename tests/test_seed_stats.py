@@ -241,3 +241,34 @@ def test_float_paths_runs_one_seeded_command_on_three_floating_point_paths():
         env=dict(os.environ, ATEN_CPU_CAPABILITY="avx2"), capture_output=True, text=True, timeout=HANG_TIMEOUT,
     ).stdout.strip()  # fmt: skip
     assert capability in ("AVX2", "DEFAULT")  # the variable the tool sets is the one torch reads
+
+
+def test_amigo_report_windows_and_the_papers_table(tmp_path):
+    """benchmark/analysis/amigo_report.py: windowed success and return per run, the first window at 90% (censored at
+    --end, marked >), and the table's exact permutation p of each G against G0 of the same setting."""
+    import amigo_report
+
+    steps, values = np.array([0, 50, 100, 150, 250]), np.array([0.0, 1.0, 0.5, 0.5, 1.0])
+    means = amigo_report.window_means(steps, values, np.array([0, 100, 200, 300, 400]))
+    assert means[:3] == pytest.approx([0.5, 0.5, 1.0]) and np.isnan(means[3])  # the last window logged nothing
+    for seed in (1, 2, 3):
+        for group, success in ((0, [0.0, 0.1, 0.2]), (16, [0.0, 0.5, 0.9 + seed / 100])):
+            writer = SummaryWriter(str(tmp_path / f"KeyCorridor__G{group}__study__{seed}__1"))
+            for step, value in zip((0, 1000, 2000), success, strict=True):
+                writer.add_scalar("charts/success_rate", value, step)
+                writer.add_scalar("charts/episodic_return", value / 2, step)
+            writer.close()
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmark/analysis/amigo_report.py"), "--runs-dir", str(tmp_path), "--window", "1000",
+         "--end", "3000"],
+        capture_output=True, text=True, timeout=HANG_TIMEOUT,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    table = result.stdout.split("the paper's table: the last window is 2,000-3,000")[1]
+    # G16 reaches 0.91-0.93 in the last window (first >= 0.9 at 2000); G0 never (censored at --end, 3000)
+    assert "| KeyCorridor__G0__study | 3 | 0.1 +- 0 (0.1, 0.1, 0.1) | 0.2 +- 0 (0.2, 0.2, 0.2) | 3e+03 +- 0 (>3e+03," in table
+    assert "| KeyCorridor__G16__study | 3 | 0.46 +- 0.0041 (0.455, 0.46, 0.465) | 0.92 +- 0.0082 (0.91, 0.92, 0.93) |" in table
+    assert "2e+03 +- 0 (2e+03, 2e+03, 2e+03)" in table
+    # every G16 seed above every G0 seed: one split in C(6, 3) = 20 as extreme
+    assert f"G16__study vs G0, return, last window: p = {1 / comb(6, 3):.3f} in DGRL's favour, 1.000" in table
+    assert f"first window >= 0.9 (frames): p = {1 / comb(6, 3):.3f} in DGRL's favour" in table

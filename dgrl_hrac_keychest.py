@@ -177,7 +177,7 @@ class Args:
     """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
-    fast: str = "eager"
+    fast: Literal["eager", "compile", "cudagraphs"] = "eager"
     """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, as CUDA graphs; GPU)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
@@ -319,8 +319,7 @@ def make_agent(args: Args, device: torch.device) -> Agent:
 
 
 class ManagerReplay:
-    """Ring buffer of k-step high-level transitions (state, subgoal, summed reward, next state, terminal) as float32
-    columns on the training device (a batch is gathered there); batch indices are drawn on the host from `rng`."""
+    """Ring buffer of k-step high-level transitions (state, subgoal, reward, next state, terminal), float32 on the device."""
 
     COLUMNS = ("states", "goals", "rewards", "next_states", "terminals")
 
@@ -350,8 +349,7 @@ class ManagerReplay:
             getattr(self, name)[: self.size] = torch.as_tensor(column)
 
     def sample(self, batch_size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
-        """A uniform batch of distinct transitions (as the original); from a large buffer, redrawing the rare batch with a
-        repeat is 5x faster than rng.choice(replace=False)."""
+        """Distinct transitions, as the original; redrawing a rare repeat is 5x faster than choice(replace=False)."""
         if self.size < 16 * batch_size:
             batch = self.rng.choice(self.size, batch_size, replace=False)
         else:
@@ -379,8 +377,7 @@ def segment_returns(rewards: torch.Tensor, discounts: torch.Tensor) -> torch.Ten
 
 
 def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: float, rule: str) -> torch.Tensor:
-    """1 where the next cell has reached the subgoal (the low level's reward): rule "euclidean", at a Euclidean distance
-    below `threshold` (the paper's appendix); rule "box", within `threshold` in both coordinates (HRAC's code)."""
+    """1 where the next cell reaches the subgoal: "euclidean", nearer than `threshold` (paper); "box", in both (HRAC)."""
     offsets = next_states[:, :2] - goals
     if rule == "euclidean":
         return (offsets.norm(dim=1) < threshold).float()
@@ -388,8 +385,7 @@ def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: floa
 
 
 def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.ndarray:
-    """True where no free cell reaches the subgoal point under `rule`: subgoals the low level is never rewarded for (the
-    high level's subgoals are points, not cells; under the Euclidean rule at 0.5 the corners between cells are such)."""
+    """True where no free cell reaches the subgoal point under `rule` (e.g. corners between cells, Euclidean at 0.5)."""
     cells = torch.as_tensor(FREE_CELLS, dtype=torch.float32).repeat(len(goals), 1)
     points = torch.as_tensor(goals, dtype=torch.float32).repeat_interleave(len(FREE_CELLS), 0)
     return (goal_reached(cells, points, threshold, rule).view(len(goals), -1).amax(1) == 0).numpy()
@@ -397,8 +393,7 @@ def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.n
 
 def a2c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, returns: torch.Tensor, entropy_coef: float):
     """HRAC's A2C loss: mean of -A log pi(a) + A^2 - c H(pi), A = return - V (the original's unhalved value loss)."""
-    log_probs = F.log_softmax(logits, 1)
-    advantages = returns - values
+    log_probs, advantages = F.log_softmax(logits, 1), returns - values
     policy_loss = -(advantages.detach() * log_probs.gather(1, actions.unsqueeze(1)).squeeze(1)).mean()
     value_loss = advantages.pow(2).mean()
     entropy = -(log_probs.exp() * log_probs).sum(1).mean()
@@ -559,8 +554,7 @@ def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, exp
     noisy = torch.minimum((raw.unsqueeze(1) + noise * torch.randn(noise_shape, device=raw.device)).clamp(min=0), actor.scale)
     if n_noisy_goals == 0:
         return noisy[:, 0]
-    distances = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2)
-    reachable = distances < threshold
+    reachable = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2) < threshold
     pick = torch.where(reachable, torch.rand(reachable.shape, device=raw.device), -1.0).argmax(1)
     chosen = noisy[torch.arange(len(states)), pick]
     return torch.where(reachable.any(1, keepdim=True), chosen, raw)
@@ -632,8 +626,7 @@ def main(args: Args) -> None:
 
     # The exploration and the training envs, each acting through the low level, and the high level's replay.
     distances_bfs = shortest_path_lengths()
-    n_envs, max_steps = args.num_envs, args.max_episode_steps
-    rows = np.arange(n_envs)
+    n_envs, max_steps, rows = args.num_envs, args.max_episode_steps, np.arange(args.num_envs)
     explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
     observations = explore_envs.reset(seed=args.seed + 200)[0]
     explore_rollout = ControllerRollout(explore_envs, observations, agent, lambda x: uniform_subgoals(len(x), device), args.k)
@@ -652,9 +645,8 @@ def main(args: Args) -> None:
         loop = restore_training_state(saved, agent, rng, replay, explore_rollout, rollout, eval_envs)
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
 
-    # The updates, compiled with --fast (after the restore: fast_update gives each optimizer its state if it has none).
-    # The A2C update's episode length varies (a recording per length would make hundreds of graphs): under cudagraphs it
-    # stays compiled. TD3's delay switch, policy_terms[actor's turn], is then a device tensor that the graphs read.
+    # The updates under --fast, after the restore. Under cudagraphs the A2C update (its length varies: hundreds of graphs)
+    # stays compiled, and TD3's delay switch, policy_terms[actor's turn], is a device tensor that the graphs read.
     ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder steps in it
     update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
     update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
@@ -697,8 +689,8 @@ def main(args: Args) -> None:
         cells = f"{loop.visited.sum()} cells visited, accuracy {loop.adj_accuracy:.3f} (loss {adj_loss:.3f})"
         print(f"adjacency pre-training: {loop.frames} frames, {cells}, {time.time() - progress.start_time:.1f} s")
 
-    # Phase 2: HRAC. The high level explores with adjacency-filtered noise once its replay is half full; before that,
-    # subgoals are uniform random and neither level learns.
+    # Phase 2: HRAC. Subgoals are uniform and neither level learns until the high level's replay is half full; then it
+    # explores with adjacency-filtered noise.
     while loop.frames < args.total_timesteps and not stop:
         # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
         observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = rollout.step()
@@ -853,8 +845,7 @@ def evaluate_checkpoint(args: Args, agent: Agent, eval_envs: "KeyChestVecEnv", d
 
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
-    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it). One
-    encoder thread: with more, the file's bytes vary from run to run; with one, the same frames give the same file."""
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy loaded only here), one encoder thread: with more, the bytes vary."""
     from moviepy import ImageSequenceClip
 
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -1172,6 +1163,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
+    its_version = "continue it with the version that started it" if resume else "use its version"
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1188,13 +1180,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
-    older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
-    if older:  # a flag added since: the file cannot say which value it had
-        started = f" was started before {older} existed; continue it with the version that started it"
-        refuse(started if resume else f" was written before {older} existed; use its version")
-    differ = [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]
-    if differ:
+        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+    if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
+        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+    if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
         refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
     return saved
 
@@ -1222,13 +1211,9 @@ def load_resume(args) -> dict:
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
 
 
-FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once
-
-
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """`update` as it is (eager), compiled (compile: torch.compile), or compiled into CUDA graphs that later calls
-    replay (cudagraphs: torch.compile's "reduce-overhead" mode, a recording per input shape); the tensors returned are
-    the caller's to keep."""
+    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
+    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1265,9 +1250,7 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(
-    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
-) -> list[str]:
+def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
     """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
     that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
@@ -1276,24 +1259,20 @@ def range_errors(
         if isinstance(value, float) and not math.isfinite(value):
             continue
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
-            if high == math.inf:
-                wanted = f"{'>' if low_open else '>='} {low:g}"
-            else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+            bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+            wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, torch, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast, --resume's folder and the folder a training run writes to."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    if tuple(int(part) for part in torch.__version__.split("+")[0].split(".")[:2]) < (2, 11):  # README, Install
-        errors.append(f"torch {torch.__version__} is older than 2.11, the oldest these scripts run on: see requirements.txt")
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1306,11 +1285,8 @@ def common_errors(args) -> list[str]:
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
     if not args.exp_name or any(separator in args.exp_name for separator in {"/", os.sep, os.altsep or "/"}):
-        name = f"--exp-name {args.exp_name!r}"
-        errors.append(f"{name} must be a plain name, without '/': it becomes part of the run's folder and file names in runs/")
-    if args.fast not in FAST_PATHS:
-        errors.append(f"--fast {args.fast!r} is unknown: use one of {', '.join(FAST_PATHS)}")
-    elif args.fast == "cudagraphs" and not (args.cuda and torch.cuda.is_available()):
+        errors.append(f"--exp-name {args.exp_name!r} must be a plain name, without '/': it names the run's folder in runs/")
+    if args.fast == "cudagraphs" and not (args.cuda and torch.cuda.is_available()):
         errors.append("--fast cudagraphs needs a CUDA device (none is visible, or --no-cuda): use --fast compile or eager")
     elif args.fast != "eager" and not (args.cuda and torch.cuda.is_available()) and shutil.which("g++") is None:
         errors.append(f"--fast {args.fast} on a CPU needs a C++ compiler (g++) for torch.compile; install one or use eager")
@@ -1343,10 +1319,9 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's lifetime, before its first write there (an advisory lock the kernel drops
-    when the process ends, however it ends: a SIGKILL leaves no stale lock); keep the returned file. A second process on
-    the folder (--resume twice, a relaunched sweep, a requeued job racing its predecessor) exits 2 naming the holder,
-    before it writes anything. `check_only`: the same refusal at once, creating nothing and holding nothing."""
+    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however the
+    process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a requeued
+    job) exits 2 naming the holder, before writing anything; `check_only`: that refusal alone, creating nothing."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None

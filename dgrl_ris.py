@@ -37,7 +37,7 @@ import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from functools import cache, partial
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
     os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos, pixels) without a display; set it to override
@@ -149,7 +149,7 @@ class Args:
     """a checkpoint saved by this script with --save-model: evaluate it and exit, without training"""
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
-    fast: str = "eager"
+    fast: Literal["eager", "compile", "cudagraphs"] = "eager"
     """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, as CUDA graphs; GPU)"""
     resume: str | None = None
     """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
@@ -615,8 +615,7 @@ def evaluate_checkpoint(args: Args, agent: Agent, eval_envs, device: torch.devic
 
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
-    """Frames (H, W, 3) uint8 to an mp4 (moviepy is imported here, so that runs without videos never load it). One
-    encoder thread: with more, the file's bytes vary from run to run; with one, the same frames give the same file."""
+    """Frames (H, W, 3) uint8 to an mp4 (moviepy loaded only here), one encoder thread: with more, the bytes vary."""
     from moviepy import ImageSequenceClip
 
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -1041,6 +1040,7 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
+    its_version = "continue it with the version that started it" if resume else "use its version"
 
     def refuse(problem: str) -> None:
         print(f"{script}: {shown}{problem}", file=sys.stderr)
@@ -1057,13 +1057,10 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
         found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (": continue it with the version that started it" if resume else f"; it needs {wanted}"))
-    older = " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"])
-    if older:  # a flag added since: the file cannot say which value it had
-        started = f" was started before {older} existed; continue it with the version that started it"
-        refuse(started if resume else f" was written before {older} existed; use its version")
-    differ = [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]
-    if differ:
+        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+    if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
+        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+    if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
         refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
     return saved
 
@@ -1091,13 +1088,9 @@ def load_resume(args) -> dict:
     return load_checkpoint(os.path.join(args.resume, RESUME_FILE), args, must_match, "cpu", resume=True)
 
 
-FAST_PATHS = ("eager", "compile", "cudagraphs")  # --fast, the LeanRL way: the update stays a plain function, wrapped once
-
-
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """`update` as it is (eager), compiled (compile: torch.compile), or compiled into CUDA graphs that later calls
-    replay (cudagraphs: torch.compile's "reduce-overhead" mode, a recording per input shape); the tensors returned are
-    the caller's to keep."""
+    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
+    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1134,9 +1127,7 @@ def flag_text(key: str, value) -> str:
     return f"--{name} {value}"
 
 
-def range_errors(
-    args, flags: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False
-) -> list[str]:
+def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
     """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
     that bound. NaN and infinite values are left to common_errors' message."""
     errors = []
@@ -1145,24 +1136,20 @@ def range_errors(
         if isinstance(value, float) and not math.isfinite(value):
             continue
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
-            if high == math.inf:
-                wanted = f"{'>' if low_open else '>='} {low:g}"
-            else:
-                wanted = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+            bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+            wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
             errors.append(f"--{key.replace('_', '-')} must be {wanted}; got {value}")
     return errors
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, torch, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast, --resume's folder and the folder a training run writes to."""
+    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
+    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
     errors = [
         f"--{key.replace('_', '-')} must be a finite number; got {value}"
         for key, value in vars(args).items()
         if isinstance(value, float) and not math.isfinite(value)
     ]
-    if tuple(int(part) for part in torch.__version__.split("+")[0].split(".")[:2]) < (2, 11):  # README, Install
-        errors.append(f"torch {torch.__version__} is older than 2.11, the oldest these scripts run on: see requirements.txt")
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1175,11 +1162,8 @@ def common_errors(args) -> list[str]:
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
     if not args.exp_name or any(separator in args.exp_name for separator in {"/", os.sep, os.altsep or "/"}):
-        name = f"--exp-name {args.exp_name!r}"
-        errors.append(f"{name} must be a plain name, without '/': it becomes part of the run's folder and file names in runs/")
-    if args.fast not in FAST_PATHS:
-        errors.append(f"--fast {args.fast!r} is unknown: use one of {', '.join(FAST_PATHS)}")
-    elif args.fast == "cudagraphs" and not (args.cuda and torch.cuda.is_available()):
+        errors.append(f"--exp-name {args.exp_name!r} must be a plain name, without '/': it names the run's folder in runs/")
+    if args.fast == "cudagraphs" and not (args.cuda and torch.cuda.is_available()):
         errors.append("--fast cudagraphs needs a CUDA device (none is visible, or --no-cuda): use --fast compile or eager")
     elif args.fast != "eager" and not (args.cuda and torch.cuda.is_available()) and shutil.which("g++") is None:
         errors.append(f"--fast {args.fast} on a CPU needs a C++ compiler (g++) for torch.compile; install one or use eager")
@@ -1212,10 +1196,9 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's lifetime, before its first write there (an advisory lock the kernel drops
-    when the process ends, however it ends: a SIGKILL leaves no stale lock); keep the returned file. A second process on
-    the folder (--resume twice, a relaunched sweep, a requeued job racing its predecessor) exits 2 naming the holder,
-    before it writes anything. `check_only`: the same refusal at once, creating nothing and holding nothing."""
+    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however the
+    process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a requeued
+    job) exits 2 naming the holder, before writing anything; `check_only`: that refusal alone, creating nothing."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None

@@ -24,7 +24,7 @@ MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
 WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
     "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
-    "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume", "FAST_PATHS",
+    "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume",
     "fast_update",  # the run-management appendix
     "learn",  # beside the first update that steps an optimizer
     "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors", "LOCK_FILE", "hold_run_folder",  # checks
@@ -36,8 +36,8 @@ REGIONS = [
     (BLOCK_START, BLOCK_END),
     ("# --- Checks: identical in every script (tests/test_skeleton.py) ", "# --- end of the shared checks "),
 ]
-RUN_MANAGEMENT_LINES = 170  # the most the run-management appendix may take, its banners included
-SPEED_SWITCH_LINES = 20  # the most --fast may take: FAST_PATHS through fast_update, blank lines not counted
+RUN_MANAGEMENT_LINES = 161  # the most the run-management appendix may take, its banners included
+SPEED_SWITCH_LINES = 17  # the most --fast may take: fast_update, blank lines not counted
 MUJOCO_GL_DEFAULT = (
     'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'
 )
@@ -118,11 +118,11 @@ def test_shared_pieces_are_identical_in_every_script():
 
 def test_the_run_management_appendix_and_its_speed_switches_stay_short():
     """Read seven times, the run management takes at most RUN_MANAGEMENT_LINES lines (one script's copy: the drift test
-    holds the others to it), and --fast (its choices and fast_update) at most SPEED_SWITCH_LINES."""
+    holds the others to it), and --fast (fast_update) at most SPEED_SWITCH_LINES."""
     lines = (ROOT / "dgrl_ris.py").read_text().splitlines()
     first, last = region(lines, *REGIONS[0])
     assert last - first + 1 <= RUN_MANAGEMENT_LINES
-    start = next(i for i in range(first, last) if lines[i].startswith("FAST_PATHS = "))
+    start = next(i for i in range(first, last) if lines[i].startswith("def fast_update("))
     end = next(i for i in range(start, last) if lines[i] == "    return replayed")
     assert sum(1 for line in lines[start : end + 1] if line.strip()) <= SPEED_SWITCH_LINES
 
@@ -326,18 +326,6 @@ def test_common_errors_cover_seed_threads_and_the_codebook_flags():
     assert script.common_errors(script.Args(threads=10_000)) == [
         f"--threads 10000 is more than this machine's {cores} cores: use at most {cores}"
     ]
-
-
-OLD_AND_NEW_TORCHES = [("2.10.1+cu128", True), ("2.9.0", True), ("2.11.0+cu130", False), ("2.13.0", False)]
-
-
-@pytest.mark.parametrize(("version", "refused"), OLD_AND_NEW_TORCHES)
-def test_a_torch_older_than_the_oldest_supported_is_refused(version, refused, monkeypatch):
-    import dgrl_mnist as script
-
-    monkeypatch.setattr(torch, "__version__", version)
-    message = f"torch {version} is older than 2.11, the oldest these scripts run on: see requirements.txt"
-    assert (message in script.common_errors(script.Args())) == refused
 
 
 def test_flag_text_writes_booleans_as_tyro_does():

@@ -106,7 +106,7 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--fast", nargs="+", default=["eager", "compile"], choices=gdqn.FAST_PATHS)
+    parser.add_argument("--fast", nargs="+", default=["eager", "compile"], choices=("eager", "compile", "cudagraphs"))
     parser.add_argument("--only", nargs="+", default=["pretrain", "td", "td-finetune", "mnist"])
     options = parser.parse_args()
     torch.set_num_threads(options.threads)

@@ -69,7 +69,7 @@ if __name__ == "__main__":
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--batches", type=int, nargs="+", default=[128, 256, 2048])
-    parser.add_argument("--fast", nargs="+", default=["eager", "compile"], choices=ris.FAST_PATHS)
+    parser.add_argument("--fast", nargs="+", default=["eager", "compile"], choices=("eager", "compile", "cudagraphs"))
     parser.add_argument("--envs", action=argparse.BooleanOptionalAction, default=True, help="time the env steps too")
     parser.add_argument("--goals", nargs="+", default=["ant", "point"], choices=["ant", "point"], help="state sizes")
     options = parser.parse_args()

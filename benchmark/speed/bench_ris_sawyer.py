@@ -133,7 +133,7 @@ if __name__ == "__main__":
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--batches", type=int, nargs="+", default=[32, 256])
-    parser.add_argument("--fast", nargs="*", default=["eager", "compile"], choices=sawyer.FAST_PATHS)
+    parser.add_argument("--fast", nargs="*", default=["eager", "compile"], choices=("eager", "compile", "cudagraphs"))
     options = parser.parse_args()
     torch.set_num_threads(options.threads)
     device = torch.device(options.device)

@@ -60,7 +60,7 @@ from torch.utils._pytree import tree_map_only
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from timing import median_time  # benchmark/speed/timing.py
 
-FAST_PATHS = ("eager", "compile", "cudagraphs")  # every script's FAST_PATHS
+FAST_PATHS = ("eager", "compile", "cudagraphs")  # every script's --fast choices
 BATCHES = 8  # input batches made beforehand per case, used in turn
 BLOCK_SECONDS = 0.2  # about this long per timed block (at eager's speed), 2 to 200 updates
 CPU = torch.device("cpu")

@@ -963,7 +963,7 @@ def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
+CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 
@@ -1233,25 +1233,6 @@ def hold_run_folder(run_name: str, check_only: bool = False):
 # --- end of the shared checks -----------------------------------------------------------------------------------------
 
 
-def boolean_goal_channel_errors(args: Args) -> list[str]:
-    """Files saved when --goal-channel was a boolean match no value of today's flag: say so, rather than name a spelling
-    that no longer exists (an unreadable file is left to load_checkpoint's message)."""
-    errors = []
-    resume_file = args.resume and os.path.join(args.resume, RESUME_FILE)
-    for flag, path, weights_only in (("--checkpoint", args.checkpoint, True), ("--resume", resume_file, False)):
-        try:  # also when there is no such file
-            value = torch.load(path, map_location="cpu", weights_only=weights_only)["args"]["goal_channel"]
-        except Exception:
-            continue
-        if isinstance(value, bool):
-            errors.append(
-                f"{flag} {path} was saved when --goal-channel was a boolean ({value}, what --goal-channel "
-                f"{'on' if value else 'off'} is now): its flags can match no value of today's, so this version cannot "
-                f"{'evaluate' if weights_only else 'continue'} it; use the version of dgrl_amigo.py that wrote it"
-            )
-    return errors
-
-
 def validate(args: Args) -> None:
     """Refuse bad flags before any work, naming the flag and the valid choices; exit with status 2."""
     errors = common_errors(args)
@@ -1292,9 +1273,6 @@ def validate(args: Args) -> None:
         errors.append(
             f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
         )
-    if args.goal_channel not in GOAL_CHANNELS:
-        errors.append(f"--goal-channel {args.goal_channel!r} is unknown: use one of {', '.join(GOAL_CHANNELS)}")
-    errors += boolean_goal_channel_errors(args)
     exit_on_errors(errors)
 
 

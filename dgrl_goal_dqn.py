@@ -971,7 +971,7 @@ MUST_MATCH = tuple("env_id n_train_goals goal_seed noise max_episode_steps rep e
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
+CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 

@@ -1050,7 +1050,7 @@ DGRL_MUST_MATCH = ("n_embed",)  # the codebook's size, which matters only under 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
 
-CHECKPOINT_FORMAT, RESUME_FORMAT = 1, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
+CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
 
 

@@ -1061,8 +1061,6 @@ def refusal(capsys, **overrides) -> str:
         ({"n_embed": 0}, ["--n-embed must be >= 1; got 0"]),
         ({"vq_dead_code_steps": -1}, ["--vq-dead-code-steps must be >= 0; got -1"]),
         ({"checkpoint": "missing.pt"}, ["--checkpoint missing.pt: no such file"]),
-        ({"goal_channel": "yes"}, ["--goal-channel 'yes' is unknown: use one of auto, on, off"]),
-        ({"goal_channel": True}, ["--goal-channel True is unknown: use one of auto, on, off"]),
     ],
 )
 def test_validate_names_the_flag(capsys, overrides, messages):
@@ -1075,31 +1073,6 @@ def test_validate_refuses_training_flags_with_a_checkpoint(capsys, tmp_path):
     (tmp_path / "saved.pt").write_bytes(b"")
     message = refusal(capsys, checkpoint=str(tmp_path / "saved.pt"), save_model=True)
     assert "--save-model and --capture-video apply to training" in message
-
-
-@pytest.mark.parametrize("value", [True, False])
-def test_validate_refuses_a_checkpoint_or_resume_file_saved_with_a_boolean_goal_channel(capsys, tmp_path, monkeypatch, value):
-    """Files written when --goal-channel was a boolean: the message says what the value was, not a flag to pass that no
-    longer exists; today's values pass this check."""
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "runs" / "old").mkdir(parents=True)
-    for path, goal_channel in (("old.cleanrl_model", value), ("runs/old/resume.pt", value), ("new.cleanrl_model", "on")):
-        torch.save(
-            {"script": "dgrl_amigo.py", "format": amigo.CHECKPOINT_FORMAT, "args": {"goal_channel": goal_channel}}, path
-        )
-    now = "on" if value else "off"
-    message = refusal(capsys, checkpoint="old.cleanrl_model")
-    assert (
-        f"--checkpoint old.cleanrl_model was saved when --goal-channel was a boolean ({value}, what --goal-channel {now}"
-        in (message)
-    )
-    assert "this version cannot evaluate it" in message
-    message = refusal(capsys, resume="runs/old")
-    assert f"--resume runs/old/resume.pt was saved when --goal-channel was a boolean ({value}, what --goal-channel {now}" in (
-        message
-    )
-    assert "this version cannot continue it" in message
-    assert amigo.boolean_goal_channel_errors(amigo.Args(checkpoint="new.cleanrl_model")) == []
 
 
 def test_validate_refuses_a_minigrid_id_that_fails_to_build(capsys):

@@ -212,7 +212,7 @@ def damaged_resume_files() -> dict[str, bytes]:
     import io
 
     whole = io.BytesIO()
-    torch.save({"script": "dgrl_mnist.py", "format": 1, "args": {}, "block": torch.zeros(10_000)}, whole)
+    torch.save({"script": "dgrl_mnist.py", "format": 2, "args": {}, "block": torch.zeros(10_000)}, whole)
     return {"empty": b"", "truncated": whole.getvalue()[: len(whole.getvalue()) // 2]}
 
 
@@ -245,7 +245,7 @@ def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_pa
     for folder in folders.values():
         folder.mkdir()
     (folders["garbage checkpoint"] / "garbage.pt").write_bytes(b"not a checkpoint at all")
-    torch.save({"script": other, "format": 1, "args": {}, "model": {}}, folders["another script's checkpoint"] / "other.pt")
+    torch.save({"script": other, "format": 2, "args": {}, "model": {}}, folders["another script's checkpoint"] / "other.pt")
     torch.save({"model": {"weight": torch.zeros(2)}}, folders["a bare state dict"] / "plain.pt")  # no script name
     damaged = damaged_resume_files()
     for damage in ("empty", "truncated"):
@@ -269,7 +269,7 @@ def test_bad_input_every_script_shares_is_refused_before_any_work(script, tmp_pa
     assert_clean_refusal(results["garbage checkpoint"], "--checkpoint garbage.pt is not a checkpoint")
     assert_clean_refusal(results["missing checkpoint"], "--checkpoint missing.pt: no such file")
     needs = f"needs one that {script}"
-    assert_clean_refusal(results["another script's checkpoint"], f"holds {other} format 1", needs)
+    assert_clean_refusal(results["another script's checkpoint"], f"holds {other} format 2", needs)
     assert_clean_refusal(results["a bare state dict"], "holds None format None", needs)
     for damage in ("empty", "truncated"):
         result = results[f"{damage} resume file"]
@@ -624,10 +624,10 @@ def test_files_written_before_a_flag_existed_are_refused(script, tmp_path, capsy
 def test_a_resume_file_of_an_older_layout_is_refused(script, tmp_path, capsys):
     """A resume.pt of an older layout (format 2, before HRAC's env state held its success flag; 1, before the loop's
     variables became one LoopState) cannot be restored by this version: refused, saying to continue it with the version
-    that started it, not a traceback halfway into setup."""
+    that started it, not a traceback halfway into setup. A checkpoint of layout 1 is refused the same way."""
     sys.path.insert(0, str(ROOT))
     module = __import__(script[:-3])
-    assert module.RESUME_FORMAT == 3 and module.CHECKPOINT_FORMAT == 1
+    assert module.RESUME_FORMAT == 3 and module.CHECKPOINT_FORMAT == 2
     run_dir = tmp_path / "runs" / "old_run"
     run_dir.mkdir(parents=True)
     for old in (1, 2):
@@ -638,6 +638,14 @@ def test_a_resume_file_of_an_older_layout_is_refused(script, tmp_path, capsys):
         assert stopped.value.code == 2
         wanted = f"--resume {run_dir} holds {script} format {old}: continue it with the version that started it"
         assert wanted in capsys.readouterr().err
+    # a checkpoint of layout 1: before AMIGo's --goal-channel became auto/on/off (its boolean matches no value now)
+    old_checkpoint = str(tmp_path / "old.cleanrl_model")
+    torch.save({"script": script, "format": 1, "args": dict(vars(module.Args()))}, old_checkpoint)
+    with pytest.raises(SystemExit) as stopped:
+        module.load_checkpoint(old_checkpoint, module.Args(), module.MUST_MATCH, torch.device("cpu"))
+    assert stopped.value.code == 2
+    wanted = f"--checkpoint {old_checkpoint} holds {script} format 1; it needs one that {script} (format 2) wrote"
+    assert wanted in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("script", SCRIPTS)

@@ -153,7 +153,7 @@ class Args:
     wandb_entity: str | None = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to record videos of evaluation episodes to `videos/{run_name}` (scripts without an environment: unused)"""
+    """whether to record videos of evaluation episodes to `videos/{run_name}` (unused where there is no environment)"""
     save_model: bool = False
     """whether to save a checkpoint (networks with their codebook) to `runs/{run_name}/{exp_name}.cleanrl_model`"""
     checkpoint: str | None = None
@@ -161,11 +161,11 @@ class Args:
     threads: int = 1
     """torch CPU threads (one is fastest for these small networks, and lets runs share a machine's cores)"""
     fast: Literal["eager", "compile", "cudagraphs"] = "eager"
-    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (compiled, as CUDA graphs; GPU)"""
+    """the update's speed path: eager (plain PyTorch), compile (torch.compile), cudagraphs (CUDA graphs; GPU only)"""
     resume: str | None = None
-    """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder holding runs/)"""
+    """a run folder, runs/{run_name}, to continue exactly where its resume.pt left off (run from the folder of runs/)"""
     checkpoint_every_steps: int = 0
-    """also write runs/{run_name}/resume.pt each time the progress count (steps, frames, images) passes a multiple of this"""
+    """also write runs/{run_name}/resume.pt whenever the run's count (steps, frames, images) passes a multiple of it"""
     checkpoint_every: int = 1800
     """wall-clock seconds between writes of runs/{run_name}/resume.pt (0: only on a stop signal and at the end)"""
 
@@ -1064,10 +1064,10 @@ def seed_and_device(args) -> torch.device:
 
 
 def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWriter:
-    """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what was logged after it."""
+    """TensorBoard in runs/{run_name} (W&B too with --track); a resumed run's `purge_step` drops what came after it."""
     if args.track:
-        options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "name": run_name, "config": vars(args)}
-        importlib.import_module("wandb").init(**options, sync_tensorboard=True, save_code=True)  # optional, needed only here
+        options = {"project": args.wandb_project_name, "entity": args.wandb_entity, "config": vars(args)}
+        importlib.import_module("wandb").init(name=run_name, **options, sync_tensorboard=True, save_code=True)
     writer = SummaryWriter(f"runs/{run_name}", purge_step=purge_step)
     if purge_step is None:
         table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
@@ -1076,7 +1076,7 @@ def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWr
 
 
 def stop_on_signals() -> list[int]:
-    """Ctrl-C, SIGTERM, SIGUSR1/2 (Slurm's) ask the run to stop after its step (a second: at once); the loop polls the list."""
+    """Ctrl-C, SIGTERM, SIGUSR1/2 (Slurm's) stop the run after its step (a second: at once); the loop polls the list."""
     received = []
 
     def request_stop(number, frame):
@@ -1089,7 +1089,7 @@ def stop_on_signals() -> list[int]:
 
 
 class Progress:
-    """Progress lines (step, figures, SPS, time elapsed and left), a heartbeat after a silent minute, the resume cadence."""
+    """Progress lines (step, figures, SPS, time elapsed and left), a heartbeat after a quiet minute, resume cadence."""
 
     def __init__(self, total: int, unit: str = "step", start_step: int = 0):
         self.total, self.unit, self.start_step = total, unit, start_step
@@ -1100,7 +1100,7 @@ class Progress:
         return int((step - self.start_step) / max(time.time() - self.start_time, 1e-6))
 
     def resume_due(self, step: int, seconds: int, steps: int) -> bool:
-        """True once every `seconds` of wall clock, and whenever `step` passes a multiple of `steps` (0 turns either off)."""
+        """True once every `seconds` of wall clock, and whenever `step` passes a multiple of `steps` (0: either off)."""
         now = time.time()
         if (seconds and now - self.save_time >= seconds) or (steps and step // steps > self.save_step // steps):
             self.save_time, self.save_step = now, step
@@ -1111,8 +1111,8 @@ class Progress:
         now = time.time()
         rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
-        elapsed = f"{now - self.start_time:.0f}s elapsed"
-        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {elapsed}, {left}{suffix}", flush=True)
+        times = f"{now - self.start_time:.0f}s elapsed, {left}"
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
         self.print_time, self.print_step = now, step
 
     def heartbeat(self, step: int, figures: str = "") -> None:
@@ -1127,16 +1127,18 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save({"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)} | entries, file)
+        torch.save(header | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
 
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
-    """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else exit 2,
-    saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume only your runs."""
+    """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
+    only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
@@ -1154,7 +1156,9 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
             refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
         refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
     if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        found = type(saved).__name__
+        if isinstance(saved, dict):
+            found = f"{saved.get('script')} format {saved.get('format')}"
         wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
         refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
@@ -1170,7 +1174,7 @@ def rng_states() -> dict:
 
 
 def set_rng_states(states: dict) -> None:
-    """Restore rng_states(); a resumed run calls it last, after building its networks and envs (which draw from them)."""
+    """Restore rng_states(); a resumed run calls it last, after building its networks and envs (they draw from them)."""
     random.setstate(states["python"])
     torch.set_rng_state(states["torch"])
     torch.cuda.set_rng_state_all(states.get("cuda", []))
@@ -1178,7 +1182,8 @@ def set_rng_states(states: dict) -> None:
 
 def save_resume(run_name: str, state: dict, args) -> None:
     """The whole training state, with the global random states, to runs/{run_name}/resume.pt (for --resume)."""
-    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), {"format": RESUME_FORMAT, "rng": rng_states()} | state, args)
+    entries = {"format": RESUME_FORMAT, "rng": rng_states()} | state
+    save_checkpoint(os.path.join("runs", run_name, RESUME_FILE), entries, args)
 
 
 def load_resume(args) -> dict:
@@ -1195,14 +1200,14 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
     if fast == "compile":
         return torch.compile(update)
-    for optimizer in optimizers:  # torch makes fresh optimizers capturable; a resumed one's step counts go to the device
+    for optimizer in optimizers:  # torch makes fresh optimizers capturable; a resumed one's step counts move to the GPU
         for group in optimizer.param_groups:
             group["capturable"] = True
         optimizer.load_state_dict(optimizer.state_dict())
     compiled = torch.compile(update, mode="reduce-overhead")
 
     def replayed(*args, **kwargs):
-        torch.compiler.cudagraph_mark_step_begin()  # a new step: the graphs reuse their outputs' memory, so return copies
+        torch.compiler.cudagraph_mark_step_begin()  # a new step: the graphs reuse their outputs' memory: return copies
         return torch.utils._pytree.tree_map_only(torch.Tensor, torch.clone, compiled(*args, **kwargs))
 
     return replayed
@@ -1261,26 +1266,28 @@ def common_errors(args) -> list[str]:
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         errors.append(f"--checkpoint {args.checkpoint}: no such file")
     if not args.exp_name or any(separator in args.exp_name for separator in {"/", os.sep, os.altsep or "/"}):
-        errors.append(f"--exp-name {args.exp_name!r} must be a plain name, without '/': it names the run's folder in runs/")
+        errors.append(f"--exp-name {args.exp_name!r} must be a plain name, without '/': it names a folder in runs/")
     if args.fast == "cudagraphs" and not (args.cuda and torch.cuda.is_available()):
-        errors.append("--fast cudagraphs needs a CUDA device (none is visible, or --no-cuda): use --fast compile or eager")
+        errors.append("--fast cudagraphs needs a CUDA device (none visible, or --no-cuda): use --fast compile or eager")
     elif args.fast != "eager" and not (args.cuda and torch.cuda.is_available()) and shutil.which("g++") is None:
-        errors.append(f"--fast {args.fast} on a CPU needs a C++ compiler (g++) for torch.compile; install one or use eager")
+        errors.append(f"--fast {args.fast} on a CPU needs g++ (torch.compile's compiler): install it, or use eager")
     if args.resume is not None:
         name = os.path.basename(os.path.normpath(args.resume))
         if not os.path.isfile(os.path.join(args.resume, RESUME_FILE)):
-            errors.append(f"--resume {args.resume}: no {RESUME_FILE} there (a run writes it with this version's scripts)")
+            errors.append(f"--resume {args.resume}: no {RESUME_FILE} there (a run of this version's scripts writes it)")
         elif os.path.realpath(args.resume) != os.path.realpath(os.path.join("runs", name)):
-            errors.append(f"--resume {args.resume}: run from the folder that holds it as runs/{name} (the run writes there)")
+            errors.append(f"--resume {args.resume}: run from the folder that holds it as runs/{name} (it writes there)")
         if args.checkpoint is not None:
             errors.append("--resume continues a training run and --checkpoint only evaluates one: pass one of them")
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it, or run elsewhere")
+        advice = "move it, or run elsewhere"
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): run from a folder you can write to")
+        where = os.path.abspath(existing)
+        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
     return errors
 
 
@@ -1295,9 +1302,9 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however the
-    process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a requeued
-    job) exits 2 naming the holder, before writing anything; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
+    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
+    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -1308,7 +1315,7 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     except BlockingIOError:
         lock.seek(0)
         holder = lock.read().strip() or "a run that is starting"
-        exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for it to end"])
+        exit_on_errors([f"runs/{run_name} is in use by {holder}: one process at a time writes a run; wait for its end"])
     if check_only:
         return lock.close()
     lock.truncate(0)

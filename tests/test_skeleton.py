@@ -36,7 +36,7 @@ REGIONS = [
     (BLOCK_START, BLOCK_END),
     ("# --- Checks: identical in every script (tests/test_skeleton.py) ", "# --- end of the shared checks "),
 ]
-RUN_MANAGEMENT_LINES = 161  # the most the run-management appendix may take, its banners included
+RUN_MANAGEMENT_LINES = 166  # the most the run-management appendix may take, its banners included
 SPEED_SWITCH_LINES = 17  # the most --fast may take: fast_update, blank lines not counted
 MUJOCO_GL_DEFAULT = (
     'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'

@@ -1,27 +1,25 @@
-"""DGRL on RIS in the Ant mazes: discretized goal and subgoal embeddings for Reinforcement learning with Imagined Subgoals.
+"""DGRL on RIS in the Ant mazes: discretized goal and subgoal embeddings for RL with Imagined Subgoals.
 
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Ant
-Navigation Maze Tasks", appendix "Ant Navigation Tasks", Algorithm 1 (RIS with DGRL) and the code snippet. The agent is
-RIS (Chane-Sane et al., ICML 2021): a goal-conditioned SAC-style actor and twin critics trained with hindsight relabelling,
-a high-level policy that proposes subgoal states halfway to the goal (trained by advantage weighting over replay states),
-and an actor loss that replaces SAC's entropy term by a KL divergence to a prior policy: the target actor averaged over
-imagined subgoals. DGRL (`--groups G`) embeds goals, subgoals and states with an MLP encoder trained as an autoencoder,
-discretizes the embeddings with the shared-codebook bottleneck of vq.py, and conditions the actor, the critics and the
-prior on the discrete goal and subgoal embeddings. The encoder's loss takes the mean of the commitment losses of state,
-next state, goal and subgoal (the paper's text; `--vq-loss-reduction sum` is its snippet's sum, the setting of the docs'
-CPU studies). `--groups 0` is plain RIS from the same file.
+Navigation Maze Tasks", appendix "Ant Navigation Tasks", Algorithm 1 (RIS with DGRL) and the code snippet. RIS
+(Chane-Sane et al., ICML 2021): a goal-conditioned SAC-style actor and twin critics trained with hindsight relabelling,
+a high-level policy proposing subgoal states halfway to the goal (advantage-weighted over replay states) and, in place
+of SAC's entropy term, a KL divergence to a prior: the target actor averaged over imagined subgoals. DGRL (`--groups G`)
+embeds goals, subgoals and states with an MLP autoencoder, discretizes them with vq.py's shared-codebook bottleneck and
+conditions the actor, the critics and the prior on the discrete goal and subgoal embeddings; the encoder's loss takes
+the mean of the commitment losses of s, s', g and s_g (the paper's text; `--vq-loss-reduction sum`: its snippet's sum,
+the setting of the docs' CPU studies). `--groups 0` is plain RIS. Docs: docs/dgrl_ris.md.
 
-    python dgrl_ris.py --env-id AntMaze --groups 16        # paper setting (Pi maze, G=16): 5M steps at batch 2048, a GPU job
-    python dgrl_ris.py --env-id AntU --groups 0             # RIS on the U maze
+    python dgrl_ris.py --env-id AntMaze --groups 16   # the paper's setting (Pi maze): 5M steps at batch 2048, a GPU job
+    python dgrl_ris.py --env-id AntU --groups 0       # RIS on the U maze
     python dgrl_ris.py --env-id PointMaze_UMaze-v3 --total-timesteps 30000 --batch-size 128 --start-timesteps 2000 \
         --eval-frequency 2000 --eval-episodes 10 --vq-loss-reduction sum   # the CPU preset (20 min; --groups 0: 10 min)
     python dgrl_ris.py --env-id AntU --total-timesteps 3000 --start-timesteps 500 --batch-size 64   # 1-minute smoke run
-    python dgrl_ris.py --env-id AntU --checkpoint runs/<run>/dgrl_ris.cleanrl_model   # evaluate a --save-model checkpoint
+    python dgrl_ris.py --env-id AntU --checkpoint runs/<run>/dgrl_ris.cleanrl_model   # evaluate a --save-model file
     python dgrl_ris.py --env-id AntMaze --groups 16 --resume runs/<run>   # continue a stopped run exactly (its flags)
 
-Environments: the four Ant mazes of RIS (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built here from the Ant model inside
-gymnasium, and every gymnasium-robotics maze id (`PointMaze_UMaze-v3`, `AntMaze_UMaze-v5`, ...).
-The CPU studies: python benchmark/launch.py --preset ris-pointmaze (or ris-antu-cpu). Docs: docs/dgrl_ris.md.
+Environments: RIS's four Ant mazes (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built from gymnasium's Ant, and every
+gymnasium-robotics maze id. The CPU studies: python benchmark/launch.py --preset ris-pointmaze (or ris-antu-cpu).
 """
 
 import copy
@@ -40,7 +38,7 @@ from functools import cache, partial
 from typing import ClassVar, Literal
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos, pixels) without a display; set it to override
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos) with no display; set MUJOCO_GL to override
 
 import gymnasium as gym
 import mujoco
@@ -58,7 +56,7 @@ from vq import VectorQuantizerEMA, active_codes, make_target, perplexity, update
 class Args:
     # Environment
     env_id: str = "AntMaze"
-    """AntU, AntFb (S), AntMaze (Pi), AntFg (omega), or a gymnasium-robotics maze id (PointMaze_UMaze-v3, AntMaze_UMaze-v5)"""
+    """AntU, AntFb (S), AntMaze (Pi), AntFg (omega), or a gymnasium-robotics maze id (PointMaze_UMaze-v3, ...)"""
     max_episode_steps: int = 0
     """episode step limit (0 = 600 for the four Ant mazes, the registered limit for gymnasium-robotics ids)"""
     num_envs: int = 1
@@ -104,7 +102,7 @@ class Args:
     eval_frequency: int = 1000
     """environment steps between evaluations (also the checkpoint cadence with --save-model)"""
     eval_episodes: int = 5
-    """episodes per evaluation, on the test configuration (--capture-video records the first of every 10th evaluation)"""
+    """episodes per evaluation on the test configuration (--capture-video records the first of every 10th evaluation)"""
     eval_deterministic: bool = False
     """act with the mean action during evaluation (RIS samples actions, as in training)"""
 
@@ -120,7 +118,7 @@ class Args:
     vq_dead_code_steps: int = 0
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
     vq_loss_reduction: str = "mean"
-    """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (the paper's code snippet)"""
+    """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (its code snippet)"""
     embed_dim: int = 64
     """size of the goal embedding (m); must be divisible by groups"""
     encoder_lr: float = 1e-4
@@ -165,9 +163,8 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 
 
 def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, out_dim)
-    )
+    hidden = (nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, hidden_dim), nn.ReLU())
+    return nn.Sequential(*hidden, nn.Linear(hidden_dim, out_dim))
 
 
 class Actor(nn.Module):
@@ -218,9 +215,8 @@ class GoalEncoder(nn.Module):  # DGRL
         super().__init__()
         self.encoder = mlp(goal_dim, args.hidden_dim, args.embed_dim)  # DGRL
         self.decoder = mlp(args.embed_dim, args.hidden_dim, goal_dim)  # DGRL
-        self.vq = VectorQuantizerEMA(  # DGRL
-            args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
-        )
+        codebook = args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay  # DGRL
+        self.vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps)  # DGRL
 
     def forward(self, goals: torch.Tensor, update: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(z_q, commitment loss, code indices); the codebook moves only with update=True."""
@@ -228,13 +224,13 @@ class GoalEncoder(nn.Module):  # DGRL
 
 
 def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
-    """Combine the commitment losses of n equal-sized embeddings from the loss of their one pooled call (their mean): the
-    mean (the paper's text: "the mean of the commitment loss across all z_e vectors") or the sum (the paper's snippet)."""
+    """The commitment loss of n equal-sized embeddings, given their one pooled call's (their mean): that mean (the
+    paper's text: "the mean of the commitment loss across all z_e vectors") or n times it (its snippet's sum)."""
     return pooled if reduction == "mean" else n_embeddings * pooled  # DGRL
 
 
 def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:
-    """What the actor and critics see of a goal: the raw goal (RIS) or its discrete embedding (DGRL), codebook untouched."""
+    """What the actor and critics see of a goal: itself (RIS) or its discrete embedding (DGRL), codebook untouched."""
     return goals if goal_encoder is None else goal_encoder(goals, update=False)[0]  # DGRL
 
 
@@ -255,7 +251,8 @@ class Agent:
     EVALUATED = ("actor", "critic", "high", "goal_encoder")  # what a --save-model checkpoint holds (with the codebook)
 
     def state_dicts(self) -> dict:
-        return {name: None if getattr(self, name) is None else getattr(self, name).state_dict() for name in self.EVALUATED}
+        parts = {name: getattr(self, name) for name in self.EVALUATED}
+        return {name: None if part is None else part.state_dict() for name, part in parts.items()}
 
     def load_state_dicts(self, saved: dict) -> None:
         for name in self.EVALUATED:
@@ -282,9 +279,8 @@ def make_agent(state_dim: int, goal_dim: int, action_dim: int, args: Args, devic
 
 
 class EpisodeReplay:
-    """A ring of transitions on the training device, written one whole episode at a time and contiguously (a write that
-    would cross the end starts again at 0), so what survives of an overwritten episode is a suffix of it and the index of
-    its last transition, stored with each transition, stays valid: a future state is one random integer away."""
+    """A ring of transitions on the device, written a whole episode at a time, contiguously (one that would cross the
+    end starts at 0): an overwritten episode leaves a suffix, whose stored end index stays valid for future states."""
 
     STORED = ("states", "actions", "next_states", "goals", "episode_end")
 
@@ -321,7 +317,7 @@ class EpisodeReplay:
     def sample(self, batch_size: int, goal_dim: int, threshold: float, goal_frac: float, random_frac: float):
         """A HER batch (s, a, s', g, r, done, s_g): the first `goal_frac` keeps the rollout goal, the next `random_frac`
         gets a random replay state's goal projection, the rest a future state of the episode, uniform over s'_i..s'_end.
-        r = -1; done: s' within `threshold` (xy) of g. s_g: random replay states, the high level's subgoal candidates."""
+        r = -1; done: s' within `threshold` (xy) of g. s_g: random replay states, the high level's candidates."""
         index = torch.randint(self.size, (batch_size,), device=self.device)
         n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
         future = index[n_keep + n_random :]
@@ -337,9 +333,9 @@ class EpisodeReplay:
 # --- Losses -----------------------------------------------------------------------------------------------------------
 
 
-def advantage_weights(distance_proposed: torch.Tensor, distance_candidates: torch.Tensor, temperature: float) -> torch.Tensor:
+def advantage_weights(proposed_cost: torch.Tensor, candidate_cost: torch.Tensor, temperature: float) -> torch.Tensor:
     """softmax over the batch of (D(proposed subgoal) - D(candidate)) / lambda: the cheaper candidates weigh more."""
-    return F.softmax((distance_proposed - distance_candidates) / temperature, dim=0)
+    return F.softmax((proposed_cost - candidate_cost) / temperature, dim=0)
 
 
 def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Tensor) -> torch.Tensor:
@@ -349,11 +345,12 @@ def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Ten
 
 def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float) -> torch.Tensor:
     """Single-sample KL(pi || prior) at u (B, A): log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon), the
-    prior's (K, B, A) from the target actor at K imagined subgoals; logsumexp keeps a density of 1e-40 from reaching 0."""
+    prior's (K, B, A) from the target actor at K imagined subgoals; logsumexp keeps a 1e-40 density from reaching 0."""
     normal = partial(torch.distributions.Normal, validate_args=False)
     log_policy = normal(mean, std).log_prob(actions_pre_tanh).sum(-1)
     log_prior_k = normal(prior_mean, prior_std).log_prob(actions_pre_tanh[None]).sum(-1)
-    log_terms = torch.cat((log_prior_k - math.log(len(log_prior_k)), torch.full_like(log_prior_k[:1], math.log(epsilon))))
+    log_epsilon = torch.full_like(log_prior_k[:1], math.log(epsilon))
+    log_terms = torch.cat((log_prior_k - math.log(len(log_prior_k)), log_epsilon))
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
 
@@ -403,7 +400,8 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
         value_goal_z = goal_input(goal_encoder, value_goals)  # DGRL: V(x, y) sees y's discrete embedding
         value_actions = torch.tanh(actor(value_states, value_goal_z)[0])  # DGRL: z_q(y)
         values = critic(value_states, value_actions, value_goal_z).min(0).values.view(4, batch_size)  # DGRL: z_q(y)
-        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
+        proposed_cost, candidate_cost = subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1])
+        weights = advantage_weights(proposed_cost, candidate_cost, args.h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoals).sum(-1)).mean()
     learn(agent.high_optimizer, high_loss)
 
@@ -433,7 +431,7 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
 @torch.no_grad()
 def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
     states = torch.as_tensor(observations["state"], device=device)
-    goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: quantized, no update
+    goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: z_q(g)
     actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)  # DGRL
     return actions.cpu().numpy()
 
@@ -446,9 +444,8 @@ def main(args: Args) -> None:
     validate(args)
     args.goal_threshold = args.goal_threshold or (ANT_THRESHOLD if args.env_id in ANT_MAZES else ROBOTICS_THRESHOLD)
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if args.resume is not None:  # the stopped run's folder and videos
+    if args.resume is not None:  # the stopped run's folder and videos; if it still runs elsewhere, exit 2 at once
         run_name = os.path.basename(os.path.normpath(args.resume))
-    if args.resume is not None:  # a run still running elsewhere: exit 2 at once, touching nothing
         hold_run_folder(run_name, check_only=True)
     saved = load_resume(args) if args.resume is not None else None  # after the threshold is resolved, as it was saved
     device = seed_and_device(args)
@@ -456,8 +453,9 @@ def main(args: Args) -> None:
     # Environments: training (random starts and goals) and evaluation (the test configuration, one seeded stream)
     limits = (args.max_episode_steps, args.goal_threshold)
     envs = make_vector_env(args.env_id, args.num_envs, args.seed, False, *limits)
-    eval_envs = make_vector_env(args.env_id, args.eval_episodes, args.seed + 10_000, True, *limits, render=args.capture_video)
-    eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
+    eval_seed = args.seed + 10_000  # one evaluation stream per run, continued across evaluations
+    eval_envs = make_vector_env(args.env_id, args.eval_episodes, eval_seed, True, *limits, render=args.capture_video)
+    eval_envs.reset(seed=eval_seed)
     state_dim, goal_dim = (envs.single_observation_space[key].shape[0] for key in ("state", "goal"))
     action_dim = envs.single_action_space.shape[0]
     if not (np.all(envs.single_action_space.low == -1) and np.all(envs.single_action_space.high == 1)):
@@ -472,12 +470,12 @@ def main(args: Args) -> None:
     try:
         replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
     except RuntimeError as error:  # out of memory (torch.OutOfMemoryError on a GPU is a RuntimeError too)
-        exit_on_errors(
-            [f"--buffer-size {args.buffer_size}: the replay does not fit in {device.type} memory ({type(error).__name__})"]
-        )
+        too_large = f"the replay does not fit in {device.type} memory ({type(error).__name__})"
+        exit_on_errors([f"--buffer-size {args.buffer_size}: {too_large}"])
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     episode = {key: [[] for _ in range(args.num_envs)] for key in EPISODE_KEYS}  # each env's unfinished episode
-    loop = LoopState(envs.reset(seed=args.seed)[0], episode, next_eval=args.eval_frequency, next_loss_log=LOSS_LOG_UPDATES)
+    observations, _ = envs.reset(seed=args.seed)
+    loop = LoopState(observations, episode, next_eval=args.eval_frequency, next_loss_log=LOSS_LOG_UPDATES)
     if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
         loop = restore_training_state(saved, agent, replay, envs, eval_envs)
     diverged = False
@@ -488,9 +486,10 @@ def main(args: Args) -> None:
     if saved is not None:
         print(f"resumed at step {loop.step} ({loop.updates} updates) from {args.resume}/{RESUME_FILE}")
     if device.type == "cpu" and args.batch_size >= 1024:
-        print(f"note: --batch-size {args.batch_size} on a CPU takes 0.2-0.5 s per update; see docs/dgrl_ris.md's CPU preset")
+        print(f"note: --batch-size {args.batch_size} on a CPU: 0.2-0.5 s per update; see docs/dgrl_ris.md's CPU preset")
     update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
     progress = Progress(args.total_timesteps, start_step=loop.step)
+    her = (args.goal_threshold, args.her_goal_frac, args.her_random_frac)  # HER: success radius, goal fractions
     if saved is not None:
         set_rng_states(saved["rng"])  # last: building the envs and networks above drew from them
     while loop.step < args.total_timesteps and not stop:
@@ -522,12 +521,12 @@ def main(args: Args) -> None:
         # Train: one update per environment step once the random phase is over and the replay holds a batch.
         if loop.step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
             for _ in range(args.num_envs):
-                batch = replay.sample(args.batch_size, goal_dim, args.goal_threshold, args.her_goal_frac, args.her_random_frac)
-                metrics = update(agent, batch, args)
+                metrics = update(agent, replay.sample(args.batch_size, goal_dim, *her), args)
                 loop.updates += 1
             if loop.updates >= loop.next_loss_log:
                 loop.next_loss_log += LOSS_LOG_UPDATES
-                losses = {name: metrics[name].item() for name in ("critic_loss", "actor_loss", "high_loss", "kl", "q_values")}
+                names = ("critic_loss", "actor_loss", "high_loss", "kl", "q_values")
+                losses = {name: metrics[name].item() for name in names}
                 for name, value in losses.items():
                     writer.add_scalar(f"losses/{name}", value, loop.step)
                 writer.add_scalar("losses/high_weight_max", metrics["high_weight_max"].item(), loop.step)
@@ -539,8 +538,8 @@ def main(args: Args) -> None:
                     writer.add_scalar("vq/active_codes", active_codes(metrics["codes"], args.n_embed).item(), loop.step)
                 diverged = not all(map(math.isfinite, losses.values()))
                 if diverged:  # every later update would be NaN too: stop rather than train garbage
-                    advice = "lower the learning rates or --alpha"
-                    print(f"training diverged: non-finite losses {losses} at step {loop.step}; {advice}", file=sys.stderr)
+                    problem = f"training diverged: non-finite losses {losses} at step {loop.step}"
+                    print(f"{problem}; lower the learning rates or --alpha", file=sys.stderr)
                     break
         progress.heartbeat(loop.step, f"{loop.updates} updates")
 
@@ -553,7 +552,7 @@ def main(args: Args) -> None:
             writer.add_scalar("eval/success_rate", loop.eval_success, loop.step)
             writer.add_scalar("eval/final_distance", loop.eval_distance, loop.step)
             writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
-            train_success = f"{np.mean(loop.recent_success):4.0%}" if loop.recent_success else "   -"  # none ended since
+            train_success = f"{np.mean(loop.recent_success):4.0%}" if loop.recent_success else "   -"  # none ended
             loop.recent_success = []
             eval_figures = f"eval success {loop.eval_success:4.0%} distance {loop.eval_distance:5.2f}"
             progress.line(loop.step, f"{eval_figures}  train success {train_success}")
@@ -625,37 +624,19 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 # --- Environments -----------------------------------------------------------------------------------------------------
 
 ANT_MAZES = {  # RIS's four mazes (its multiworld code): interior bounds, inner walls as (cx, cy, hx, hy), test boxes
-    "AntU": dict(
-        interior=((-3.75, 3.75), (-9.0, 9.0)),
-        walls=((0.0, 1.5, 0.75, 7.5),),
-        test_start=((-2.5, -2.0), (7.25, 7.75)),
-        test_goal=((2.0, 2.5), (7.25, 7.75)),
-    ),
-    "AntFb": dict(
-        interior=((-6.0, 6.0), (-6.0, 6.0)),
-        walls=((-2.25, 1.5, 0.75, 4.5), (2.25, -1.5, 0.75, 4.5)),
-        test_start=((-4.75, -4.25), (4.25, 4.75)),
-        test_goal=((4.25, 4.75), (-4.75, -4.25)),
-    ),
-    "AntMaze": dict(
-        interior=((-8.0, 8.0), (-8.0, 8.0)),
-        walls=(
-            (-2.375, 3.25, 1.625, 0.75),
-            (2.375, 3.25, 1.625, 0.75),
-            (0.0, 2.0, 0.75, 6.0),
-            (-6.0, -2.25, 2.0, 0.75),
-            (6.0, -2.25, 2.0, 0.75),
-        ),
-        test_start=((-2.5, -2.0), (6.25, 6.75)),
-        test_goal=((2.0, 2.5), (6.25, 6.75)),
-    ),
-    "AntFg": dict(
-        interior=((-8.0, 8.0), (-8.0, 8.0)),
-        walls=((0.0, -3.25, 3.0, 0.75), (-3.75, 0.0, 0.75, 4.0), (3.75, 0.0, 0.75, 4.0), (0.0, -6.0, 0.75, 2.0)),
-        test_start=((-2.5, -2.0), (-6.75, -6.25)),
-        test_goal=((2.0, 2.5), (-6.75, -6.25)),
-    ),
-}
+    "AntU": dict(interior=((-3.75, 3.75), (-9.0, 9.0)), walls=((0.0, 1.5, 0.75, 7.5),),
+                 test_start=((-2.5, -2.0), (7.25, 7.75)), test_goal=((2.0, 2.5), (7.25, 7.75))),
+    "AntFb": dict(interior=((-6.0, 6.0), (-6.0, 6.0)), walls=((-2.25, 1.5, 0.75, 4.5), (2.25, -1.5, 0.75, 4.5)),
+                  test_start=((-4.75, -4.25), (4.25, 4.75)), test_goal=((4.25, 4.75), (-4.75, -4.25))),
+    "AntMaze": dict(interior=((-8.0, 8.0), (-8.0, 8.0)),
+                    walls=((-2.375, 3.25, 1.625, 0.75), (2.375, 3.25, 1.625, 0.75), (0.0, 2.0, 0.75, 6.0),
+                           (-6.0, -2.25, 2.0, 0.75), (6.0, -2.25, 2.0, 0.75)),
+                    test_start=((-2.5, -2.0), (6.25, 6.75)), test_goal=((2.0, 2.5), (6.25, 6.75))),
+    "AntFg": dict(interior=((-8.0, 8.0), (-8.0, 8.0)),
+                  walls=((0.0, -3.25, 3.0, 0.75), (-3.75, 0.0, 0.75, 4.0), (3.75, 0.0, 0.75, 4.0),
+                         (0.0, -6.0, 0.75, 2.0)),
+                  test_start=((-2.5, -2.0), (-6.75, -6.25)), test_goal=((2.0, 2.5), (-6.75, -6.25))),
+}  # fmt: skip
 ANT_JOINT_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))  # hips and ankles at rest (gymnasium's init_qpos)
 ANT_GOAL_Z = 0.565
 ANT_EPISODE_STEPS = 600
@@ -707,7 +688,7 @@ def goal_state(xy: np.ndarray, yaw: float) -> np.ndarray:
 
 @cache
 def ant_maze_xml(name: str) -> str:
-    """Gymnasium's Ant model edited for RIS: gear 10, timestep 0.03 (RK4), the maze's walls, a goal marker, a top camera."""
+    """Gymnasium's Ant edited for RIS: gear 10, timestep 0.03 (RK4), the maze's walls, a goal marker, a top camera."""
     root = ET.parse(os.path.join(os.path.dirname(gym.__file__), "envs/mujoco/assets/ant.xml")).getroot()
     root.find("option").set("timestep", "0.03")
     for motor in root.iter("motor"):
@@ -727,10 +708,9 @@ def ant_maze_xml(name: str) -> str:
 
 
 class AntMazeEnv(gym.Env):
-    """One of RIS's four Ant mazes (its multiworld code) on the `mujoco` bindings: Dict(state, goal) of 31-d ant states,
-    8 motor commands in [-1, 1], 0.15 s per step (frame_skip 5), reward -1 (RIS recomputes it after relabelling); the
-    episode ends when the torso's xy is within `threshold` of the goal's. Training resets draw start and goal over the
-    free space (0.75 from every wall), test resets from the maze's fixed boxes; yaws from {0, pi, +-pi/2}."""
+    """One of RIS's four Ant mazes (multiworld) on `mujoco`: Dict(state, goal) of 31-d ant states, 8 motors in [-1, 1],
+    0.15 s a step, reward -1 (RIS relabels it), done when the torso's xy is within `threshold` of the goal's. Start and
+    goal: uniform over the free space, 0.75 from walls (training), or in the test boxes; yaws from {0, pi, +-pi/2}."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 7}
     frame_skip = 5
@@ -786,19 +766,16 @@ class AntMazeEnv(gym.Env):
 
 
 class RoboticsMaze(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """A gymnasium-robotics maze as Dict(state = (achieved xy, observation), goal = desired xy); test resets of the U
-    mazes start and end at the two ends of the U (RIS's test configuration), other maps keep their own. Recording its
-    constructor arguments (as gymnasium's wrappers do) lets gymnasium re-create the wrapped env from its spec."""
+    """A gymnasium-robotics maze as Dict(state = (achieved xy, observation), goal = desired xy); U-maze test resets run
+    from end to end of the U (RIS's test setup). It records its constructor arguments: gymnasium can re-create it."""
 
     def __init__(self, env: gym.Env, test: bool):
         gym.utils.RecordConstructorArgs.__init__(self, test=test)
         gym.Wrapper.__init__(self, env)
         spaces = env.observation_space
         state_dim = spaces["achieved_goal"].shape[0] + spaces["observation"].shape[0]
-        self.observation_space = gym.spaces.Dict(
-            state=gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32),
-            goal=gym.spaces.Box(-np.inf, np.inf, spaces["desired_goal"].shape, np.float32),
-        )
+        box = partial(gym.spaces.Box, -np.inf, np.inf, dtype=np.float32)
+        self.observation_space = gym.spaces.Dict(state=box((state_dim,)), goal=box(spaces["desired_goal"].shape))
         u_maze = test and "UMaze" in str(env.spec.id)
         self.options = {"reset_cell": np.array((1, 1)), "goal_cell": np.array((3, 1))} if u_maze else None
 
@@ -837,8 +814,9 @@ def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, thresho
         if env_id in ANT_MAZES:
             env = gym.wrappers.TimeLimit(AntMazeEnv(env_id, test, threshold, render_mode), limit)
         else:
-            kwargs = {"include_cfrc_ext_in_observation": False} if env_id.startswith("AntMaze_") and "-v5" in env_id else {}
-            robotics_ids()  # registers the ids (a caller may not have: episode_limit skips it under --max-episode-steps)
+            ant_v5 = env_id.startswith("AntMaze_") and "-v5" in env_id  # the v5 Ant's contact forces stay out
+            kwargs = {"include_cfrc_ext_in_observation": False} if ant_v5 else {}
+            robotics_ids()  # registers the ids (episode_limit skips it under --max-episode-steps)
             env = gym.make(env_id, continuing_task=False, render_mode=render_mode, max_episode_steps=limit, **kwargs)
             env = RoboticsMaze(env, test)
         env = gym.wrappers.RecordEpisodeStatistics(env)
@@ -856,12 +834,11 @@ def make_vector_env(env_id: str, n: int, seed: int, test: bool, max_episode_step
 
 # --- Resume: the whole training state (--resume) ---------------------------------------------------------------------
 
-# What the layers of a make_env env carry from one step to the next besides MuJoCo's state: TimeLimit's step count,
-# RecordEpisodeStatistics' sums, OrderEnforcing's flag, the envs' random generators, goals and (gymnasium-robotics)
-# reset positions. Pickling the envs instead would re-create them from their constructor arguments, losing all of it.
+# What a make_env env's layers carry between steps besides MuJoCo's state: TimeLimit's step count, the episode
+# statistics, OrderEnforcing's flag, random generators, goals, reset positions (pickled envs would come back fresh).
 ENV_CARRIED = ("_elapsed_steps", "episode_returns", "episode_lengths", "episode_count", "_has_reset", "_np_random")
 ENV_CARRIED += ("goal", "reset_pos", "init_qpos")
-MUJOCO_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step reads: time, qpos, qvel, act, ctrl, mocap, warmstart
+MUJOCO_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # all mj_step reads: time, qpos, qvel, act, ctrl, mocap, warmstart
 
 
 def env_layers(env: gym.Env) -> list:
@@ -917,9 +894,8 @@ class LoopState:
 
 
 def training_state(agent: Agent, replay: EpisodeReplay, envs, eval_envs, loop: LoopState) -> dict:
-    """What a run needs to continue exactly (save_resume adds the random states): the agent's every part (the encoder's
-    with its codebook), the filled replay, both vector envs (the evaluation stream continues; the batched action space
-    draws the warm-up's actions) and the loop's variables as a plain dict."""
+    """What a run needs to continue exactly (save_resume adds the random states): every part of the agent (codebook
+    included), the filled replay, both vector envs (with the warm-up's action rng) and the loop's variables."""
     return {
         "agent": {name: part.state_dict() for name, part in vars(agent).items() if part is not None},
         "replay": replay.state_dict(),
@@ -1235,7 +1211,7 @@ def validate(args: Args) -> None:
         robotics = "a gymnasium-robotics maze id (AntMaze_* or PointMaze_*, e.g. PointMaze_UMaze-v3, AntMaze_UMaze-v5)"
         errors.append(f"--env-id {args.env_id!r} is unknown: use one of {', '.join(ANT_MAZES)} or {robotics}")
     elif args.env_id not in ANT_MAZES and args.env_id not in (ids := robotics_ids()):
-        errors.append(f"--env-id {args.env_id!r} is not a registered gymnasium-robotics maze id; choices: {', '.join(ids)}")
+        errors.append(f"--env-id {args.env_id!r} is not a registered gymnasium-robotics id; choices: {', '.join(ids)}")
     if args.groups < 0 or (args.groups and args.embed_dim > 0 and args.embed_dim % args.groups):
         divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
         choices = f"0 (RIS) or divide --embed-dim {args.embed_dim}: one of {divisors}"
@@ -1260,14 +1236,15 @@ def validate(args: Args) -> None:
     if not errors:  # the replay is written one whole episode at a time: an episode, and a batch of them, must fit
         limit = episode_limit(args.env_id, args.max_episode_steps)
         warm_up = max(args.start_timesteps, args.batch_size + args.num_envs * (limit - 1))
+        buffer = f"--buffer-size ({args.buffer_size})"
         if args.buffer_size < limit:
-            errors.append(f"--buffer-size ({args.buffer_size}) must hold one whole episode: >= {limit} (--max-episode-steps)")
+            errors.append(f"{buffer} must hold one whole episode: >= {limit} (--max-episode-steps)")
         elif args.buffer_size // limit * limit < args.batch_size:
             held = f"holds {args.buffer_size // limit} whole {limit}-step episodes, fewer transitions than --batch-size"
-            errors.append(f"--buffer-size ({args.buffer_size}) {held} ({args.batch_size}): raise --buffer-size")
+            errors.append(f"{buffer} {held} ({args.batch_size}): raise --buffer-size")
         elif args.total_timesteps <= warm_up:
             needed = f"--total-timesteps ({args.total_timesteps}) must exceed {warm_up}"
-            wait = f"the first update waits for --batch-size ({args.batch_size}) transitions of whole {limit}-step episodes"
+            wait = f"updates wait for --batch-size ({args.batch_size}) transitions of whole {limit}-step episodes"
             errors.append(f"{needed}: {wait}, with --num-envs {args.num_envs}")
     exit_on_errors(errors)
 

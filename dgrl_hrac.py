@@ -2,21 +2,19 @@
 
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Ant
 Manipulation Control Domains" and appendix "Ant Manipulation tasks". The agent is HRAC (Zhang et al., NeurIPS 2020): a
-TD3 manager that proposes a relative xy subgoal every k = 10 steps, a TD3 controller rewarded for reaching it (the
-subgoal re-targeted after every step), HIRO's off-policy correction of the manager's stored subgoals, and an adjacency
-network over 1 m grid cells, retrained every 50k steps with a contrastive loss, whose k-step reachability constrains the
-manager's subgoals through an extra actor loss. DGRL (`--groups G`) passes the manager's output (the subgoal) through an
-encoder and the shared-codebook bottleneck of vq.py; the controller's actor and critic see the discrete subgoal
-embedding z_q instead of the raw subgoal. `--groups 0` is plain HRAC from the same file.
+TD3 manager proposes a relative xy subgoal every k = 10 steps; a TD3 controller is rewarded for reaching it (the subgoal
+re-targeted after every step); HIRO's off-policy correction relabels the manager's stored subgoals; an adjacency network
+over 1 m grid cells, retrained every 50k steps with a contrastive loss, keeps the subgoals k-step reachable through an
+extra actor loss. DGRL (`--groups G`) passes the subgoal through an encoder and the shared-codebook bottleneck of
+vq.py: the controller's actor and critic see its discrete embedding z_q instead. `--groups 0` is plain HRAC.
 
-The environments are the HIRO Ant suite as HRAC's authors use it: gymnasium's Ant model edited in code (ctrl +-30, gear
-1, timestep 0.02 with RK4, frame_skip 5) inside structures of fixed, sliding and elevated blocks generated into MJCF at
-run time (rllab's and HIRO's maze generator, rewritten here); AntGather adds apples, bombs and range sensors.
+The HIRO Ant suite as HRAC's authors use it: gymnasium's Ant edited in code (ctrl +-30, gear 1, timestep 0.02 with RK4,
+frame_skip 5) in structures of fixed, sliding and elevated blocks generated into MJCF at run time (rllab's and HIRO's
+maze generator, rewritten here); AntGather adds apples, bombs and range sensors.
 
     python dgrl_hrac.py --env-id AntPush --groups 16      # DGRL G=16 on AntPush, the paper's 5M steps (a GPU job)
-    python dgrl_hrac.py --env-id AntMaze --groups 0       # HRAC on AntMaze
-    python dgrl_hrac.py --env-id AntMaze --groups 0 --total-timesteps 300000   # the short CPU run of docs/dgrl_hrac.md
-    python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5   # 15-second smoke run
+    python dgrl_hrac.py --env-id AntMaze --groups 0 --total-timesteps 300000   # HRAC: the short CPU run of the docs
+    python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5  # 15-second smoke run
     python dgrl_hrac.py --env-id AntPush --groups 16 --resume runs/<run_name>   # continue a stopped run, same flags
 
 The studies: python benchmark/launch.py --preset hrac-antmaze-cpu (CPU) or --preset hrac-paper; env speed and renders:
@@ -38,7 +36,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos, pixels) without a display; set it to override
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos) without a display; set it to override
 
 import gymnasium as gym
 import mujoco
@@ -220,8 +218,8 @@ class AdjacencyNet(nn.Module):
 
 
 class SubgoalEncoder(nn.Module):  # DGRL
-    """DGRL's bottleneck on the manager's output: subgoal / bounds -> MLP -> the shared-codebook quantizer of vq.py -> z_q,
-    which the controller sees instead of the subgoal; the decoder's loss keeps the codes informative about the subgoal."""
+    """DGRL's bottleneck on the subgoal: subgoal / bounds -> MLP -> vq.py's shared-codebook quantizer -> z_q, which the
+    controller sees instead of the subgoal; a decoder's loss keeps the codes informative about the subgoal."""
 
     def __init__(self, scale: np.ndarray, args: Args):
         super().__init__()
@@ -250,8 +248,7 @@ class Level:
 
 @dataclass
 class Agent:
-    """HRAC's manager and controller, the adjacency network with its optimizer and, under DGRL, the subgoal encoder with
-    its codebook (None for HRAC; its parameters are a group of the controller's critic optimizer)."""
+    """HRAC's two levels, the adjacency network with its optimizer and (DGRL; None for HRAC) the subgoal encoder."""
 
     manager: Level
     controller: Level
@@ -260,8 +257,7 @@ class Agent:
     encoder: SubgoalEncoder | None
 
     def parts(self, training: bool = False) -> dict:
-        """A checkpoint's networks: both levels' actors and critics, the adjacency network and (DGRL) the encoder with its
-        codebook buffers; with `training` (for --resume) also the target networks and every optimizer."""
+        """A checkpoint's networks (DGRL: with the encoder and codebook); `training` adds the targets and optimizers."""
         names = ["actor", "critic"]
         names += ["actor_target", "critic_target", "actor_optimizer", "critic_optimizer"] if training else []
         levels = {"manager": self.manager, "controller": self.controller}
@@ -278,8 +274,7 @@ class Agent:
 
 
 def make_level(actor: Actor, critic: TwinCritic, args: Args, extra_critic_groups=()) -> Level:
-    """A level from its networks: target copies, Adam for the actor, Adam with weight decay for the critics (plus any
-    extra parameter groups, with their own settings). Fused Adam: one kernel per step on CPU and GPU."""
+    """A level: the networks, their target copies, fused Adams (the critics' with weight decay and extra groups)."""
     fused = next(actor.parameters()).device.type in ("cpu", "cuda")
     critic_groups = [{"params": critic.parameters(), "weight_decay": args.critic_weight_decay}, *extra_critic_groups]
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.actor_lr, fused=fused)
@@ -299,7 +294,7 @@ def make_agent(state_dim: int, action_dim: int, args: Args, device: torch.device
     controller_critic = TwinCritic(state_dim, ctrl_goal_dim, action_dim, hidden).to(device)
     adjacency = AdjacencyNet(2).to(device)  # over xy cells at every env (AntFall's z is not part of the grid)
     encoder = SubgoalEncoder(bounds, args).to(device) if args.groups else None  # DGRL
-    encoder_groups = () if encoder is None else ({"params": encoder.parameters(), "lr": args.encoder_lr, "weight_decay": 0.0},)
+    encoder_groups = [dict(params=encoder.parameters(), lr=args.encoder_lr, weight_decay=0.0)] if args.groups else []
     manager = make_level(manager_actor, manager_critic, args)
     controller = make_level(controller_actor, controller_critic, args, encoder_groups)
     adjacency_optimizer = torch.optim.Adam(adjacency.parameters(), lr=args.adj_lr, fused=device.type in ("cpu", "cuda"))
@@ -329,11 +324,10 @@ def controller_reward(states, subgoals, next_states):
 
 
 @torch.no_grad()
-def off_policy_correction(controller: Actor, states, actions, subgoals, scale, noise, goal_encoder=None) -> torch.Tensor:
-    """HIRO's relabelling of stored manager transitions (`states` (B, k + 1, S), `actions` (B, k, A), `subgoals` (B, d)):
-    of the stored subgoal, the achieved offset s_k - s_0 and s_k - s_0 + `noise` clipped to +-scale, each rolled through
-    the k states by the subgoal transition, the one under which the current controller (DGRL: through `goal_encoder`)
-    most likely took the stored actions, argmax -0.5 sum_t ||pi(s_t, g_t) - a_t||^2. In the candidates' precision."""
+def off_policy_correction(controller: Actor, states, actions, subgoals, scale, noise, goal_encoder=None):
+    """HIRO's relabelling of manager transitions (states (B, k + 1, S), actions (B, k, A), subgoals (B, d)): of the
+    stored subgoal, the achieved offset s_k - s_0 and it plus `noise` (clipped to +-scale), each re-targeted along the
+    k steps, the one that makes the stored actions likeliest under the current controller (DGRL: via `goal_encoder`)."""
     batch, k = actions.shape[:2]
     d = subgoals.shape[-1]
     achieved = states[:, -1, :d] - states[:, 0, :d]
@@ -342,21 +336,19 @@ def off_policy_correction(controller: Actor, states, actions, subgoals, scale, n
     goals = [candidates]  # (B, 2 + n_samples, d) at each of the k steps
     for t in range(1, k):
         goals.append(subgoal_transition(states[:, None, t - 1], goals[-1], states[:, None, t]))
-    goals_in = torch.stack(goals, 2).float()  # (B, n, k, d)
     observed_in = controller_input(states[:, None, :k]).float().expand(batch, candidates.shape[1], k, states.shape[-1])
-    goals_in = controller_goal_input(goal_encoder, goals_in)  # DGRL: the candidates' discrete embeddings
+    goals_in = controller_goal_input(goal_encoder, torch.stack(goals, 2).float())  # (B, n, k, d); DGRL: their z_q
     predicted = controller(observed_in, goals_in)  # DGRL: the candidates' z_q
     log_likelihood = -0.5 * ((predicted - actions[:, None]) ** 2).sum(-1).sum(-1)  # (B, n)
     return candidates[torch.arange(batch, device=candidates.device), log_likelihood.argmax(1)]
 
 
 def correction_noise(rng: np.random.Generator, batch: int, n_samples: int, scale: np.ndarray) -> np.ndarray:
-    """The off-policy correction's draws, N(0, (0.5 scale)^2) of shape (batch, n_samples, d), from the run's generator
-    on the host (after the sample's indices, so a seed gives the same numbers as ever)."""
+    """The off-policy correction's draws N(0, (0.5 scale)^2), shape (batch, n_samples, d), from the run's generator."""
     return rng.normal(0.0, 0.5 * scale, (batch, n_samples, len(scale)))
 
 
-def contrastive_loss(emb_a, emb_b, labels: torch.Tensor, margin_pos: float = 1.0, margin_neg: float = 1.2) -> torch.Tensor:
+def contrastive_loss(emb_a, emb_b, labels: torch.Tensor, margin_pos: float = 1.0, margin_neg: float = 1.2):
     """HRAC's adjacency loss: mean(l * max(0, d - m+)) + mean((1 - l) * max(0, m- - d)), d = ||phi_a - phi_b||."""
     distances = torch.sqrt((emb_a - emb_b).pow(2).sum(-1) + 1e-12)
     positive = (labels * (distances - margin_pos).clamp(min=0)).mean()
@@ -422,7 +414,7 @@ class Replay:
         return {name: array[index] for name, array in self.fields.items()}
 
     def state_dict(self) -> dict:
-        """For --resume: the size, the position and the filled part of every field (tensors sharing the arrays' memory)."""
+        """For --resume: size, position and the filled part of every field (as tensors sharing the arrays' memory)."""
         filled = {name: torch.from_numpy(array[: self.size]) for name, array in self.fields.items()}
         return {"size": self.size, "position": self.position, "fields": filled}
 
@@ -446,14 +438,13 @@ def td3_update(level: Level, batch: dict, gamma: float, args: Args, actor_extra=
     """One TD3 step as HRAC runs it at both levels: clipped target-action noise, the min of the target critics, a Huber
     critic loss plus `critic_extra` (DGRL: the encoder's losses, `goals` carrying its graph), the actor updated at every
     step (no policy delay) to maximise Q1 plus `actor_extra(actions)` (the manager's adjacency term), Polyak targets."""
-    max_action = level.actor.max_action
     with torch.no_grad():
         noise = (torch.randn_like(batch["actions"]) * args.policy_noise).clamp(-args.noise_clip, args.noise_clip)
         next_actions = level.actor_target(batch["next_states"], batch["next_goals"])  # DGRL
-        next_actions = (next_actions + noise).clamp(-max_action, max_action)
+        next_actions = (next_actions + noise).clamp(-level.actor.max_action, level.actor.max_action)
         target_q = torch.min(*level.critic_target(batch["next_states"], batch["next_goals"], next_actions))  # DGRL
         target = batch["rewards"] + gamma * (1.0 - batch["dones"]) * target_q
-    q1, q2 = level.critic(batch["states"], batch["goals"], batch["actions"])  # DGRL: the controller's z_q(g), straight-through
+    q1, q2 = level.critic(batch["states"], batch["goals"], batch["actions"])  # DGRL: z_q(g), straight-through
     critic_loss = nn.functional.smooth_l1_loss(q1, target) + nn.functional.smooth_l1_loss(q2, target)
     learn(level.critic_optimizer, critic_loss + critic_extra)
     goals = batch["goals"].detach()  # DGRL: the controller's actor sees z_q(g) without gradient
@@ -494,8 +485,8 @@ def as_tensors(sample: dict[str, np.ndarray], device: torch.device | str) -> dic
 
 
 def controller_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict[str, torch.Tensor]:
-    """One controller TD3 step. DGRL: the subgoals and next subgoals go through the encoder and quantizer in one call (one
-    EMA step of the codebook); the critic loss reaches the encoder by the straight-through estimator. No host sync."""
+    """One controller TD3 step. DGRL: the subgoals and next subgoals are quantized in one call (one EMA step of the
+    codebook); the critic loss reaches the encoder by the straight-through estimator. No host sync."""
     encoder = agent.encoder
     extra, metrics = 0.0, {}  # under DGRL the encoder's losses, added to the critic loss
     if encoder is not None:  # DGRL
@@ -508,7 +499,7 @@ def controller_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) 
     return metrics | td3_update(agent.controller, batch, gamma=args.ctrl_gamma, args=args, critic_extra=extra)
 
 
-def manager_batch(sample: dict, rng: np.random.Generator, *, bounds: np.ndarray, correction_samples: int, device) -> dict:
+def manager_batch(sample: dict, rng: np.random.Generator, *, bounds: np.ndarray, correction_samples: int, device):
     """A manager replay sample as tensors on `device`, with `noise`: the off-policy correction's Gaussian draws."""
     noise = correction_noise(rng, len(sample["actions"]), correction_samples, bounds)
     return as_tensors(sample | {"noise": noise}, device)
@@ -522,20 +513,20 @@ def manager_update(agent: Agent, batch: dict, args: Args, bounds: torch.Tensor) 
     names = ("states", "goals", "rewards", "next_states", "dones")
     batch = {name: batch[name] for name in names} | {"actions": actions.float(), "next_goals": batch["goals"]}
     threshold = (args.adj_margin_pos + args.adj_margin_neg) / 2  # the embedding distance deemed "reachable in k steps"
+    positions = batch["states"][:, :2]
 
     def adjacency_term(subgoals: torch.Tensor) -> torch.Tensor:
-        return args.adj_weight * adjacency_loss(agent.adjacency, batch["states"][:, :2], subgoals[:, :2], threshold)
+        return args.adj_weight * adjacency_loss(agent.adjacency, positions, subgoals[:, :2], threshold)
 
     metrics = td3_update(agent.manager, batch, gamma=args.man_gamma, args=args, actor_extra=adjacency_term)
     with torch.no_grad():
-        metrics["adjacency_loss"] = adjacency_loss(agent.adjacency, batch["states"][:, :2], batch["actions"][:, :2], threshold)
+        metrics["adjacency_loss"] = adjacency_loss(agent.adjacency, positions, batch["actions"][:, :2], threshold)
     return metrics
 
 
-def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, device, stop=()) -> tuple[int, float, float]:
+def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, device, stop=()):
     """`epochs` epochs over every pair of visited cells: (epochs run, the last epoch's mean loss, the accuracy of the
-    distances against the labels at the margins' midpoint). A stop request, polled before each epoch, ends it early with
-    NaN figures (--resume runs the rest), as a memory without any pair does."""
+    distances at the margins' midpoint); NaN figures without any pair or after a stop request (polled per epoch)."""
     cells_a, cells_b, labels = (torch.as_tensor(x, device=device) for x in memory.labelled_pairs())
     if len(labels) == 0:
         return epochs, float("nan"), float("nan")
@@ -548,9 +539,7 @@ def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, de
         for start in range(0, len(labels), args.adj_batch_size):
             index = order[start : start + args.adj_batch_size]
             loss = contrastive_loss(anet(cells_a[index]), anet(cells_b[index]), labels[index], *margins)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+            learn(optimizer, loss)
             losses.append(loss.detach())
     with torch.no_grad():
         predicted = (anet(cells_a) - anet(cells_b)).norm(dim=-1) < sum(margins) / 2
@@ -564,7 +553,8 @@ def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, de
 @torch.no_grad()
 def act(agent: Agent, state: np.ndarray, goal: np.ndarray, *, manager: bool, noise: float, rng: np.random.Generator):
     """The manager's subgoal for (state, task goal) or the controller's torques for (xy-masked state, subgoal; DGRL: its
-    z_q, codebook untouched), plus Gaussian noise of std `noise` clipped to the actor's range (subgoal bounds, or 30)."""
+    z_q, codebook untouched), plus Gaussian noise of std `noise` clipped to the actor's range (subgoal bounds or 30)."""
+
     actor = agent.manager.actor if manager else agent.controller.actor
     device = actor.max_action.device
     state = torch.as_tensor(state if manager else controller_input(state), dtype=torch.float32, device=device)[None]
@@ -602,8 +592,8 @@ def main(args: Args) -> None:
         try:
             eval_env.render()
         except Exception as error:
-            advice = "set MUJOCO_GL=egl or osmesa, or run without --capture-video"
-            exit_on_errors([f"--capture-video cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')} ({error}); {advice}"])
+            problem = f"--capture-video cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')} ({error})"
+            exit_on_errors([f"{problem}; set MUJOCO_GL=egl or osmesa, or run without --capture-video"])
     state_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     bounds = subgoal_bounds(args.env_id, args.subgoal_scale)
     goal_dim, man_goal_dim = len(bounds), MANAGER_GOAL_DIMS[args.env_id]
@@ -614,17 +604,17 @@ def main(args: Args) -> None:
         evaluate_checkpoint(args, agent, eval_env, rng, stop, device, run_name)
         return
 
-    # A resumed run logs from the step after its resume file's on (TensorBoard drops what the stopped run logged later).
+    # A resumed run logs from the step after its resume file's (TensorBoard drops what the stopped run logged later).
     _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
     dims = f"state {state_dim}-d, subgoal {goal_dim}-d (bounds {bounds.tolist()}), manager goal {man_goal_dim}-d"
     print(f"{run_name}: {dims}, {args.total_timesteps} steps, device {device}")
     if args.adj_frequency > args.total_timesteps:
-        print(f"note: the adjacency network is never trained (--adj-frequency {args.adj_frequency} > --total-timesteps)")
-    step_shapes = {"states": (state_dim,), "rewards": (), "next_states": (state_dim,), "dones": ()}
-    ctrl_replay = Replay(args.buffer_size, **step_shapes, goals=(goal_dim,), actions=(action_dim,), next_goals=(goal_dim,))
+        print(f"note: the adjacency network never trains (--adj-frequency {args.adj_frequency} > --total-timesteps)")
+    shapes = {"states": (state_dim,), "rewards": (), "next_states": (state_dim,), "dones": ()}  # both replays' fields
+    ctrl_replay = Replay(args.buffer_size, **shapes, goals=(goal_dim,), actions=(action_dim,), next_goals=(goal_dim,))
     segment_shapes = {"state_seq": (args.k + 1, state_dim), "action_seq": (args.k, action_dim)}
-    man_replay = Replay(args.buffer_size, **step_shapes, goals=(man_goal_dim,), actions=(goal_dim,), **segment_shapes)
+    man_replay = Replay(args.buffer_size, **shapes, goals=(man_goal_dim,), actions=(goal_dim,), **segment_shapes)
     memory = AdjacencyMemory(args.k)
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     state, _ = env.reset(seed=args.seed)
@@ -633,31 +623,32 @@ def main(args: Args) -> None:
     stores = {"ctrl_replay": ctrl_replay, "man_replay": man_replay, "memory": memory, "env": env, "eval_env": eval_env}
     if saved is not None:  # continue where the stopped run left off, mid-episode and mid-segment included
         loop = restore_training_state(saved, agent, stores, rng)
-        print(f"resuming at step {loop.step}: {loop.episodes} episodes done, {loop.episode_steps} steps into the current one")
-    # --fast wraps each level's update after a resumed run's optimizer states are loaded; adjacency training stays eager.
-    controller, manager = agent.controller, agent.manager
-    update_controller = fast_update(controller_update, args.fast, [controller.critic_optimizer, controller.actor_optimizer])
-    update_manager = fast_update(manager_update, args.fast, [manager.critic_optimizer, manager.actor_optimizer])
+        print(f"resuming at step {loop.step}: {loop.episode_steps} steps into episode {loop.episodes + 1}")
+    # --fast wraps each level's update once a resumed run's optimizer states are loaded; adjacency training stays eager.
+    ctrl, man = agent.controller, agent.manager
+    update_controller = fast_update(controller_update, args.fast, [ctrl.critic_optimizer, ctrl.actor_optimizer])
+    update_manager = fast_update(manager_update, args.fast, [man.critic_optimizer, man.actor_optimizer])
     bounds_tensor = torch.as_tensor(bounds, device=device)  # float64, the precision of the correction's candidates
+    correction = {"bounds": bounds, "correction_samples": args.correction_samples, "device": device}
     progress = Progress(args.total_timesteps, start_step=loop.step)
-    # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps (an
-    # episode end's updates finish first), or between two epochs of an adjacency training.
+    # A stop request (Ctrl-C, SIGTERM, SIGUSR1/2) ends the loop at its top, so that the resume file holds whole steps
+    # (an episode end's updates finish first), or between two epochs of an adjacency training.
     while not stop:
         # Adjacency network: retrained every adj_frequency steps (after an episode end) on the labels gathered so far.
         if loop.adjacency_due:
             began = time.time()
-            epochs_left = args.adj_epochs - loop.adjacency_epochs
+            epochs = args.adj_epochs - loop.adjacency_epochs  # fewer when a stopped training resumes
             epochs_run, adj_loss, adj_accuracy = train_adjacency(
-                agent.adjacency, agent.adjacency_optimizer, memory, rng, args, epochs=epochs_left, device=device, stop=stop
+                agent.adjacency, agent.adjacency_optimizer, memory, rng, args, epochs=epochs, device=device, stop=stop
             )
             loop.adjacency_epochs += epochs_run
             if loop.adjacency_epochs < args.adj_epochs:
                 continue  # stopped between two epochs: the loop ends, the training still due (--resume runs the rest)
             loop.adjacency_due, loop.adjacency_epochs = False, 0
-            figures = {"loss": adj_loss, "accuracy": adj_accuracy, "cells": len(memory.index), "edges": len(memory.edges)}
-            for name, value in figures.items():
+            cells, edges = len(memory.index), len(memory.edges)
+            for name, value in {"loss": adj_loss, "accuracy": adj_accuracy, "cells": cells, "edges": edges}.items():
                 writer.add_scalar(f"adjacency/{name}", value, loop.step)
-            trained = f"{len(memory.index)} cells, {len(memory.edges)} adjacent pairs"
+            trained = f"{cells} cells, {edges} adjacent pairs"
             quality = f"loss {adj_loss:.3f}, accuracy {adj_accuracy:.1%} ({time.time() - began:.0f} s)"
             print(f"step {loop.step:>9}: adjacency network trained on {trained}: {quality}", flush=True)
 
@@ -665,15 +656,15 @@ def main(args: Args) -> None:
         if loop.eval_due:
             loop.eval_due = False
             video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
-            loop.result = result = evaluate(eval_env, agent, k=args.k, rng=rng, episodes=args.eval_episodes, frames=video)
+            loop.result = evaluate(eval_env, agent, k=args.k, rng=rng, episodes=args.eval_episodes, frames=video)
             loop.evaluations += 1
             for name, tag in (("success", "success_rate"), ("distance", "final_distance"), ("return", "return")):
-                writer.add_scalar(f"eval/{tag}", result[name], loop.step)
+                writer.add_scalar(f"eval/{tag}", loop.result[name], loop.step)
             writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
             summary = {name: float(np.mean(values)) if values else float("nan") for name, values in loop.recent.items()}
             loop.recent = {name: [] for name in loop.recent}
-            task = f"success {result['success']:4.0%} distance {result['distance']:5.2f}"
-            task = f"return {result['return']:6.2f}" if args.env_id == "AntGather" else task
+            task = f"success {loop.result['success']:4.0%} distance {loop.result['distance']:5.2f}"
+            task = f"return {loop.result['return']:6.2f}" if args.env_id == "AntGather" else task
             train = f"train return {summary['return']:8.1f} final distance {summary['final_distance']:5.2f}"
             progress.line(loop.step, f"eval {task}  {train}  subgoal distance {summary['subgoal_distance']:5.2f}")
             if video:
@@ -690,8 +681,7 @@ def main(args: Args) -> None:
             loop.positions = [loop.state[:2]]
             loop.remaining = []  # per segment: the distance left to the subgoal's target after k steps
             loop.proposals = []  # per segment: the length of the proposed subgoal
-            loop.episode_return = 0.0
-            loop.ctrl_rewards = 0.0
+            loop.episode_return = loop.ctrl_rewards = 0.0
         t = loop.episode_steps % args.k
         if t == 0:
             loop.subgoal = act(agent, loop.state, loop.goal, manager=True, noise=args.man_noise, rng=rng)
@@ -706,9 +696,8 @@ def main(args: Args) -> None:
         loop.episode_return += reward
         loop.seg_reward += man_reward_scale * reward
 
-        # Store the controller's step and, when a segment is whole, the manager's transition. An episode's end is a
-        # terminal for both levels, as in HRAC: the 500-step cut (the observation holds the step count) and AntMazeSparse's
-        # end at the first segment end after a success.
+        # Store the controller's step and, once a segment is whole, the manager's. An episode's end is terminal at both
+        # levels, as in HRAC: the 500-step cut (the observation holds the step count) or AntMazeSparse's early end.
         done = float(terminated or truncated)
         next_subgoal = subgoal_transition(state, subgoal, next_state)
         ctrl_reward = controller_reward(state, subgoal, next_state)
@@ -718,13 +707,11 @@ def main(args: Args) -> None:
         loop.seg_states[t + 1] = next_state
         loop.seg_actions[t] = action
         loop.positions.append(next_state[:2])
-        loop.state = next_state
-        loop.subgoal = next_subgoal
+        loop.state, loop.subgoal = next_state, next_subgoal
         if t == args.k - 1:
-            segment = {"states": loop.seg_states[0], "goals": loop.goal, "actions": loop.proposed, "rewards": loop.seg_reward}
-            man_replay.add(
-                **segment, next_states=next_state, dones=done, state_seq=loop.seg_states, action_seq=loop.seg_actions
-            )
+            start = {"states": loop.seg_states[0], "goals": loop.goal, "actions": loop.proposed}
+            end = {"rewards": loop.seg_reward, "next_states": next_state, "dones": done}
+            man_replay.add(**start, **end, state_seq=loop.seg_states, action_seq=loop.seg_actions)
             loop.remaining.append(np.linalg.norm(next_subgoal[:2]))
             loop.proposals.append(np.linalg.norm(loop.proposed[:2]))
         progress.heartbeat(loop.step, f"{loop.episodes} episodes")
@@ -745,8 +732,8 @@ def main(args: Args) -> None:
                 loop.recent["final_distance"].append(info["distance"])
                 writer.add_scalar("charts/final_distance", info["distance"], loop.step)
                 writer.add_scalar("charts/success_rate", float(info["success"]), loop.step)
-            # A replay no larger than a batch is sampled whole, in the first episodes: that batch's other shape takes the
-            # eager update, so that a compiled one (a CUDA graph) keeps the one shape of --batch-size.
+            # A replay no larger than a batch is sampled whole (in the first episodes): that other shape takes the eager
+            # update, so that a compiled one (a CUDA graph) keeps the one shape of --batch-size.
             ctrl_metrics, man_metrics = {}, {}
             ctrl_step = update_controller if ctrl_replay.size > args.batch_size else controller_update
             for _ in range(args.ctrl_updates or loop.episode_steps):
@@ -754,8 +741,7 @@ def main(args: Args) -> None:
             man_step = update_manager if man_replay.size > args.batch_size else manager_update
             for _ in range((args.man_updates or -(-loop.episode_steps // args.k)) if man_replay.size else 0):
                 sample = man_replay.sample(args.batch_size, rng)  # then the correction's noise, from the same generator
-                batch = manager_batch(sample, rng, bounds=bounds, correction_samples=args.correction_samples, device=device)
-                man_metrics = man_step(agent, batch, args, bounds_tensor)
+                man_metrics = man_step(agent, manager_batch(sample, rng, **correction), args, bounds_tensor)
             for level, metrics in (("controller", ctrl_metrics), ("manager", man_metrics)):
                 for name in ("critic_loss", "actor_loss", "q", "adjacency_loss"):  # the manager's adjacency term too
                     if name in metrics:
@@ -763,8 +749,8 @@ def main(args: Args) -> None:
             if args.groups and ctrl_metrics:
                 writer.add_scalar("losses/reconstruction", ctrl_metrics["reconstruction_loss"].item(), loop.step)
                 writer.add_scalar("vq/commit_loss", ctrl_metrics["vq_loss"].item(), loop.step)
-                writer.add_scalar("vq/perplexity", perplexity(ctrl_metrics["codes"], args.n_embed).item(), loop.step)
-                writer.add_scalar("vq/active_codes", active_codes(ctrl_metrics["codes"], args.n_embed).item(), loop.step)
+                for tag, measure in (("vq/perplexity", perplexity), ("vq/active_codes", active_codes)):
+                    writer.add_scalar(tag, measure(ctrl_metrics["codes"], args.n_embed).item(), loop.step)
 
             # What the episode end calls for; both come first in the next iteration, where a stop can end the training.
             loop.adjacency_due = loop.step >= loop.next_adjacency
@@ -773,8 +759,8 @@ def main(args: Args) -> None:
             loop.next_eval += args.eval_frequency if loop.eval_due else 0
             loop.state, _ = env.reset()
             loop.episode_steps = 0
-        # The periodic resume write, never with work pending: its logs at this step would follow the file, and a run killed
-        # after them would log them twice (TensorBoard's purge on --resume drops the later steps only).
+        # The periodic resume write, never with work pending: its logs at this step would follow the file, and a run
+        # killed after them would log them twice (TensorBoard's purge on --resume drops the later steps only).
         work_pending = loop.adjacency_due or loop.eval_due
         if not work_pending and progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # the logs up to this step on disk before the state that continues after them (a kill -9)
@@ -798,10 +784,9 @@ def main(args: Args) -> None:
 
 
 @torch.no_grad()
-def evaluate(env: "HiroAntEnv", agent: Agent, *, k: int, rng, episodes: int, frames: list | None = None, stop=()) -> dict:
-    """HRAC's evaluation, deterministic: an episode ends at its first success (AntMazeSparse: reward > 0) or after 500
-    steps. The success rate, mean final distance, mean return (AntGather's metric) and the episodes run (at least one,
-    fewer than `episodes` after a stop request); `frames` collects the first episode's renders."""
+def evaluate(env: "HiroAntEnv", agent: Agent, *, k: int, rng, episodes: int, frames: list | None = None, stop=()):
+    """HRAC's deterministic evaluation, episodes ending at the first success (AntMazeSparse: reward > 0) or step 500:
+    success rate, mean final distance and return, episodes run (fewer on a stop); `frames`: the first one's renders."""
     successes, distances, returns = [], [], []
     for episode in range(episodes):
         if stop and successes:
@@ -825,11 +810,11 @@ def evaluate(env: "HiroAntEnv", agent: Agent, *, k: int, rng, episodes: int, fra
         successes.append(float(reached))
         distances.append(info.get("distance", float("nan")))
         returns.append(total)
-    means = {"success": float(np.mean(successes)), "distance": float(np.mean(distances)), "return": float(np.mean(returns))}
-    return means | {"episodes": len(successes)}
+    columns = {"success": successes, "distance": distances, "return": returns}
+    return {name: float(np.mean(values)) for name, values in columns.items()} | {"episodes": len(successes)}
 
 
-def evaluate_checkpoint(args: Args, agent: Agent, eval_env: "HiroAntEnv", rng, stop: list[int], device, run_name: str) -> None:
+def evaluate_checkpoint(args: Args, agent: Agent, eval_env: "HiroAntEnv", rng, stop: list[int], device, run_name: str):
     """--checkpoint: evaluate the saved agent over --eval-episodes episodes, print the result (and write a video)."""
     must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups else ())  # HRAC has no codebook to match
     agent.load_state_dicts(load_checkpoint(args.checkpoint, args, must_match, device))
@@ -854,14 +839,14 @@ def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 
 # --- Environments -----------------------------------------------------------------------------------------------------
 
-# HIRO's structures, rows top to bottom: 1 fixed block, 0 free, r robot start (the first one is the origin; AntMazeSparse
-# starts uniformly over all of them), XY a block sliding in x and y, YZ a block sliding in y and z, -1 a chasm.
-SPARSE_ROWS = "1111111111 1rrrrrrrr1 1rrrrrrrr1 1111111rr1 10rrrrrrr1 10rrrrrrr1 1111111rr1 1rrrrrrrr1 1rrrrrrrr1 1111111111"
+# HIRO's structures, rows top to bottom: 1 fixed block, 0 free, r robot start (the first is the origin; AntMazeSparse
+# starts on any of them), XY a block sliding in x and y, YZ one sliding in y and z, -1 a chasm; SPARSE: AntMazeSparse's.
+SPARSE = "1111111111 1rrrrrrrr1 1rrrrrrrr1 1111111rr1 10rrrrrrr1 10rrrrrrr1 1111111rr1 1rrrrrrrr1 1rrrrrrrr1 1111111111"
 STRUCTURES = {
     "AntMaze": (8.0, ((1, 1, 1, 1, 1), (1, "r", 0, 0, 1), (1, 1, 1, 0, 1), (1, 0, 0, 0, 1), (1, 1, 1, 1, 1))),
     "AntPush": (8.0, ((1, 1, 1, 1, 1), (1, 0, "r", 1, 1), (1, 0, "XY", 0, 1), (1, 1, 0, 1, 1), (1, 1, 1, 1, 1))),
     "AntFall": (8.0, ((1, 1, 1, 1), (1, "r", 0, 1), (1, 0, "YZ", 1), (1, -1, -1, 1), (1, 0, 0, 1), (1, 1, 1, 1))),
-    "AntMazeSparse": (2.0, tuple(tuple(int(c) if c in "01" else c for c in row) for row in SPARSE_ROWS.split())),
+    "AntMazeSparse": (2.0, tuple(tuple(int(c) if c in "01" else c for c in row) for row in SPARSE.split())),
 }
 MAZE_HEIGHT = 0.5  # walls are MAZE_HEIGHT * scaling tall
 SOLID = {"conaffinity": "1", "contype": "1"}  # a block's collision flags
@@ -882,24 +867,25 @@ def cell_centre(i: int, j: int, scaling: float, origin: tuple[int, int]) -> tupl
 
 
 def structure_blocks(env_id: str) -> list[dict]:
-    """An env's blocks as MuJoCo boxes: name, centre, half-sizes, the axes it slides along ("" if fixed), a movable one's
-    mass. A structure with a chasm is elevated: a platform under every other cell carries the rest."""
+    """An env's blocks as MuJoCo boxes: name, centre, half-sizes, the axes it slides along ("" if fixed), a movable
+    one's mass. A structure with a chasm is elevated: a platform under every other cell carries the rest."""
     scaling, structure = STRUCTURES[env_id]
     origin = structure_origin(structure)
     elevated = any(cell == -1 for row in structure for cell in row)
-    offset = MAZE_HEIGHT * scaling if elevated else 0.0
+    floor = MAZE_HEIGHT * scaling if elevated else 0.0  # the height the walls stand on
     half, wall_half_height = 0.5 * scaling, 0.5 * MAZE_HEIGHT * scaling
     blocks = []
     for i, row in enumerate(structure):
         for j, cell in enumerate(row):
             x, y = cell_centre(i, j, scaling, origin)
             if elevated and cell != -1:
-                blocks.append(dict(name=f"platform_{i}_{j}", pos=(x, y, offset / 2), size=(half, half, offset / 2), axes=""))
-            pos = (x, y, offset + wall_half_height)
+                size = (half, half, floor / 2)
+                blocks.append(dict(name=f"platform_{i}_{j}", pos=(x, y, floor / 2), size=size, axes=""))
+            pos = (x, y, floor + wall_half_height)
             if cell == 1:
                 blocks.append(dict(name=f"block_{i}_{j}", pos=pos, size=(half, half, wall_half_height), axes=""))
             elif cell in ("XY", "YZ"):
-                shrink, mass = (0.99, 0.001) if "Z" in cell else (1.0, 0.0002)  # the falling block fits through the chasm
+                shrink, mass = (0.99, 0.001) if "Z" in cell else (1.0, 0.0002)  # the falling one fits the chasm
                 size = (half * shrink, half * shrink, wall_half_height)
                 blocks.append(dict(name=f"movable_{i}_{j}", pos=pos, size=size, axes=cell.lower(), mass=mass))
     return blocks
@@ -911,8 +897,7 @@ def hiro_ant_xml(env_id: str) -> str:
     root = ET.parse(os.path.join(os.path.dirname(gym.__file__), "envs/mujoco/assets/ant.xml")).getroot()
     root.find("option").set("timestep", "0.02")
     for motor in root.iter("motor"):
-        motor.set("gear", "1")
-        motor.set("ctrlrange", "-30 30")
+        motor.attrib |= {"gear": "1", "ctrlrange": "-30 30"}
     world = root.find("worldbody")
     world.find("geom[@name='floor']").set("size", "60 60 40")
     blocks = [] if env_id == "AntGather" else structure_blocks(env_id)
@@ -920,16 +905,16 @@ def hiro_ant_xml(env_id: str) -> str:
     if any(block["name"].startswith("platform") for block in blocks):  # the ant starts on the platform
         world.find("body[@name='torso']").set("pos", f"0 0 {0.75 + MAZE_HEIGHT * scaling}")
     for block in blocks:
-        pos, size = " ".join(map(str, block["pos"])), " ".join(map(str, block["size"]))
+        name, pos, size = block["name"], " ".join(map(str, block["pos"])), " ".join(map(str, block["size"]))
         if not block["axes"]:
-            ET.SubElement(world, "geom", name=block["name"], type="box", pos=pos, size=size, **SOLID, rgba="0.4 0.4 0.4 1")
+            ET.SubElement(world, "geom", name=name, type="box", pos=pos, size=size, **SOLID, rgba="0.4 0.4 0.4 1")
             continue
-        body = ET.SubElement(world, "body", name=block["name"], pos=pos)
-        geom = dict(name=block["name"] + "_geom", type="box", size=size, mass=str(block["mass"]), **SOLID)
+        body = ET.SubElement(world, "body", name=name, pos=pos)
+        geom = dict(name=name + "_geom", type="box", size=size, mass=str(block["mass"]), **SOLID)
         ET.SubElement(body, "geom", **geom, rgba="0.9 0.1 0.1 1", solimp="0.995 0.995 0.01")
         for axis in block["axes"]:
             direction = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}[axis]
-            joint = ET.SubElement(body, "joint", name=f"{block['name']}_{axis}", type="slide", axis=direction, pos="0 0 0")
+            joint = ET.SubElement(body, "joint", name=f"{name}_{axis}", type="slide", axis=direction, pos="0 0 0")
             joint.attrib |= {"armature": "0", "damping": "0.0", "limited": "false"}
             if "z" in block["axes"]:  # the falling block drops at most the platform's height
                 span = f"{-MAZE_HEIGHT * scaling} 0" if axis == "z" else f"{-scaling} {scaling}"
@@ -949,8 +934,7 @@ def hiro_ant_xml(env_id: str) -> str:
 
 
 def gather_readings(xy: np.ndarray, yaw: float, objects: np.ndarray) -> np.ndarray:
-    """rllab's range sensor: `bins` bins over a 2*pi span centred on the ant's heading; each bin holds the largest
-    1 - distance / range of the objects within range whose bearing falls in it."""
+    """rllab's range sensor: `bins` bearing bins centred on the heading, each the largest 1 - distance / range in it."""
     readings = np.zeros(GATHER["bins"])
     offsets = objects - xy
     distance = np.linalg.norm(offsets, axis=1)
@@ -962,13 +946,12 @@ def gather_readings(xy: np.ndarray, yaw: float, objects: np.ndarray) -> np.ndarr
 
 
 class HiroAntEnv(gym.Env):
-    """One env of the HIRO Ant suite on the `mujoco` bindings. Observation: the ant's qpos[:15], qvel[:14], t * 0.001
-    (30-d; AntGather: the first 29, 10 apple and 10 bomb range readings, t * 0.01). Action: 8 torques in [-30, 30]. Reset:
-    qpos + U(-0.1, 0.1), qvel + 0.1 N(0, 1); AntMazeSparse starts on a random robot cell. Goal: AntMaze trains on
-    U([-4, -4], [20, 20]) and evaluates on (0, 16); the others have a fixed one (AntGather none). Reward: -||xy - g||
-    (AntFall xyz), AntMazeSparse 1 within 1 of the goal, AntGather apples - bombs caught. Truncated after 500 steps; a
-    training episode of AntMazeSparse terminates at the first multiple of `segment` steps after its first success (HRAC's
-    rule, at its manager's period 10). info: "success" (the env's success test), "distance" to the goal (not AntGather)."""
+    """A HIRO Ant env on the `mujoco` bindings. Observation: the ant's qpos[:15], qvel[:14], t * 0.001 (30-d; AntGather:
+    the first 29, 10 apple and 10 bomb range readings, t * 0.01). Action: 8 torques in [-30, 30]. Reset: qpos +
+    U(-0.1, 0.1), qvel + 0.1 N(0, 1), AntMazeSparse on any robot cell. Goal: AntMaze trains on U([-4, -4], [20, 20])
+    and evaluates on (0, 16); the others' is fixed (AntGather: none). Reward: -||xy - g|| (AntFall: xyz), AntMazeSparse
+    1 within 1 of the goal, AntGather apples - bombs caught. Truncated at 500 steps; AntMazeSparse's training episodes
+    end at the first multiple of `segment` steps after a success (HRAC's rule). info: "success" and "distance"."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
     frame_skip = 5
@@ -981,8 +964,7 @@ class HiroAntEnv(gym.Env):
         self.action_space = gym.spaces.Box(-30.0, 30.0, (8,), np.float32)
         self.goal = None if env_id == "AntGather" else np.array(EVAL_GOALS[env_id])
         self.steps, self.succeeded = 0, False
-        self.objects = np.zeros((0, 2))
-        self.kinds = np.zeros(0)  # +1 apple, -1 bomb
+        self.objects, self.kinds = np.zeros((0, 2)), np.zeros(0)  # AntGather's: their xy, +1 apple or -1 bomb
         self._renderer = None
         if env_id == "AntMazeSparse":
             scaling, structure = STRUCTURES[env_id]
@@ -1036,21 +1018,19 @@ class HiroAntEnv(gym.Env):
             reward = float(success) if self.env_id == "AntMazeSparse" else -distance
             info = {"success": success, "distance": distance}
             self.succeeded |= success
-        stops = self.env_id == "AntMazeSparse" and not self.evaluate and self.succeeded  # HRAC's envs/__init__.py:114-117
+        stops = self.env_id == "AntMazeSparse" and not self.evaluate and self.succeeded  # HRAC's envs/__init__.py:114
         terminated = stops and self.steps % self.segment == 0
         return self._observe(), reward, terminated, self.steps >= EPISODE_STEPS, info
 
     def state_dict(self) -> dict:
-        """What a resumed run needs to continue this env exactly: MuJoCo's integration state (time, qpos, qvel, warm
-        start, controls, applied forces), the step counter, whether the episode has succeeded, the goal, AntGather's
-        objects and the random generator."""
+        """What a resumed run needs to continue exactly: MuJoCo's integration state (time, qpos, qvel, warm start,
+        controls, applied forces), the step count, the success so far, the goal, AntGather's objects, the generator."""
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         physics = np.empty(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, self.data, physics, spec)
-        goal = None if self.goal is None else self.goal.copy()
-        state = {"physics": physics, "steps": self.steps, "succeeded": self.succeeded, "goal": goal}
-        state["objects"] = self.objects.copy()
-        return state | {"kinds": self.kinds.copy(), "np_random": self.np_random.bit_generator.state}
+        state = {"physics": physics, "steps": self.steps, "succeeded": self.succeeded, "goal": copy.copy(self.goal)}
+        state |= {"objects": self.objects.copy(), "kinds": self.kinds.copy()}
+        return state | {"np_random": self.np_random.bit_generator.state}
 
     def load_state_dict(self, state: dict) -> None:
         mujoco.mj_setState(self.model, self.data, state["physics"], mujoco.mjtState.mjSTATE_INTEGRATION)
@@ -1070,7 +1050,7 @@ class HiroAntEnv(gym.Env):
         if self.env_id == "AntGather":
             shape = mujoco.mjtGeom.mjGEOM_SPHERE
             colours = [(0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1) for kind in self.kinds]
-            markers = [((x, y, 0.5), (0.5, 0.5, 0.5), colour) for (x, y), colour in zip(self.objects, colours, strict=True)]
+            markers = [((x, y, 0.5), (0.5, 0.5, 0.5), rgba) for (x, y), rgba in zip(self.objects, colours, strict=True)]
         else:
             shape, radius = mujoco.mjtGeom.mjGEOM_CYLINDER, SUCCESS_DISTANCE[self.env_id]
             z = self.goal[2] if len(self.goal) == 3 else 0.05
@@ -1106,7 +1086,7 @@ class LoopState:
     adjacency_due: bool = False  # the work an episode end calls for, and the epochs done of the adjacency training
     adjacency_epochs: int = 0
     eval_due: bool = False
-    result: dict = field(default_factory=lambda: {"success": float("nan"), "distance": float("nan"), "return": float("nan")})
+    result: dict = field(default_factory=lambda: dict.fromkeys(("success", "distance", "return"), float("nan")))
     recent: dict = field(default_factory=lambda: {"final_distance": [], "subgoal_distance": [], "return": []})
     episode_steps: int = 0  # the episode in progress, from here on (set at its step 0)
     goal: np.ndarray | None = None
@@ -1138,8 +1118,7 @@ def restore_training_state(saved: dict, agent: Agent, stores: dict, rng: np.rand
 
 # --- The run's constants ----------------------------------------------------------------------------------------------
 
-# The flags a checkpoint must have been saved with to be evaluated: the networks' shapes, the env, the subgoal range
-# and the manager's period (what evaluation measures); under DGRL also the subgoal encoder's and codebook's shapes.
+# The flags a checkpoint must match to be evaluated: shapes, env, subgoal range, k (DGRL: the encoder's and codebook's).
 MUST_MATCH = ("env_id", "groups", "hidden_dim", "subgoal_scale", "k")
 DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")
 
@@ -1436,19 +1415,17 @@ def validate(args: Args) -> None:
     errors += range_errors(args, "man_reward_scale policy_noise noise_clip ctrl_noise man_noise", 0)
     errors += range_errors(args, "total_timesteps buffer_size batch_size hidden_dim adj_frequency adj_epochs", 1)
     errors += range_errors(args, "adj_batch_size eval_frequency eval_episodes embed_dim encoder_hidden_dim", 1)
-    errors += range_errors(args, "k", 2)  # a segment of one step has no pair of cells k - 1 steps apart to label adjacent
+    errors += range_errors(args, "k", 2)  # a one-step segment has no pair of cells k - 1 steps apart to label adjacent
     errors += range_errors(args, "actor_lr critic_lr encoder_lr adj_lr adj_margin_pos adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "subgoal_scale", 0, 100, low_open=True)  # metres; the largest arena is 48 m across
-    errors += range_errors(args, "tau", 0, 1, low_open=True)
-    errors += range_errors(args, "ctrl_gamma man_gamma", 0, 1, low_open=True)  # every episode ends in a terminal
+    errors += range_errors(args, "tau ctrl_gamma man_gamma", 0, 1, low_open=True)  # gamma 1 is safe: episodes terminate
     if args.k >= 1 and EPISODE_STEPS % args.k:
         divisors = [k for k in range(2, EPISODE_STEPS + 1) if EPISODE_STEPS % k == 0]
-        errors.append(f"--k must divide the episode length {EPISODE_STEPS} (whole segments): one of {divisors}; got {args.k}")
+        errors.append(f"--k must divide the episode length {EPISODE_STEPS}: one of {divisors}; got {args.k}")
     if args.adj_margin_neg < args.adj_margin_pos:
         errors.append(f"--adj-margin-neg ({args.adj_margin_neg}) must be >= --adj-margin-pos ({args.adj_margin_pos})")
-    if args.k >= 1 and args.total_timesteps < args.k:
-        wanted = f">= --k ({args.k}): the manager learns from whole segments"
-        errors.append(f"--total-timesteps ({args.total_timesteps}) must be {wanted}")
+    if args.k >= 1 and args.total_timesteps < args.k:  # the manager learns from whole segments
+        errors.append(f"--total-timesteps ({args.total_timesteps}) must be >= --k ({args.k}): one whole segment")
     if args.batch_size > args.buffer_size:
         errors.append(f"--batch-size ({args.batch_size}) must be <= --buffer-size ({args.buffer_size})")
     if args.checkpoint is not None and args.save_model:

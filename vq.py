@@ -106,7 +106,8 @@ class VectorQuantizerEMA(nn.Module):
 
     def forward(self, z: torch.Tensor, update: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         if z.shape[-1] != self.dim:
-            raise ValueError(f"VectorQuantizerEMA: expected inputs with last dimension {self.dim}, got shape {tuple(z.shape)}")
+            shape = tuple(z.shape)
+            raise ValueError(f"VectorQuantizerEMA: expected inputs with last dimension {self.dim}, got shape {shape}")
         with torch.autocast(device_type=z.device.type, enabled=False):
             segments = z.detach().reshape(-1, self.code_dim).float()
             flat_indices = self._nearest_code(segments)
@@ -161,8 +162,9 @@ class VectorQuantizerEMA(nn.Module):
             self.ema_sum.copy_(torch.where(dead, restart, self.ema_sum))
             self.ema_count.copy_(torch.where(dead.squeeze(1), torch.ones_like(self.ema_count), self.ema_count))
             self.steps_unused.masked_fill_(dead.squeeze(1), 0)
-        # Every row written, as copy_ would. Not copy_: torch 2.11's compiler fuses that copy with the forward's gather of
-        # the selected codes, which then reads restarted codes (benchmark/speed/compiled_vq_probe.py); index_copy_ it does not.
+        # Every row written, as copy_ would. Not copy_: torch 2.11's compiler fuses that copy with the forward's
+        # gather of the selected codes, which then reads restarted ones (benchmark/speed/compiled_vq_probe.py);
+        # index_copy_ it does not fuse.
         self.codebook.index_copy_(0, torch.arange(self.n_embed, device=codebook.device), codebook)
 
     def embed_indices(self, indices: torch.Tensor) -> torch.Tensor:
@@ -177,8 +179,8 @@ class VectorQuantizerEMA(nn.Module):
 def code_sums(segments: torch.Tensor, indices: torch.Tensor, n_embed: int, use_gemm: bool) -> torch.Tensor:
     """Sum of the rows of `segments` assigned to each code, shape (n_embed, code_dim), deterministic on every device.
 
-    index_add_ is sequential (so deterministic) and about 60x faster on CPU, but uses atomics on CUDA; there the sums are
-    a one-hot GEMM instead, whose order of accumulation is fixed.
+    index_add_ is sequential (so deterministic) and about 60x faster on CPU, but uses atomics on CUDA; there the sums
+    are a one-hot GEMM instead, whose order of accumulation is fixed.
     """
     if not use_gemm:
         return torch.zeros(n_embed, segments.shape[1], device=segments.device).index_add_(0, indices, segments)
@@ -224,8 +226,8 @@ def update_target(target: nn.Module, source: nn.Module, tau: float = 1.0) -> Non
     """
     target_params, source_params = list(target.parameters()), list(source.parameters())
     if len(target_params) != len(source_params):
-        raise ValueError(f"update_target: {len(target_params)} target parameters vs {len(source_params)} source parameters")
-    torch._foreach_lerp_(target_params, source_params, tau)  # one fused call: a per-tensor loop costs ~1 ms per TD3 update
+        raise ValueError(f"update_target: {len(target_params)} target parameters vs {len(source_params)} source ones")
+    torch._foreach_lerp_(target_params, source_params, tau)  # one fused call (a per-tensor loop: ~1 ms per TD3 update)
     for target_buffer, source_buffer in zip(target.buffers(), source.buffers(), strict=True):
         target_buffer.copy_(source_buffer)
 
@@ -274,7 +276,7 @@ def _demo(seed: int, steps: int) -> None:
             f"{groups:>2} {n_embed:>5} {vq.codebook.numel():>6} {errors['train']:>9.3f} {errors['novel']:>9.3f} "
             f"{active_codes(indices['train'], n_embed).item():>6} {perplexity(indices['train'], n_embed).item():>10.1f}"
         )
-    print("err: squared distance from the quantized vector to the noise-free one (0 = every factor snapped to its value)")
+    print("err: squared distance from the quantized vector to the noise-free one (0: each factor snapped to its value)")
 
 
 if __name__ == "__main__":

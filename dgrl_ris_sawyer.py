@@ -1,35 +1,32 @@
 """DGRL on RIS in the vision-based Sawyer push-and-reach task: discretized goal and subgoal embeddings from pixels.
 
-Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Vision
-Based Robotic Manipulation", appendix "Robotic Manipulation Task", Algorithm 1 and the code snippet's image branch. The agent
-is RIS (Chane-Sane et al., ICML 2021) in its vision variant: a conv encoder maps 84x84 images of states and goals to 16-d
-features (random-translate augmentation; trained by the critic's loss); a goal-conditioned actor and twin critics act on
-the features; a high-level policy proposes subgoal features halfway to the goal; the actor's loss replaces SAC's entropy
-term by a KL divergence to the target actor averaged over imagined subgoals. The encoder is also trained by DRIML's
-local-global InfoNCE loss on (s_t, a_t, s_t+1) (Mazoure et al. 2020), as in the paper's snippet. DGRL (`--groups G`)
-discretizes the encoder's embeddings with the shared-codebook bottleneck of vq.py and conditions the actor, the critics
-and the prior on the discrete goal and subgoal embeddings; the mean of the commitment losses of s, s', g and s_g (the
-paper's text; `--vq-loss-reduction sum` is its snippet's sum) trains the encoder through all four, as the snippet encodes
-them (`--vq-commitment-grad state`: through s alone, RIS's stop-gradient, the wiring of the docs' CPU study). `--groups
-0` is RIS (with the DRIML loss) from the same file.
+Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section
+"Vision Based Robotic Manipulation", appendix "Robotic Manipulation Task", Algorithm 1 and its snippet's image branch.
+The agent is RIS (Chane-Sane et al. 2021) from pixels: a conv encoder (random-translate augmentation, trained by the
+critic's loss) maps 84x84 state and goal images to 16-d features, on which a goal-conditioned actor and twin critics
+act; a high-level policy proposes subgoal features halfway to the goal; the actor's loss replaces SAC's entropy term by
+a KL divergence to the target actor averaged over imagined subgoals. DRIML's local-global InfoNCE loss on (s_t, a_t,
+s_t+1) (Mazoure et al. 2020) also trains the encoder. DGRL (`--groups G`) discretizes the embeddings with vq.py's
+shared-codebook bottleneck and conditions the actor, the critics and the prior on the discrete goal and subgoal
+embeddings; the mean of the commitment losses of s, s', g and s_g (the paper's text; `--vq-loss-reduction sum`: the
+snippet's sum) trains the encoder through all four, as in the snippet (`--vq-commitment-grad state`: through s alone,
+RIS's stop-gradient, the docs' CPU study's wiring). `--groups 0` is RIS (with DRIML).
 
-The task: multiworld's `SawyerPushAndReachXYEnv` in its "TrainEnvBig" / "TestEnvBig" configurations, rebuilt on the
-modern `mujoco` bindings with an MJCF scene generated in code (a table, four low walls around the arena, a puck and an end
-effector driven by a mocap body; the original Sawyer arm meshes ship with no installable package, so the arm is left out).
-Training resets everywhere in the arena; evaluation on the test configuration, where hand and puck cross the arena.
+The task: multiworld's `SawyerPushAndReachXYEnv` ("TrainEnvBig" / "TestEnvBig") on `mujoco`, its MJCF scene made in code
+(a table, four low walls, a puck, a mocap-driven end effector; no arm: its meshes ship in no installable package).
+Training resets anywhere in the arena; evaluation uses the test configuration, where hand and puck cross the arena.
 
     python dgrl_ris_sawyer.py --groups 16     # paper setting (G=16, batch 256, one update per step): a GPU job
     python dgrl_ris_sawyer.py --groups 0      # RIS
     python dgrl_ris_sawyer.py --total-timesteps 30000 --batch-size 32 --start-timesteps 2000 \
-        --eval-frequency 2000 --eval-episodes 10            # the CPU preset (30-35 min a run with --vq-commitment-grad
-                                                            # state; the default's DGRL update takes about 2x as long)
+        --eval-frequency 2000 --eval-episodes 10  # CPU preset: 30-35 min (--vq-commitment-grad state; ~2x by default)
     python dgrl_ris_sawyer.py --total-timesteps 600 --start-timesteps 300 --batch-size 16 \
-        --eval-frequency 600 --eval-episodes 2              # 1-minute smoke run
+        --eval-frequency 600 --eval-episodes 2    # 1-minute smoke run
     python dgrl_ris_sawyer.py --groups 16 --resume runs/<run_name>   # continue a stopped run (with its flags)
 
-Without a display, rendering is headless (MUJOCO_GL defaults to egl; set it to osmesa where EGL is missing). Env frames/s
-and a picture of state and goal images: benchmark/figures/sawyer_env.py; update times: benchmark/speed/bench_ris_sawyer.py;
-the CPU study: python benchmark/launch.py --preset sawyer-cpu. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
+Without a display MUJOCO_GL defaults to egl (osmesa where EGL is missing). Env frames/s and a picture of its images:
+benchmark/figures/sawyer_env.py; update times: benchmark/speed/bench_ris_sawyer.py; the CPU study:
+python benchmark/launch.py --preset sawyer-cpu. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
 """
 
 import copy
@@ -47,7 +44,7 @@ from functools import partial
 from typing import ClassVar, Literal
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (videos, pixels) without a display; set it to override
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering without a display; set MUJOCO_GL to override
 
 import gymnasium as gym
 import mujoco
@@ -133,9 +130,9 @@ class Args:
     vq_dead_code_steps: int = 0
     """restart a code unused for this many updates at a random current segment (0 = off, as in the paper)"""
     vq_loss_reduction: str = "mean"
-    """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (the paper's code snippet)"""
+    """how the commitment losses of s, s', g and s_g combine: mean (the paper's text) or sum (its code snippet)"""
     vq_commitment_grad: str = "all"
-    """whose commitment losses train the encoder: all (s, s', g, s_g: the paper's snippet) or state (s only: RIS's no-grad)"""
+    """whose commitment losses train the encoder: all (s, s', g, s_g: the paper's snippet) or state (s only, as RIS)"""
 
     # Every script's flags (the same block in all seven)
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
@@ -173,17 +170,17 @@ class Args:
 # --- Networks ---------------------------------------------------------------------------------------------------------
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+IMAGE_SIZE = 84  # the environment's square RGB images
 
 
 def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, out_dim)
-    )
+    hidden_layers = nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, hidden_dim), nn.ReLU()
+    return nn.Sequential(*hidden_layers, nn.Linear(hidden_dim, out_dim))
 
 
 class Policy(nn.Module):
-    """The location and scale of a distribution on (z_s, z_g): the actor's Gaussian over pre-tanh actions u (the action is
-    tanh(u)), or the high level's Laplace over subgoal features (on the continuous state and goal features)."""
+    """Location and scale of a distribution given (z_s, z_g): the actor's Gaussian over pre-tanh actions u (the action
+    is tanh(u)), or the high level's Laplace over subgoal features (given continuous state and goal features)."""
 
     def __init__(self, feature_dim: int, out_dim: int, hidden_dim: int):
         super().__init__()
@@ -214,9 +211,6 @@ class TwinCritic(nn.Module):
         return torch.stack((self.q1(inputs).squeeze(-1), self.q2(inputs).squeeze(-1)))
 
 
-IMAGE_SIZE = 84  # the environment's square RGB images; defined here because ImageEncoder's default argument reads it
-
-
 class ImageEncoder(nn.Module):
     """RIS's image encoder: 3 x 84 x 84 in [0, 1] -> four Conv2d(., 32, 3) with strides 2, 2, 2, 1 and a ReLU after each
     -> the 32 x 7 x 7 map -> Linear(1568, feature_dim). The conv map is exposed for the DRIML loss."""
@@ -231,10 +225,10 @@ class ImageEncoder(nn.Module):
             in_channels, side = self.channels, (side - 3) // stride + 1
         self.convs = nn.Sequential(*layers)
         self.linear = nn.Linear(self.channels * side * side, feature_dim)
-        for module in self.modules():  # delta-orthogonal convolutions (ReLU gain), an orthogonal linear layer, zero biases
+        for module in self.modules():  # delta-orthogonal convolutions (ReLU gain), orthogonal linear layer, zero biases
             if isinstance(module, nn.Conv2d):
                 nn.init.zeros_(module.weight)
-                nn.init.orthogonal_(module.weight.data[:, :, 1, 1], nn.init.calculate_gain("relu"))  # the kernel's centre
+                nn.init.orthogonal_(module.weight.data[:, :, 1, 1], nn.init.calculate_gain("relu"))  # kernel centre
                 nn.init.zeros_(module.bias)
             elif isinstance(module, nn.Linear):
                 nn.init.orthogonal_(module.weight)
@@ -260,8 +254,8 @@ class DrimlHeads(nn.Module):
 
 
 def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
-    """From one call's loss (the mean over n embeddings): the mean (the paper's text: "the mean of the commitment loss across
-    all z_e vectors") or the sum (the paper's snippet adds the VQ losses of state, next state, goal and subgoal)."""
+    """One call's loss (the mean over n embeddings) as their mean (the paper's text: "the mean of the commitment loss
+    across all z_e vectors") or their sum (the paper's snippet adds those of state, next state, goal and subgoal)."""
     return pooled if reduction == "mean" else n_embeddings * pooled
 
 
@@ -289,10 +283,12 @@ class Agent:
     high_optimizer: torch.optim.Adam
     vq: VectorQuantizerEMA | None  # the DGRL bottleneck; None under --groups 0
 
-    NETWORKS: ClassVar = {"actor": "actor", "critic": "critic", "high": "high", "encoder": "encoder", "driml": "driml_heads"}
+    # What a checkpoint holds (its key: the attribute), and what resume.pt adds for training.
+    NETWORKS: ClassVar = dict(actor="actor", critic="critic", high="high", encoder="encoder", driml="driml_heads")
+    TRAINING_ONLY: ClassVar = ("actor_target", "critic_target", "critic_optimizer", "actor_optimizer", "high_optimizer")
 
     def state_dicts(self) -> dict[str, dict | None]:
-        """What evaluation needs: the online networks and the codebook with its EMA statistics (None under --groups 0)."""
+        """What evaluation needs: the online networks, the codebook with its EMA statistics (None under --groups 0)."""
         networks = {key: getattr(self, name).state_dict() for key, name in self.NETWORKS.items()}
         return networks | {"vq": None if self.vq is None else self.vq.state_dict()}
 
@@ -312,12 +308,11 @@ def make_agent(image_size: int, action_dim: int, args: Args, device: torch.devic
     high = Policy(args.feature_dim, args.feature_dim, args.hidden_dim).to(device)  # the high level
     vq = None  # RIS has no bottleneck
     if args.groups > 0:  # DGRL: the shared-codebook bottleneck on the encoder's features
-        vq = VectorQuantizerEMA(
-            args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay, dead_code_steps=args.vq_dead_code_steps
-        ).to(device)
+        codebook = args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay
+        vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps).to(device)
     adam = partial(torch.optim.Adam, fused=device.type in ("cpu", "cuda"))
-    critic_parameters = [*critic.parameters(), *driml_heads.parameters()]
-    critic_groups = [{"params": critic_parameters, "lr": args.q_lr}, {"params": encoder.parameters(), "lr": args.encoder_lr}]
+    encoder_group = {"params": encoder.parameters(), "lr": args.encoder_lr}
+    critic_groups = [{"params": [*critic.parameters(), *driml_heads.parameters()], "lr": args.q_lr}, encoder_group]
     targets = make_target(actor), make_target(critic)
     optimizers = adam(critic_groups), adam(actor.parameters(), lr=args.actor_lr), adam(high.parameters(), lr=args.h_lr)
     return Agent(encoder, driml_heads, actor, critic, high, *targets, *optimizers, vq)
@@ -327,7 +322,7 @@ def make_agent(image_size: int, action_dim: int, args: Args, device: torch.devic
 
 
 def image_batch(images: np.ndarray | torch.Tensor, device) -> torch.Tensor:
-    """(N, H, W, 3) uint8 -> (N, 3, H, W) float in [0, 1], a channels-last view (the faster layout for CPU convolutions)."""
+    """(N, H, W, 3) uint8 -> (N, 3, H, W) floats in [0, 1], a channels-last view (faster for CPU convolutions)."""
     return torch.as_tensor(images, device=device).permute(0, 3, 1, 2).float().div_(255.0)
 
 
@@ -351,16 +346,16 @@ def random_translate(images: torch.Tensor, pad: int) -> torch.Tensor:
 class ImageEpisodeReplay:
     """Whole episodes of uint8 images and 4-d states in one ring of rows, on the training device.
 
-    An episode of L transitions takes L + 2 consecutive rows: o_0..o_L, then its goal. Transition t lives in the row of
-    o_t, which also holds a_t, the row of the episode's last transition and that of its goal; s_t+1 is the next row, so
-    every image is stored once (21 KB a row). Episodes are written whole (one that would cross the end starts again at row
-    0), goal last, so what survives of an overwritten episode is a suffix with its goal. Images, states and actions live on
-    `device`, where batches are gathered; the rows' bookkeeping stays in host arrays, where numpy picks the rows."""
+    An episode of L transitions takes L + 2 consecutive rows: o_0..o_L, then its goal. Transition t lives in o_t's row,
+    with a_t and the rows of its episode's last transition and goal; s_t+1 is the next row, so each image is stored once
+    (21 KB a row). Episodes are written whole, goal last (one that would cross the end starts again at row 0), so an
+    overwritten episode leaves a suffix with its goal. Batches are gathered on `device`, which holds images, states and
+    actions; the rows' bookkeeping stays in host arrays, where numpy picks the rows."""
 
     ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")  # what --resume saves
     ON_DEVICE = ("images", "states", "actions")
 
-    def __init__(self, capacity: int, image_shape: tuple[int, ...], action_dim: int, device: torch.device | str = "cpu"):
+    def __init__(self, capacity: int, image_shape: tuple, action_dim: int, device: torch.device | str = "cpu"):
         self.capacity = capacity
         self.device = torch.device(device)
         self.images = torch.zeros((capacity, *image_shape), dtype=torch.uint8, device=self.device)
@@ -392,8 +387,8 @@ class ImageEpisodeReplay:
         """For --resume: the filled rows as host tensors of their own storage (torch.save writes those rows alone, uint8
         images as uint8), and where the next episode goes."""
         rows = {name: getattr(self, name)[: self.size] for name in self.ARRAYS}
-        filled = {name: torch.from_numpy(row.cpu().numpy() if name in self.ON_DEVICE else row) for name, row in rows.items()}
-        return filled | {"position": self.position, "size": self.size}
+        host = {name: row.cpu().numpy() if name in self.ON_DEVICE else row for name, row in rows.items()}
+        return {key: torch.from_numpy(row) for key, row in host.items()} | dict(position=self.position, size=self.size)
 
     def load_state(self, state: dict) -> None:
         self.position, self.size = state["position"], state["size"]
@@ -409,15 +404,15 @@ class ImageEpisodeReplay:
         return rows
 
     def sample(self, batch_size: int, goal_frac: float, random_frac: float, rng: np.random.Generator) -> dict:
-        """A HER batch on the replay's device: the images of (s, s', g, s_g) in one (4B, H, W, 3) uint8 tensor, actions,
-        the states of s, s' and g, rewards (-1) and done (s' reaches g). The first `goal_frac` of the batch keeps the
-        rollout goal, the next `random_frac` gets a random replay state, the rest a future state of its episode (uniform
-        over s'_t..s'_end); s_g: random replay states, the high level's candidates. Rows are drawn on the host with `rng`."""
+        """A HER batch on the replay's device: images of (s, s', g, s_g) as one (4B, H, W, 3) uint8 tensor, actions, the
+        states of s, s' and g, rewards (-1) and done (s' reaches g). The first `goal_frac` keeps the rollout goal, the
+        next `random_frac` gets a random replay state, the rest a future state of its episode (uniform over
+        s'_t..s'_end); s_g: random replay states, the high level's candidates. `rng` draws the rows on the host."""
         index = self.transitions(batch_size, rng)
         n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
         future = index[n_keep + n_random :]
-        offsets = (rng.random(len(future)) * (self.episode_end[future] - future + 1)).astype(np.int64)
-        goal_rows = np.concatenate((self.goal_row[index[:n_keep]], self.transitions(n_random, rng), future + 1 + offsets))
+        future_rows = future + 1 + (rng.random(len(future)) * (self.episode_end[future] - future + 1)).astype(np.int64)
+        goal_rows = np.concatenate((self.goal_row[index[:n_keep]], self.transitions(n_random, rng), future_rows))
         subgoal_rows = self.transitions(batch_size, rng)
         rows = torch.from_numpy(np.concatenate((index, index + 1, goal_rows, subgoal_rows))).to(self.device)
         states, next_states, goal_states, _ = self.states[rows].chunk(4)
@@ -427,8 +422,8 @@ class ImageEpisodeReplay:
 
 
 def reached(states, goals):
-    """The success test, max(hand distance, puck distance) < 0.05, on (..., 4) arrays or tensors of (hand xy, puck xy):
-    the norms computed as numpy's norm does (the sum of the squares, then its square root), so both agree bit for bit."""
+    """The success test, max(hand distance, puck distance) < 0.05, on (..., 4) arrays or tensors of (hand xy, puck
+    xy): norms computed as numpy's norm does (sum of squares, then square root), so both agree bit for bit."""
     difference = states - goals
     hand = (difference[..., :2] * difference[..., :2]).sum(-1) ** 0.5
     puck = (difference[..., 2:] * difference[..., 2:]).sum(-1) ** 0.5
@@ -446,15 +441,14 @@ def local_global_infonce(local: torch.Tensor, global_: torch.Tensor) -> torch.Te
     return F.cross_entropy(scores, torch.arange(batch, device=local.device).repeat_interleave(positions))
 
 
-def driml_loss(heads: DrimlHeads, conv_map: torch.Tensor, actions: torch.Tensor, next_features: torch.Tensor) -> torch.Tensor:
-    """DRIML's local-global loss: each position of s_t's conv map (B, C, H, W), with a_t, must pick out the features of
-    its own s_t+1 among the batch's."""
+def driml_loss(heads: DrimlHeads, conv_map, actions, next_features) -> torch.Tensor:
+    """DRIML's local-global loss: each position of s_t's conv map (B, C, H, W), with a_t, picks out s_t+1's features."""
     local = conv_map.flatten(2).transpose(1, 2)  # (B, H * W, C)
     local = torch.cat((local, actions.unsqueeze(1).expand(-1, local.shape[1], -1)), -1)
     return local_global_infonce(heads.local(local), heads.globl(next_features))
 
 
-def advantage_weights(distance_proposed: torch.Tensor, distance_candidates: torch.Tensor, temperature: float) -> torch.Tensor:
+def advantage_weights(distance_proposed, distance_candidates, temperature: float) -> torch.Tensor:
     """softmax over the batch of (D(proposed subgoal) - D(candidate)) / lambda: the better candidates weigh more."""
     return F.softmax((distance_proposed - distance_candidates) / temperature, dim=0)
 
@@ -465,10 +459,11 @@ def subgoal_cost(values_to_subgoal: torch.Tensor, values_from_subgoal: torch.Ten
 
 
 def prior_kl(actions_pre_tanh, mean, std, prior_mean, prior_std, epsilon: float) -> torch.Tensor:
-    """Single-sample KL(pi || prior) at u (B, A): log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon), the prior
-    (K, B, A) from the target actor at K imagined subgoals; logsumexp, so a tiny density does not underflow to 0."""
-    log_policy = torch.distributions.Normal(mean, std, validate_args=False).log_prob(actions_pre_tanh).sum(-1)
-    log_prior = torch.distributions.Normal(prior_mean, prior_std, validate_args=False).log_prob(actions_pre_tanh[None]).sum(-1)
+    """Single-sample KL(pi || prior) at u (B, A): log N(u; mu, sigma) - log(mean_k N(u; mu_k, sigma_k) + epsilon), the
+    prior (K, B, A) from the target actor at K imagined subgoals; logsumexp, so tiny densities do not underflow."""
+    normal = partial(torch.distributions.Normal, validate_args=False)
+    log_policy = normal(mean, std).log_prob(actions_pre_tanh).sum(-1)
+    log_prior = normal(prior_mean, prior_std).log_prob(actions_pre_tanh[None]).sum(-1)
     log_terms = torch.cat((log_prior - math.log(len(log_prior)), torch.full_like(log_prior[:1], math.log(epsilon))))
     return log_policy - torch.logsumexp(log_terms, dim=0)
 
@@ -490,9 +485,9 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     batch_size = len(actions)
     metrics = {}
 
-    # Features of the augmented s, s', g, s_g. RIS passes only s through the encoder with gradient; under DGRL the snippet
-    # also encodes s', g and s_g with gradient, for their commitment losses, while RIS's own losses see them detached. The
-    # target critic and DRIML's global side see the online encoder's features of s' (no target encoder, as in RIS).
+    # Features of the augmented s, s', g, s_g. RIS encodes only s with gradient; under DGRL the snippet also encodes s',
+    # g and s_g with gradient, for their commitment losses, while RIS's own losses see them detached. The target critic
+    # and DRIML's global side see the online encoder's features of s' (no target encoder, as in RIS).
     images = random_translate(batch["images"], args.image_pad)
     if agent.vq is not None and args.vq_commitment_grad == "all":  # DGRL: one pass over the four, all with gradient
         conv_maps = agent.encoder.conv_map(images)
@@ -509,7 +504,7 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     representation_loss = args.driml_coef * driml
     goal_in = goal_z  # what the actor and the critics see of the goal
     if agent.vq is not None:
-        z_q, vq_loss, codes = agent.vq(features, update=True)  # DGRL: the four embeddings in one call, one EMA step
+        z_q, vq_loss, codes = agent.vq(features, update=True)  # DGRL: the four in one call, one EMA step
         goal_in = z_q[2 * batch_size : 3 * batch_size].detach()  # DGRL: the nets see the discrete goal embedding
         commitment_loss = combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL
         representation_loss = representation_loss + commitment_loss  # DGRL: commitment trains the encoder
@@ -529,17 +524,17 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     subgoal_distribution = agent.high.laplace(state_z, goal_z)
     proposed = subgoal_distribution.loc.detach()
     with torch.no_grad():
-        value_states = torch.cat((state_z, subgoal_z, state_z, proposed))
-        value_goals = goal_input(agent.vq, torch.cat((subgoal_z, goal_z, proposed, goal_z)))  # DGRL: V(x, y) sees y discrete
+        value_states = torch.cat((state_z, subgoal_z, state_z, proposed))  # V(s, s_g), V(s_g, g), V(s, p), V(p, g)
+        value_goals = goal_input(agent.vq, torch.cat((subgoal_z, goal_z, proposed, goal_z)))  # DGRL: z_q(y) of V(x, y)
         value_actions = torch.tanh(agent.actor(value_states, value_goals)[0])  # DGRL: z_q(y)
-        values = agent.critic(value_states, value_actions, value_goals).min(0).values.view(4, batch_size)  # DGRL: z_q(y)
-        weights = advantage_weights(subgoal_cost(values[2], values[3]), subgoal_cost(values[0], values[1]), args.h_lambda)
+        values = agent.critic(value_states, value_actions, value_goals).min(0).values.view(4, -1)  # DGRL: z_q(y)
+        weights = advantage_weights(subgoal_cost(*values[2:]), subgoal_cost(*values[:2]), args.h_lambda)
     high_loss = -(weights * subgoal_distribution.log_prob(subgoal_z).sum(-1)).mean()
     learn(agent.high_optimizer, high_loss)
 
     # Actor: maximise Q with a KL penalty towards the target actor averaged over imagined subgoals.
     with torch.no_grad():
-        imagined = goal_input(agent.vq, agent.high.laplace(state_z, goal_z).sample((args.n_subgoals,)))  # DGRL: quantized
+        imagined = goal_input(agent.vq, agent.high.laplace(state_z, goal_z).sample((args.n_subgoals,)))  # DGRL: z_q
         prior_mean, prior_std = agent.actor_target(state_z.expand(args.n_subgoals, -1, -1), imagined)  # DGRL: z_q(s_g)
     mean, std = agent.actor(state_z, goal_in)  # DGRL: z_q(g), detached
     actions_pre_tanh = mean + std * torch.randn_like(mean)
@@ -578,8 +573,7 @@ def main(args: Args) -> None:
     run_name = f"SawyerPushAndReach__G{args.groups}__{args.exp_name}__{args.seed}__{int(time.time())}"
     if args.resume is not None:
         run_name = os.path.basename(os.path.normpath(args.resume))
-    if args.resume is not None:  # a run still running elsewhere: exit 2 at once, touching nothing
-        hold_run_folder(run_name, check_only=True)
+        hold_run_folder(run_name, check_only=True)  # a run still running elsewhere: exit 2 at once, touching nothing
     resumed = None if args.resume is None else load_resume(args)
     device = seed_and_device(args)
     must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups > 0 else ())
@@ -614,15 +608,14 @@ def main(args: Args) -> None:
     about = f"{image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}"
     print(f"{run_name}: {about}" + ("" if resumed is None else f", resumed at step {loop.step}"))
     if device.type == "cpu" and args.batch_size >= 128:
-        print(f"note: --batch-size {args.batch_size} takes 0.5 to 1 s per update on a CPU; see the docstring's CPU preset")
+        print(f"note: --batch-size {args.batch_size} takes 0.5-1 s an update on a CPU; see the docstring's CPU preset")
     update = fast_update(ris_update, args.fast, [agent.critic_optimizer, agent.high_optimizer, agent.actor_optimizer])
     progress = Progress(args.total_timesteps, start_step=loop.step)
     checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
     if resumed is not None:
         set_rng_states(resumed["rng"])  # last: building the run above drew from them
     while not loop.finished and not stop:
-        # Evaluate on the test configuration once a step reaches the next evaluation, and at the end. It comes first in the
-        # loop so that a run stopped mid-evaluation resumes with it.
+        # Evaluate when due and at the end, first in the loop: a run stopped mid-evaluation resumes with it.
         if loop.step >= loop.next_eval or loop.step >= args.total_timesteps:
             video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
             eval_envs_before, rngs_before = vector_env_state(eval_envs), rng_states()
@@ -637,15 +630,13 @@ def main(args: Args) -> None:
             for name, value in result.items():
                 writer.add_scalar(f"eval/{name}", value, loop.step)
             writer.add_scalar("charts/SPS", progress.sps(loop.step), loop.step)
-            train_success = f"{np.mean(loop.recent_success):4.0%}" if loop.recent_success else "   -"  # no episode ended since
+            train_success = f"{np.mean(loop.recent_success):4.0%}" if loop.recent_success else "   -"  # none finished
             loop.recent_success = []
-            progress.line(
-                loop.step,
-                f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}  distance hand "
-                f"{result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}  train success {train_success}",
-            )
+            success = f"eval success {result['success_rate']:4.0%} hand {result['hand_success_rate']:4.0%}"
+            distance = f"distance hand {result['final_hand_distance']:.3f} puck {result['final_puck_distance']:.3f}"
+            progress.line(loop.step, f"{success}  {distance}  train success {train_success}")
             if video:
-                write_video(f"videos/{run_name}/eval_{loop.step}.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
+                write_video(f"videos/{run_name}/eval_{loop.step}.mp4", video, fps=RENDER_FPS)
             if args.save_model:
                 save_checkpoint(checkpoint_path, agent.state_dicts(), args)
         if loop.step >= args.total_timesteps:
@@ -663,7 +654,7 @@ def main(args: Args) -> None:
         loop.observations, _, terminations, truncations, infos = envs.step(actions)
         loop.step += args.num_envs
 
-        # Stage each env's transitions; a finished episode goes to the replay whole, with its true last observation and goal.
+        # Stage each env's step; a finished episode goes to the replay whole, with its true last observation and goal.
         for env in range(args.num_envs):
             episode["images"][env].append(observations["image"][env])
             episode["states"][env].append(observations["state"][env])
@@ -686,11 +677,13 @@ def main(args: Args) -> None:
         # Train: one update per environment step once the random phase is over.
         if loop.step >= max(args.start_timesteps, args.batch_size) and replay.size >= args.batch_size:
             for _ in range(args.num_envs):
-                metrics = update(agent, replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng), args)
+                batch = replay.sample(args.batch_size, args.her_goal_frac, args.her_random_frac, rng)
+                metrics = update(agent, batch, args)
                 loop.updates += 1
             if loop.updates >= loop.next_log:
                 loop.next_log += 100
-                for name in ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max"):
+                losses = ("critic_loss", "actor_loss", "high_loss", "driml_loss", "kl", "q_values", "high_weight_max")
+                for name in losses:
                     writer.add_scalar(f"losses/{name}", metrics[name].item(), loop.step)
                 if agent.vq is not None:  # the codebook's statistics
                     writer.add_scalar("vq/commit_loss", metrics["vq_loss"].item(), loop.step)
@@ -713,8 +706,8 @@ def main(args: Args) -> None:
 
 
 def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=()) -> dict | None:
-    """One episode per env on the test configuration: success rate, hand-only success rate (the hand within 0.05 of its
-    goal at the end), mean final hand and puck distances to their goals. None if `stop` fills before every episode ends."""
+    """One episode per env on the test configuration: success rate, hand-only success rate (the hand within 0.05 of
+    its goal at the end), mean final hand and puck distances to their goals. None if `stop` fills before the end."""
     observations, _ = envs.reset()
     finished = np.zeros(envs.num_envs, dtype=bool)
     success, hand, puck = np.zeros(envs.num_envs), np.zeros(envs.num_envs), np.zeros(envs.num_envs)
@@ -732,24 +725,24 @@ def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | Non
             puck[env] = infos["final_info"]["puck_distance"][env]
             success[env] = terminations[env]
         finished |= ended
-    return dict(zip(EVAL_METRICS, (success.mean(), (hand < SUCCESS_DISTANCE).mean(), hand.mean(), puck.mean()), strict=True))
+    figures = success.mean(), (hand < SUCCESS_DISTANCE).mean(), hand.mean(), puck.mean()
+    return dict(zip(EVAL_METRICS, figures, strict=True))
 
 
-def evaluate_checkpoint(saved: dict, agent: Agent, eval_envs, device, stop: list[int], args: Args, run_name: str) -> None:
-    """--checkpoint: the saved networks on --eval-episodes test episodes; prints the results (a video: --capture-video)."""
+def evaluate_checkpoint(saved: dict, agent: Agent, eval_envs, device, stop, args: Args, run_name: str) -> None:
+    """--checkpoint: evaluate the saved networks on --eval-episodes test episodes (a video with --capture-video)."""
     agent.load_state_dicts(saved)
     video = [] if args.capture_video else None
     result = evaluate(eval_envs, agent, device, args.eval_deterministic, video, stop)
     if result is None:
         print("stopped before every test episode ended")
         return
-    print(
-        f"{args.eval_episodes} test episodes: success {result['success_rate']:.0%}, hand success "
-        f"{result['hand_success_rate']:.0%}, final hand distance {result['final_hand_distance']:.3f}, "
-        f"final puck distance {result['final_puck_distance']:.3f}"
-    )
+    hand, puck = result["final_hand_distance"], result["final_puck_distance"]
+    success = f"success {result['success_rate']:.0%}, hand success {result['hand_success_rate']:.0%}"
+    distances = f"final hand distance {hand:.3f}, final puck distance {puck:.3f}"
+    print(f"{args.eval_episodes} test episodes: {success}, {distances}")
     if video:
-        write_video(f"videos/{run_name}/checkpoint_eval.mp4", video, fps=SawyerPushAndReachEnv.metadata["render_fps"])
+        write_video(f"videos/{run_name}/checkpoint_eval.mp4", video, fps=RENDER_FPS)
 
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
@@ -776,23 +769,22 @@ TEST_BOXES = {  # (low xy, high xy) of the test configuration's uniform draws
 }
 SUCCESS_DISTANCE = 0.05
 EPISODE_STEPS = 100
-TIMESTEP, FRAME_SKIP = 0.002, 50  # 0.1 s per env step
+TIMESTEP, FRAME_SKIP, RENDER_FPS = 0.002, 50, 10  # 0.1 s per env step: videos at 10 frames/s
 CAMERA_HEIGHT = 0.65  # the top camera's height: its 45-degree field of view spans 0.54 m, the arena and its walls
 INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION  # what mj_getState saves for an exact restore
 EPISODE_STATISTICS = ("episode_returns", "episode_lengths", "episode_count")  # RecordEpisodeStatistics' running figures
 
 
 def sawyer_xml() -> str:
-    """The scene: a table plane at z = 0, four walls whose inner faces stop the puck's centre at the arena's bounds, a puck
-    and an end effector (a vertical capsule reaching down to the puck) on two slide joints each, the hand welded to a mocap
-    body, and a camera over the arena. qpos is (hand x, hand y, puck x, puck y) in world coordinates. The puck cannot tip
-    over or fly and does not touch the table: dry friction on its joints stands in for table friction, so it stops when no
-    longer pushed. Contacts and the hand's joint limits are much stiffer than the weld: the puck yields to the hand, and the
-    walls hold a puck the hand presses on them (the default softness let it 1 cm past the arena). No shadows: 3x faster
-    software rendering. The weld's relpose is given (identity), so the compiler does not take it from the bodies' places."""
+    """The scene: a table at z = 0, four walls whose inner faces stop the puck's centre at the arena's bounds, a puck
+    and an end effector (a vertical capsule) on two slide joints each, the hand welded to a mocap body, a camera above;
+    qpos = (hand xy, puck xy) in world coordinates. The puck cannot tip, fly or touch the table: dry friction on its
+    joints stands in for the table's, so it stops when no longer pushed. Contacts and the hand's joint limits are much
+    stiffer than the weld: the puck yields to the hand, and walls hold a puck pressed on them (by default: 1 cm past).
+    No shadows: 3x faster software rendering. The weld's relpose is given (identity), not inferred from the bodies."""
     (x0, y0), (x1, y1) = ARENA_LOW, ARENA_HIGH
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-    inner_x, inner_y = (x1 - x0) / 2 + PUCK_RADIUS, (y1 - y0) / 2 + PUCK_RADIUS  # half-extents inside the walls
+    half_x, half_y = (x1 - x0) / 2 + PUCK_RADIUS, (y1 - y0) / 2 + PUCK_RADIUS  # the half-extents inside the walls
     t, h, grey = WALL_HALF_THICKNESS, WALL_HALF_HEIGHT, "0.45 0.45 0.5 1"
     return f"""<mujoco model="sawyer_push_and_reach">
   <option timestep="{TIMESTEP}"/>
@@ -805,12 +797,12 @@ def sawyer_xml() -> str:
     <joint solreflimit="0.004 1" solimplimit="0.99 0.999 0.001"/>
   </default>
   <worldbody>
-    <geom name="table" type="plane" pos="{cx} {cy} 0" size="{inner_x + 0.2} {inner_y + 0.2} 0.01" rgba="0.9 0.88 0.82 1"
+    <geom name="table" type="plane" pos="{cx} {cy} 0" size="{half_x + 0.2} {half_y + 0.2} 0.01" rgba="0.9 0.88 0.82 1"
           contype="0" conaffinity="0"/>
-    <geom name="wall_left" type="box" pos="{cx - inner_x - t} {cy} {h}" size="{t} {inner_y + 2 * t} {h}" rgba="{grey}"/>
-    <geom name="wall_right" type="box" pos="{cx + inner_x + t} {cy} {h}" size="{t} {inner_y + 2 * t} {h}" rgba="{grey}"/>
-    <geom name="wall_near" type="box" pos="{cx} {cy - inner_y - t} {h}" size="{inner_x} {t} {h}" rgba="{grey}"/>
-    <geom name="wall_far" type="box" pos="{cx} {cy + inner_y + t} {h}" size="{inner_x} {t} {h}" rgba="{grey}"/>
+    <geom name="wall_left" type="box" pos="{cx - half_x - t} {cy} {h}" size="{t} {half_y + 2 * t} {h}" rgba="{grey}"/>
+    <geom name="wall_right" type="box" pos="{cx + half_x + t} {cy} {h}" size="{t} {half_y + 2 * t} {h}" rgba="{grey}"/>
+    <geom name="wall_near" type="box" pos="{cx} {cy - half_y - t} {h}" size="{half_x} {t} {h}" rgba="{grey}"/>
+    <geom name="wall_far" type="box" pos="{cx} {cy + half_y + t} {h}" size="{half_x} {t} {h}" rgba="{grey}"/>
     <camera name="top" pos="{cx} {cy} {CAMERA_HEIGHT}" xyaxes="1 0 0 0 1 0"/>
     <body name="hand_target" mocap="true" pos="{cx} {cy} {HAND_Z}"/>
     <body name="hand" pos="0 0 {HAND_Z}">
@@ -836,23 +828,19 @@ class RenderingError(RuntimeError):
 
 
 class SawyerPushAndReachEnv(gym.Env):
-    """multiworld's Sawyer push-and-reach (xy) task on the modern `mujoco` bindings, the arm replaced by its end effector.
+    """multiworld's Sawyer push-and-reach (xy) task on the `mujoco` bindings, the arm replaced by its end effector.
 
     As in the original, an action in [-1, 1]^2 moves the hand's mocap target by action * action_scale (clipped to the
-    arena) and 50 physics steps of 0.002 s follow: the hand tracks the target and pushes the puck. The original camera
-    (distance 0.26, look-at (0, 0.88, 0.30), elevation -55, azimuth 270) sees the arena at a slant and, at 84 x 84, cuts
-    off its sides, so images come from a camera straight above the arena (x to the right, y up).
-    Observation: Dict(image, state = (hand xy, puck xy), goal_image, goal). Reward -1 per step (RIS); terminated on success
-    (`reached`), truncated after 100 steps. Training resets: the hand uniform in the arena, the puck PUCK_RING from it (in
-    the arena); the goal's hand and puck uniform, GOAL_CLEARANCE apart. Test resets: uniform in the boxes of TEST_BOXES."""
+    arena), then 50 physics steps of 0.002 s: the hand tracks the target and pushes the puck. The original's slanted
+    camera cuts off the arena's sides at 84 x 84 (the docs' deviations): a camera straight above takes the images.
+    Observation: Dict(image, state = (hand xy, puck xy), goal_image, goal). Reward -1 a step (RIS); terminated on
+    success (`reached`), truncated after 100 steps. Training resets: the hand uniform in the arena, the puck PUCK_RING
+    from it (in the arena); the goal's hand and puck uniform, GOAL_CLEARANCE apart. Test: uniform in TEST_BOXES."""
 
-    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
 
     def __init__(self, test: bool = False, image_size: int = IMAGE_SIZE, action_scale: float = 0.02, render_mode=None):
-        self.test = test
-        self.image_size = image_size
-        self.action_scale = action_scale
-        self.render_mode = render_mode
+        self.test, self.image_size, self.action_scale, self.render_mode = test, image_size, action_scale, render_mode
         self.model = mujoco.MjModel.from_xml_string(sawyer_xml())
         self.data = mujoco.MjData(self.model)
         image = gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
@@ -860,10 +848,8 @@ class SawyerPushAndReachEnv(gym.Env):
         state = gym.spaces.Box(walls[0].astype(np.float32), walls[1].astype(np.float32), (4,), np.float32)
         self.observation_space = gym.spaces.Dict(image=image, state=state, goal_image=image, goal=state)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
-        self.goal = np.zeros(4, np.float32)
-        self.goal_image = np.zeros((image_size, image_size, 3), np.uint8)
-        self.steps = 0
-        self._renderer = None
+        self.goal, self.goal_image = np.zeros(4, np.float32), np.zeros((image_size, image_size, 3), np.uint8)
+        self.steps, self._renderer = 0, None
 
     def set_state4(self, state4: np.ndarray) -> None:
         """Put the hand and the puck at rest at (hand xy, puck xy), with the mocap target on the hand."""
@@ -937,11 +923,11 @@ class SawyerPushAndReachEnv(gym.Env):
         goal = {"goal": self.goal.copy(), "goal_image": self.goal_image.copy(), "steps": self.steps}
         return goal | {"physics": physics, "np_random": self.np_random.bit_generator.state}
 
-    def restore(self, snapshot: dict) -> None:
-        mujoco.mj_setState(self.model, self.data, snapshot["physics"], INTEGRATION)
+    def restore(self, saved: dict) -> None:
+        mujoco.mj_setState(self.model, self.data, saved["physics"], INTEGRATION)
         mujoco.mj_forward(self.model, self.data)
-        self.goal, self.goal_image, self.steps = snapshot["goal"].copy(), snapshot["goal_image"].copy(), snapshot["steps"]
-        self.np_random.bit_generator.state = snapshot["np_random"]
+        self.goal, self.goal_image, self.steps = saved["goal"].copy(), saved["goal_image"].copy(), saved["steps"]
+        self.np_random.bit_generator.state = saved["np_random"]
 
     def render(self) -> np.ndarray:
         """The current state as an image_size x image_size RGB array."""
@@ -1014,27 +1000,19 @@ class LoopState:
     finished: bool = False  # the last evaluation is done
 
 
-# What training needs besides a checkpoint's state dicts.
-TRAINING_ONLY = ("actor_target", "critic_target", "critic_optimizer", "actor_optimizer", "high_optimizer")
-
-
 def training_state(agent: Agent, replay: ImageEpisodeReplay, envs, eval_envs, rng, loop: LoopState) -> dict:
     """Everything a run needs to continue exactly but the flags and global random states (save_resume adds them); the
     loop's variables as a plain dict, so that a run started as __main__ resumes imported."""
-    return {
-        "agent": agent.state_dicts() | {name: getattr(agent, name).state_dict() for name in TRAINING_ONLY},
-        "replay": replay.state(),
-        "envs": vector_env_state(envs),
-        "eval_envs": vector_env_state(eval_envs),
-        "replay_rng": rng.bit_generator.state,
-        "loop": copy.deepcopy(vars(loop)),
-    }
+    agent_state = agent.state_dicts() | {name: getattr(agent, name).state_dict() for name in agent.TRAINING_ONLY}
+    environments = {"envs": vector_env_state(envs), "eval_envs": vector_env_state(eval_envs)}
+    loop_state = {"replay_rng": rng.bit_generator.state, "loop": copy.deepcopy(vars(loop))}
+    return {"agent": agent_state, "replay": replay.state()} | environments | loop_state
 
 
 def restore_training_state(saved: dict, agent: Agent, replay: ImageEpisodeReplay, envs, eval_envs, rng) -> LoopState:
     """Put training_state's pieces back into a freshly built run; returns the loop's state."""
     agent.load_state_dicts(saved["agent"])
-    for name in TRAINING_ONLY:
+    for name in agent.TRAINING_ONLY:
         getattr(agent, name).load_state_dict(saved["agent"][name])
     replay.load_state(saved["replay"])
     set_vector_env_state(envs, saved["envs"])
@@ -1349,8 +1327,8 @@ def validate(args: Args) -> None:
     if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
         fractions = f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac})"
         errors.append(f"{fractions} must be >= 0 with a sum <= 1 (the rest are future goals)")
-    # The replay stores whole episodes (up to EPISODE_STEPS + 2 rows) and starts again at row 0 when the next one does not
-    # fit, so it surely fills to --batch-size rows only if it holds a batch and one such episode besides.
+    # The replay stores whole episodes (up to EPISODE_STEPS + 2 rows), starting again at row 0 when the next one does
+    # not fit: it surely fills to --batch-size rows only if it holds a batch and one such episode besides.
     need_rows = args.batch_size + EPISODE_STEPS + 1
     if args.buffer_size >= 1 and args.buffer_size < need_rows:
         rows = f"(whole episodes of up to {EPISODE_STEPS + 2} rows, and a batch besides); got {args.buffer_size}"
@@ -1363,9 +1341,9 @@ def validate(args: Args) -> None:
     # Updates start after the random steps, once finished episodes (up to EPISODE_STEPS steps each) hold a batch.
     first_update = max(args.start_timesteps + 1, args.batch_size + (EPISODE_STEPS - 1) * args.num_envs)
     if args.total_timesteps >= 1 and args.total_timesteps < first_update:
-        why = f"updates start after --start-timesteps ({args.start_timesteps}) random steps, once finished episodes of up to"
-        why += f" {EPISODE_STEPS} steps per env hold --batch-size ({args.batch_size}) transitions"
-        errors.append(f"--total-timesteps must be >= {first_update} for any update to run: {why}; got {args.total_timesteps}")
+        why = f"for any update to run: updates start after --start-timesteps ({args.start_timesteps}) random steps,"
+        why += f" once finished episodes of up to {EPISODE_STEPS} steps per env hold --batch-size ({args.batch_size})"
+        errors.append(f"--total-timesteps must be >= {first_update} {why} transitions; got {args.total_timesteps}")
     exit_on_errors(errors)
 
 

@@ -116,6 +116,13 @@ def test_shared_pieces_are_identical_in_every_script():
     assert drift(read_sources()) == []
 
 
+@pytest.mark.parametrize("script", [*SCRIPTS, "vq.py"])
+def test_no_line_of_a_script_is_longer_than_120_characters(script):
+    """Read on a laptop beside the paper: every line of code, docstring and comment fits in 120 characters."""
+    lines = (ROOT / script).read_text().splitlines()
+    assert [number for number, line in enumerate(lines, 1) if len(line) > 120] == []
+
+
 def test_the_run_management_appendix_and_its_speed_switches_stay_short():
     """Read seven times, the run management takes at most RUN_MANAGEMENT_LINES lines (one script's copy: the drift test
     holds the others to it), and --fast (fast_update) at most SPEED_SWITCH_LINES."""

@@ -274,8 +274,8 @@ def main(args: Args) -> None:
     colour_classifier = train_classifier(painted, colours["train"], args.n_colours, args, generator, stop)
 
     # --- The factor tests: zero substitution and the swap test on the test set ----------------------------------------
-    tested, tests_done = "no factor tests (stopped)", not stop  # a stop by now skips the tests, the run ends stopped
-    if tests_done:
+    tested, testing = "no factor tests (stopped)", not stop  # a stop by now skips the tests, the run ends stopped
+    if testing:
         test_images = painted(torch.arange(len(labels["test"]), device=device), "test")
         referees = (digit_classifier, colour_classifier)
         results, rows = factor_tests(model.autoencoder, test_images, labels["test"], colours["test"], referees, args)
@@ -288,7 +288,7 @@ def main(args: Args) -> None:
         if args.checkpoint is None:  # complete: a resume has nothing left to do (and would log the factor tests twice)
             save_resume(run_name, training_state(model, generator, loop, tests_done=True), args)
     trained = f"{loop.step // batches_per_epoch} of {epochs} epochs ({loop.images_seen} images)"
-    progress.finish(not tests_done, run_name, f"{'a checkpoint' if args.checkpoint else trained}; {tested}")
+    progress.finish(not testing, run_name, f"{'a checkpoint' if args.checkpoint else trained}; {tested}")
     writer.close()
 
 

@@ -15,7 +15,6 @@ gets there counts as --end, marked >) and the mean success over the run; for eac
 one-sided exact permutation p-values in each direction (benchmark/analysis/seed_stats.py's test).
 """
 
-import itertools
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,8 +45,8 @@ def scalars(accumulator: EventAccumulator, tag: str) -> tuple[np.ndarray, np.nda
 
 def window_means(steps: np.ndarray, values: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """The mean of the values logged in each window [edges[i], edges[i + 1]) (NaN where a window holds none)."""
-    return np.array([values[(steps >= a) & (steps < b)].mean() if ((steps >= a) & (steps < b)).any() else np.nan
-                     for a, b in itertools.pairwise(edges)])  # fmt: skip
+    window = np.searchsorted(edges, steps, side="right") - 1  # the window each step falls in (-1, len: outside)
+    return np.array([values[window == i].mean() if (window == i).any() else np.nan for i in range(len(edges) - 1)])
 
 
 def paper_table(runs: dict[str, dict[int, dict[str, float]]], end: int) -> list[str]:

@@ -2,13 +2,11 @@
 
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section
 "Procedurally Generated MiniGrid Exploration Task" (table: KCmedium) and appendix "MiniGrid Environments". The agent is
-AMIGo (Campero et al., ICLR 2021): a teacher (a conv net over the full grid) proposes a goal cell; the student, an
-actor-critic over the full grid trained like the original's IMPALA learner (one V-trace pass per batch of rollouts),
-earns an intrinsic reward for changing that cell (stepping on it, opening a door or picking up an object there); the
-teacher earns +0.7 when the student needs at least t* steps for a goal and -0.3 otherwise, and t* rises as the student
-improves. DGRL (`--groups G`) embeds each goal (its frame and one-hot cell) with a goal encoder, snaps the embedding to
-G codes of one shared EMA codebook and feeds the discrete embedding to the student; `--groups 0` is AMIGo, the same
-encoder left continuous. AMIGo's student also sees its goal as a one-hot channel of its grid; under DGRL the goal
+AMIGo (Campero et al., ICLR 2021): a teacher proposes a goal cell; the student, an actor-critic trained like the
+original's IMPALA learner, earns an intrinsic reward for changing that cell; the teacher earns +0.7 when the student
+needs at least t* steps for a goal and -0.3 otherwise, and t* rises as the student improves. DGRL (`--groups G`) snaps
+each goal's embedding to G codes of one shared EMA codebook and feeds them to the student; `--groups 0` is AMIGo, the
+same encoder left continuous. AMIGo's student also sees its goal as a one-hot channel of its grid; under DGRL the goal
 reaches it only through the codes, the paper's "goal discretization" (`--goal-channel auto`; `on` or `off` in both).
 
     python dgrl_amigo.py --groups 16                    # paper setting (KCmedium = KeyCorridorS3R3, 3e7 frames)
@@ -190,9 +188,8 @@ def conv_stack(in_channels: int, width: int, height: int) -> tuple[nn.Sequential
         nn.init.zeros_(conv.bias)
         layers += [conv, nn.ELU()]
     trunk = nn.Sequential(*layers, nn.Flatten())
-    with torch.no_grad():
-        out = trunk(torch.zeros(1, in_channels, width, height)).shape[1]
-    return trunk, out
+    with torch.no_grad():  # the flattened output's size
+        return trunk, trunk(torch.zeros(1, in_channels, width, height)).shape[1]
 
 
 class Student(nn.Module):
@@ -201,15 +198,12 @@ class Student(nn.Module):
 
     def __init__(self, width: int, height: int, n_actions: int, goal_channel: bool, embed_dim: int):
         super().__init__()
-        self.goal_channel = goal_channel
-        self.embed_dim = embed_dim
+        self.goal_channel, self.embed_dim = goal_channel, embed_dim
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(10 + goal_channel, width, height)
-        self.carried_object = nn.Embedding(N_OBJECTS, 5)
-        self.carried_color = nn.Embedding(N_COLORS, 3)
+        self.carried_object, self.carried_color = nn.Embedding(N_OBJECTS, 5), nn.Embedding(N_COLORS, 3)
         self.fc = nn.Sequential(nn.Linear(trunk_out + 8 + embed_dim, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU())
-        self.policy = nn.Linear(256, n_actions)
-        self.baseline = nn.Linear(256, 1)
+        self.policy, self.baseline = nn.Linear(256, n_actions), nn.Linear(256, 1)
 
     def forward(self, grids, carried, goals, goal_embedding) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.trunk(self.embedding(grids, goals if self.goal_channel else None))
@@ -219,17 +213,15 @@ class Student(nn.Module):
 
 
 class GoalEncoder(nn.Module):
-    """A goal from the frame it was issued on and its one-hot cell, through the student's trunk design, to an
-    --embed-dim vector: under DGRL split into G factors snapped to one shared EMA codebook, for AMIGo continuous."""
+    """A goal's frame and one-hot cell, through a student-like trunk, to --embed-dim (DGRL: snapped to G codes)."""
 
     def __init__(self, width: int, height: int, args: Args):
         super().__init__()
         self.embedding = GridEmbedding()
         self.trunk, trunk_out = conv_stack(11, width, height)
         self.head = nn.Linear(trunk_out, args.embed_dim)
-        sizes = (args.embed_dim, args.n_embed, args.groups)  # m, L, G
-        codebook = {"beta": args.vq_beta, "decay": args.vq_decay, "dead_code_steps": args.vq_dead_code_steps}
-        self.vq = VectorQuantizerEMA(*sizes, **codebook) if args.groups else None  # DGRL: G factors, one codebook
+        flags = (args.embed_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay)  # m, L, G, beta, decay
+        self.vq = VectorQuantizerEMA(*flags, dead_code_steps=args.vq_dead_code_steps) if args.groups else None  # DGRL
 
     def forward(self, frames, goals, update: bool = False):
         """(goal embedding, commitment loss, code indices or None); `update=True` only in learner batches."""
@@ -240,16 +232,15 @@ class GoalEncoder(nn.Module):
 
 
 class Teacher(nn.Module):
-    """AMIGo's goal generator: the embedded full grid through four 3x3 stride-1 convs 10-16-16-16-1, each followed by
-    an ELU (the last too, as in the original: no logit is below -1, so no cell's probability can reach zero), gives one
-    logit per grid cell (flat index x * H + y, walls included); a baseline Linear(W * H -> 1) reads the logits."""
+    """AMIGo's goal generator: four 3x3 stride-1 convs 10-16-16-16-1 over the embedded grid, each with an ELU (the
+    last too, as in the original: no cell's probability reaches 0), give one logit per cell (x * H + y, walls too)."""
 
     def __init__(self, width: int, height: int):
         super().__init__()
         self.embedding = GridEmbedding()
         convs = [nn.Conv2d(cin, cout, 3, stride=1, padding=1) for cin, cout in ((10, 16), (16, 16), (16, 16), (16, 1))]
         self.net = nn.Sequential(*(layer for conv in convs for layer in (conv, nn.ELU())), nn.Flatten())
-        self.baseline = nn.Linear(width * height, 1)
+        self.baseline = nn.Linear(width * height, 1)  # reads the logits
 
     def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         logits = self.net(self.embedding(grids))
@@ -258,8 +249,7 @@ class Teacher(nn.Module):
 
 @dataclass
 class Agent:
-    """AMIGo's two learners: the student with the goal encoder (one optimizer: the encoder learns from the student's
-    loss) and the teacher. Under DGRL `goal_encoder.vq` holds the codebook, moved by EMA in learner batches only."""
+    """AMIGo's two learners and their optimizers; under DGRL `goal_encoder.vq` holds the codebook (moved by EMA)."""
 
     student: Student
     goal_encoder: GoalEncoder
@@ -275,16 +265,11 @@ class Agent:
             getattr(self, name).load_state_dict(saved[name])
 
 
-GOAL_CHANNELS = ("auto", "on", "off")  # --goal-channel's choices
-
-
 def resolve_goal_channel(goal_channel: str, groups: int) -> str:
     """--goal-channel as a run uses and saves it: "auto" keeps AMIGo's one-hot goal channel and drops it under DGRL."""
-    if goal_channel not in GOAL_CHANNELS:
-        raise ValueError(f"goal_channel must be one of {', '.join(GOAL_CHANNELS)}; got {goal_channel!r}")
-    if goal_channel == "auto":
-        return "off" if groups > 0 else "on"  # DGRL: the goal only as discrete codes
-    return goal_channel
+    if goal_channel not in ("auto", "on", "off"):
+        raise ValueError(f"goal_channel must be one of auto, on, off; got {goal_channel!r}")
+    return ("off" if groups > 0 else "on") if goal_channel == "auto" else goal_channel  # DGRL: the goal only as codes
 
 
 def make_agent(width: int, height: int, n_actions: int, args: Args, device) -> Agent:
@@ -312,8 +297,7 @@ def vtrace(behaviour_logp, target_logp, rewards, values, bootstrap, discounts):
         next_values = torch.cat([values[1:], bootstrap[None]], 0)
         deltas = rhos * (rewards + discounts * next_values - values)
         # acc_s = deltas_s + discounts_s c_s acc_{s+1} as one (T, T, B) product: a loop of T small steps was slower
-        steps = len(values)
-        upper = torch.ones(steps, steps, dtype=torch.bool, device=values.device).triu()[..., None]  # i >= s
+        upper = torch.ones(len(values), len(values), dtype=torch.bool, device=values.device).triu()[..., None]  # i >= s
         inclusive = torch.where(upper, (discounts * rhos)[None], 1.0).cumprod(1)  # [s, i]: prod_{s <= j <= i}
         traces = torch.cat([torch.ones_like(inclusive[:, :1]), inclusive[:, :-1]], 1) * upper  # prod_{s <= j < t}
         vs = values + (traces * deltas[None]).sum(1)
@@ -380,8 +364,7 @@ def student_batch(rollout: dict, last: dict, device) -> dict[str, torch.Tensor]:
 
 
 def student_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict:
-    """One learner step on student_batch's tensors; the goal encoder trains through the student's loss (plus the
-    commitment loss under DGRL). Tensors in, detached metric tensors out, free of host syncs."""
+    """One learner step on student_batch's tensors (the goal encoder's too): detached metrics out, no host syncs."""
     T, B = batch["actions"].shape
     goals, actions = batch["goals"], batch["actions"]
     embedding, vq_loss, codes = agent.goal_encoder(batch["goal_frames"], goals, update=True)  # DGRL: the codebook moves
@@ -424,7 +407,7 @@ def learning_rates_as_tensors(optimizers: list[torch.optim.Optimizer], as_tensor
             group["lr"] = torch.tensor(lr, dtype=torch.float32, device=group["params"][0].device) if as_tensors else lr
 
 
-# --- Acting: the student on its goals ---------------------------------------------------------------------------------
+# --- Acting and the teacher's curriculum: goals, rewards, difficulty, outcomes ----------------------------------------
 
 
 def tensors(device, *arrays: np.ndarray) -> list[torch.Tensor]:
@@ -440,8 +423,7 @@ def embed_goals(goal_encoder: GoalEncoder, frames: np.ndarray, goals: np.ndarray
 @torch.no_grad()
 def act(student: Student, obs: dict, goals: np.ndarray, goal_embedding: torch.Tensor, device):
     """The student's sampled actions and their log-probabilities."""
-    grids_t, carry_t, goals_t = tensors(device, obs["grid"], obs["carried"], goals)
-    logits, _ = student(grids_t, carry_t, goals_t, goal_embedding)  # DGRL: z_q of the goal
+    logits, _ = student(*tensors(device, obs["grid"], obs["carried"], goals), goal_embedding)  # DGRL: z_q of the goal
     actions = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
     return actions.cpu().numpy(), F.log_softmax(logits, -1).gather(1, actions[:, None]).squeeze(1).cpu().numpy()
 
@@ -455,9 +437,6 @@ def renew_goals(agent: Agent, book: "GoalBook", mask: np.ndarray, grids: np.ndar
     book.issue(mask, grids[mask], goals.cpu().numpy(), dist.log_prob(goals).cpu().numpy())
     embeddings = embed_goals(agent.goal_encoder, book.frame[mask], book.goal[mask], device)
     goal_embedding[torch.as_tensor(np.flatnonzero(mask), device=device)] = embeddings  # a boolean index would sync
-
-
-# --- The teacher's curriculum: goals, rewards, difficulty, outcomes ---------------------------------------------------
 
 
 class GoalBook:
@@ -482,10 +461,7 @@ class GoalBook:
         return self.reached(after)
 
     def issue(self, mask: np.ndarray, frames: np.ndarray, goals: np.ndarray, logps: np.ndarray) -> None:
-        self.goal[mask] = goals
-        self.frame[mask] = frames
-        self.logp[mask] = logps
-        self.steps[mask] = 0
+        self.goal[mask], self.frame[mask], self.logp[mask], self.steps[mask] = goals, frames, logps, 0
 
 
 def intrinsic_reward(reached: np.ndarray, steps: np.ndarray, max_steps: int, coef: float) -> np.ndarray:
@@ -499,15 +475,13 @@ def student_reward(extrinsic: np.ndarray, intrinsic: np.ndarray) -> np.ndarray:
 
 
 def teacher_reward(reached, steps, extrinsic_success, t_star: int, negative: float = -0.3, positive: float = 1.0):
-    """AMIGo's teacher reward per goal outcome: `negative`, plus `positive` if the goal was reached after at least t*
-    steps, clipped to [-1, 1]; 1 whenever the episode's extrinsic reward came in the outcome's step."""
+    """AMIGo's teacher reward per goal outcome; 1 whenever the episode's extrinsic reward came in the outcome's step."""
     rewards = np.clip(negative + positive * (reached & (steps >= t_star)), -1.0, 1.0)
     return np.where(extrinsic_success, 1.0, rewards)
 
 
 class TStar:
-    """AMIGo's difficulty schedule: after each teacher update, a mean teacher reward >= threshold extends a streak
-    (anything lower ends it); a streak of `patience` raises t* by one (up to `maximum`) and starts a new streak."""
+    """AMIGo's difficulty schedule: `patience` teacher updates in a row of mean reward >= threshold raise t* by one."""
 
     def __init__(self, start: int, threshold: float, patience: int, maximum: int):
         self.value, self.threshold, self.patience, self.maximum, self.streak = start, threshold, patience, maximum, 0
@@ -515,8 +489,7 @@ class TStar:
     def update(self, mean_teacher_reward: float) -> int:
         self.streak = self.streak + 1 if mean_teacher_reward >= self.threshold else 0
         if self.streak >= self.patience:
-            self.value = min(self.value + 1, self.maximum)
-            self.streak = 0
+            self.value, self.streak = min(self.value + 1, self.maximum), 0
         return self.value
 
 
@@ -527,8 +500,7 @@ class OutcomeBuffer:
         self.parts, self.size = [], 0
 
     def add(self, **columns: np.ndarray) -> None:
-        n = len(next(iter(columns.values())))
-        if n:
+        if n := len(next(iter(columns.values()))):
             self.parts.append(columns)
             self.size += n
 
@@ -540,14 +512,11 @@ class OutcomeBuffer:
         return {key: value[:n] for key, value in merged.items()}
 
 
-# --- The run's constants ----------------------------------------------------------------------------------------------
+# --- The run: constants, setup, the training loop, the end ------------------------------------------------------------
 
 MUST_MATCH = ("env_id", "groups", "embed_dim", "n_embed", "goal_channel")  # what a checkpoint's networks are built for
 LOSS_LOG_UPDATES = 10  # student updates between two writes of the student's losses
 VIDEO_FPS = 8
-
-
-# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
 
 
 def main(args: Args) -> None:
@@ -564,12 +533,9 @@ def main(args: Args) -> None:
     width, height, n_envs, T = envs.width, envs.height, args.num_envs, args.num_steps
     agent = make_agent(width, height, envs.n_actions, args, device)
     stop = stop_on_signals()
-
     if args.checkpoint is not None:
-        evaluate_checkpoint(args, agent, envs, device, stop)
-        return
+        return evaluate_checkpoint(args, agent, envs, device, stop)
 
-    # A resumed run's TensorBoard drops what the stopped run logged after its resume.pt: it logged up to that step.
     _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if saved is None else saved["loop"]["step"] + 1)
     print(f"{run_name}: grid {width}x{height}, {envs.max_steps}-step episodes, {args.total_timesteps} frames, {device}")
@@ -608,8 +574,7 @@ def main(args: Args) -> None:
             intrinsic = intrinsic_reward(reached, book.steps, envs.max_steps, args.intrinsic_coef)
             rewards = student_reward(extrinsic, intrinsic)
             steps.append(step | {"rewards": rewards.astype(np.float32), "dones": done.astype(np.float32)})
-            # One teacher outcome per reached goal, and one per episode end for a goal still pending.
-            renew = reached | done
+            renew = reached | done  # a teacher outcome for each (OutcomeBuffer), and a new goal
             issued = {"frame": book.frame, "goal": book.goal, "logp": book.logp}
             outcome = issued | {"reached": reached, "steps": book.steps, "extrinsic_success": extrinsic > 0}
             outcomes.add(**{key: value[renew] for key, value in outcome.items()})
@@ -626,8 +591,7 @@ def main(args: Args) -> None:
                 writer.add_scalar("charts/episodic_length", length, loop.step)
                 writer.add_scalar("charts/success_rate", float(ret > 0), loop.step)
             loop.step += n_envs
-            # Video of env 0: its frame before any reset, its goal as it was when acting.
-            if loop.record:
+            if loop.record:  # env 0's frame before any reset, with its goal as it was when acting
                 loop.video.append(goal_frame(envs.frame0, goal0, height))
             if done[0]:
                 if loop.record:
@@ -716,14 +680,12 @@ def goal_frame(frame: np.ndarray, goal: int, height: int, tile: int = 32) -> np.
     x, y = divmod(int(goal), height)
     cell = frame[y * tile : (y + 1) * tile, x * tile : (x + 1) * tile]
     for edge in (cell[:3], cell[-3:], cell[:, :3], cell[:, -3:]):
-        edge[:] = 255
-        edge[..., 2] = 0
+        edge[:] = (255, 255, 0)
     return frame
 
 
 def evaluate(agent: Agent, envs: "MiniGridVecEnv", episodes: int, seed: int, device, stop=()) -> dict[str, float]:
-    """Run the student on its teacher's goals (sampling actions, as in training) until `episodes` episodes end or `stop`
-    (the signals received) fills: episodes run, mean extrinsic return, success rate, goals reached per episode."""
+    """The student on its teacher's goals, sampling as in training, for `episodes` episodes or until a `stop` signal."""
     obs, _ = envs.reset(seed=seed)
     book = GoalBook(envs.num_envs, envs.width, envs.height)
     goal_embedding = torch.zeros(envs.num_envs, agent.student.embed_dim, device=device)
@@ -759,10 +721,8 @@ def evaluate_checkpoint(args: Args, agent: Agent, envs: "MiniGridVecEnv", device
     evaluated = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
     agent.load_state_dicts(evaluated)
     result = evaluate(agent, envs, args.eval_episodes, args.seed + 10_000, device, stop)
-    print(
-        f"{result['episodes']} episodes (t* {evaluated['t_star']} at save): return {result['return']:.3f}, "
-        f"success {result['success']:.0%}, goals reached per episode {result['goals_per_episode']:.1f}"
-    )
+    text = f"{result['episodes']} episodes (t* {evaluated['t_star']} at save): return {result['return']:.3f}, "
+    print(text + f"success {result['success']:.0%}, goals reached per episode {result['goals_per_episode']:.1f}")
     envs.close()
 
 
@@ -785,8 +745,7 @@ def minigrid_ids() -> list[str]:
 
 
 def full_grid(env) -> np.ndarray:
-    """The fully observed (W, H, 3) grid of [object, colour, state] ids, the agent as [agent, red, direction]
-    (minigrid's FullyObsWrapper encoding), built in one pass from the grid's row-major cell list (2.3x faster)."""
+    """The full (W, H, 3) grid of [object, colour, state] ids, as FullyObsWrapper's, built in one pass (2.3x faster)."""
     cells = [(EMPTY, 0, 0) if cell is None else cell.encode() for cell in env.grid.grid]
     grid = np.array(cells, dtype=np.uint8).reshape(env.height, env.width, 3).transpose(1, 0, 2)
     grid[env.agent_pos[0], env.agent_pos[1]] = (AGENT, COLOR_TO_IDX["red"], env.agent_dir)
@@ -799,12 +758,12 @@ def carried(env) -> tuple[int, int]:
 
 
 class MiniGridVecEnv(gym.vector.VectorEnv):
-    """`num_envs` fully observed MiniGrid envs stepped in one loop with same-step autoreset (gymnasium's VectorEnv API).
-    Observations: "grid" (`full_grid`'s ids) and "carried"; `reset(seed=s)` seeds env i with s + i (or takes a list);
-    every reset draws a new layout. info: "final_grid" (every env's grid right after the step, before any reset, for
-    the goal test on all envs at once), RecordEpisodeStatistics' "episode" and "_episode". Only env 0 renders."""
+    """`num_envs` fully observed MiniGrid envs stepped in one loop with same-step autoreset. Observations: "grid"
+    (`full_grid`'s ids) and "carried"; `reset(seed=s)` seeds env i with s + i; every reset draws a new layout. info:
+    "final_grid" (each grid right after the step, before any reset), "episode" and "_episode"; only env 0 renders."""
 
     metadata: ClassVar[dict] = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
+    NOT_ENV_STATE = ("window", "clock", "render_mode", "spec", "gen_obs")  # renderer, free --capture-video, spec, patch
 
     def __init__(self, env_id: str, num_envs: int, render_env0: bool = False):
         render_modes = ["rgb_array" if render_env0 and i == 0 else None for i in range(num_envs)]
@@ -824,8 +783,7 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
         self.grids = np.zeros((num_envs, self.width, self.height, 3), dtype=np.uint8)  # observation to act on
         self.after = np.zeros_like(self.grids)  # frame right after the last step, before autoreset
         self.carried = np.zeros((num_envs, 2), dtype=np.int64)
-        self.episode_return = np.zeros(num_envs)
-        self.episode_length = np.zeros(num_envs, dtype=np.int64)
+        self.episode_return, self.episode_length = np.zeros(num_envs), np.zeros(num_envs, dtype=np.int64)
         self.record, self.frame0 = False, None  # while `record` is set, `frame0` is env 0's render after each step
 
     def _observe(self, i: int, target: np.ndarray) -> None:
@@ -873,10 +831,9 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
             env.close()
 
     def get_state(self) -> dict:
-        """For --resume, a copy of what the next steps and resets depend on: each env's attributes but NOT_ENV_STATE
-        (grid, agent, carried object, step count, np_random, ...), the observation and the episode statistics, copied
-        as a whole so that objects shared between attributes stay shared (pickling an env would rebuild it afresh)."""
-        envs = [{key: value for key, value in env.__dict__.items() if key not in NOT_ENV_STATE} for env in self.envs]
+        """For --resume: each env's attributes but NOT_ENV_STATE (grid, agent, step count, np_random, ...), the
+        observation and the episode statistics, deep-copied as a whole so that shared objects stay shared."""
+        envs = [{key: value for key, value in vars(env).items() if key not in self.NOT_ENV_STATE} for env in self.envs]
         arrays = {key: getattr(self, key) for key in ("grids", "carried", "episode_return", "episode_length")}
         return copy.deepcopy({"envs": envs, **arrays})
 
@@ -887,9 +844,6 @@ class MiniGridVecEnv(gym.vector.VectorEnv):
             env.__dict__.update(attributes)
         for key, value in state.items():
             getattr(self, key)[:] = value
-
-
-NOT_ENV_STATE = ("window", "clock", "render_mode", "spec", "gen_obs")  # renderer, free --capture-video, spec, our patch
 
 
 # --- Resuming ---------------------------------------------------------------------------------------------------------
@@ -912,9 +866,7 @@ class LoopState:
 
 
 def training_state(agent: Agent, envs, book: GoalBook, t_star: TStar, outcomes, loop: LoopState) -> dict:
-    """Everything a stopped run needs to continue exactly, for resume.pt (save_resume adds the random states): the
-    networks with the codebook's EMA buffers, the optimizers, the envs mid-episode, the goals, t*, the waiting outcomes
-    and the LoopState. Rollout storage is not saved: a run stops between collections."""
+    """What a stopped run needs to continue exactly (save_resume adds the RNG states); it stops between collections."""
     return {
         "networks": agent.state_dicts(),
         "student_optimizer": agent.student_optimizer.state_dict(),
@@ -940,7 +892,7 @@ def restore_training_state(saved: dict, agent: Agent, envs, book: GoalBook, t_st
     return LoopState(**saved["loop"])
 
 
-# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+# --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
@@ -1001,7 +953,7 @@ class Progress:
 
     def line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         times = f"{now - self.start_time:.0f}s elapsed, {left}"
         print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
@@ -1019,9 +971,8 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save(header | entries, file)
+        torch.save(dict(script=os.path.basename(__file__), format=CHECKPOINT_FORMAT, args=vars(args)) | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
@@ -1029,34 +980,26 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
-    only."""
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
-
-    def refuse(problem: str) -> None:
-        print(f"{script}: {shown}{problem}", file=sys.stderr)
-        raise SystemExit(2)
-
     try:
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        cause = f"{type(error).__name__}: {str(error)[:120]}"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
         if resume:
-            cause = f"{type(error).__name__}: {str(error)[:120]}"
-            advice = "start the run afresh without --resume, or put back an older copy of the file"
-            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
-        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = type(saved).__name__
-        if isinstance(saved, dict):
-            found = f"{saved.get('script')} format {saved.get('format')}"
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
+        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+    if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
+        got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        exit_on_errors([f"{shown} holds {got}" + (f": {its_version}" if resume else wanted)])
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
-        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'written'} before {older} existed; {its_version}"])
     if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
-        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}"])
     return saved
 
 
@@ -1085,8 +1028,8 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
-    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
+    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
+    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1105,12 +1048,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     return replayed
 
 
-# --- end of run management --------------------------------------------------------------------------------------------
-
-
-# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
-
-# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -1118,19 +1055,16 @@ FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads",
 def flag_text(key: str, value) -> str:
     """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
     name = key.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {value}"
+    return (f"--{name}" if value else f"--no-{name}") if isinstance(value, bool) else f"--{name} {value}"
 
 
 def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
-    that bound. NaN and infinite values are left to common_errors' message."""
+    """A message for each of `flags` (field names) outside [low, high]; low_open and high_open exclude that bound."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
         if isinstance(value, float) and not math.isfinite(value):
-            continue
+            continue  # common_errors' message
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
@@ -1139,13 +1073,10 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
-    errors = [
-        f"--{key.replace('_', '-')} must be a finite number; got {value}"
-        for key, value in vars(args).items()
-        if isinstance(value, float) and not math.isfinite(value)
-    ]
+    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
+    --resume's folder and the folder a training run writes to."""
+    infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
+    errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1174,12 +1105,10 @@ def common_errors(args) -> list[str]:
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        advice = "move it, or run elsewhere"
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        where = os.path.abspath(existing)
-        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): use a folder you can write to")
     return errors
 
 
@@ -1194,9 +1123,8 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
-    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life (the kernel drops it however the process ends); keep the returned
+    file. A second process on the folder exits 2 naming the holder; `check_only`: that refusal alone, no write."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -1211,12 +1139,11 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     if check_only:
         return lock.close()
     lock.truncate(0)
-    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    lock.flush()
+    print(f"pid {os.getpid()} on {os.uname().nodename}", file=lock, flush=True)
     return lock
 
 
-# --- end of the shared checks -----------------------------------------------------------------------------------------
+# --- end of the shared block ------------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:
@@ -1229,9 +1156,8 @@ def validate(args: Args) -> None:
         errors.append(f"--env-id {args.env_id!r} is not a MiniGrid id; {hint}choices: {', '.join(ids)}")
     else:
         try:  # a MiniGrid id whose env fails to build or reset here
-            env = gym.make(args.env_id).unwrapped
-            env.reset(seed=0)
-            env.close()
+            with gym.make(args.env_id) as env:
+                env.unwrapped.reset(seed=0)
         except Exception as error:
             cause = f"{type(error).__name__}: {error}"
             errors.append(f"--env-id {args.env_id} fails to build or reset here ({cause}); pick another MiniGrid id")
@@ -1246,8 +1172,7 @@ def validate(args: Args) -> None:
         errors.append(f"--t-star-threshold must be <= 1 (teacher rewards are at most 1); got {args.t_star_threshold}")
     if not 0 <= args.t_star_start <= args.t_star_max:
         errors.append(f"--t-star-start ({args.t_star_start}) must be in [0, --t-star-max ({args.t_star_max})]")
-    frames = args.num_envs * args.num_steps
-    if args.num_envs >= 1 and args.num_steps >= 1 and args.total_timesteps < frames:
+    if args.num_envs >= 1 and args.num_steps >= 1 and args.total_timesteps < (frames := args.num_envs * args.num_steps):
         collection = f"one collection: >= --num-envs x --num-steps ({frames})"
         errors.append(f"--total-timesteps ({args.total_timesteps}) must cover {collection}")
     if args.checkpoint is None and args.batch_envs >= 1 and args.num_envs % args.batch_envs:

@@ -255,8 +255,7 @@ class CellEmbedder:
         self.all_images = torch.as_tensor(layout.images, device=device)
 
     def inputs(self, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(images, rows) for embed_images: the 36 images and the cells as rows; with noise, the batch's images (drawn
-        on the host from the numpy generator, so outside an update) and rows None."""
+        """(images, rows) for embed_images: the 36 images and `cells`; with noise, fresh host-drawn images and None."""
         if self.noise == 0:
             return self.all_images, cells
         images = self.layout.render(cells.cpu().numpy(), self.noise, self.rng)
@@ -286,8 +285,7 @@ def cell_table(rep: Representation, embedder: CellEmbedder) -> CellTable:
 
 
 def cell_features(rep: Representation, cells: torch.Tensor, table: CellTable | None, observed, update=False):
-    """(features, embedding, commitment loss, codes) of the observations of `cells`: rows of `table` when there is one
-    (a frozen phi on noiseless images), else `rep` on `observed` (CellEmbedder.inputs)."""
+    """(features, z, commitment loss, codes) of `cells`: `table`'s rows if any, else `rep` on `observed` (inputs())."""
     if table is not None:
         codes = None if table.codes is None else table.codes[cells]
         return table.features[cells], table.z[cells], table.z.new_zeros(()), codes
@@ -304,8 +302,7 @@ class Batch(NamedTuple):  # a pytree: CudaGraphUpdate copies its tensors
 
 
 class ReplayBuffer:
-    """(cell, next cell, goal cell, action, reward, terminated) on the training device: cells (the raw images up to the
-    noise), never code indices. Rows are drawn on the host from the run's numpy generator."""
+    """Transitions (cell, next cell, goal cell, action, reward, terminated) on the device: cells, never code indices."""
 
     FIELDS = ("cells", "actions", "rewards", "terminated")
 
@@ -339,8 +336,7 @@ class ReplayBuffer:
 
 
 def pretrain_inputs(embedder: CellEmbedder, walks: tuple[torch.Tensor, ...], rows: torch.Tensor, objective: str):
-    """pretrain_step's tensors for the random-walk transitions `rows`: the states' then the next states' observations as
-    embed_images' (images, rows), the actions, and the states' clean images (the autoencoder's targets)."""
+    """pretrain_step's inputs for transitions `rows`: s then s' as (images, rows), actions, s's autoencoder targets."""
     cells, actions, next_cells = walks
     images, image_rows = embedder.inputs(torch.cat([cells[rows], next_cells[rows]]))
     clean_images = embedder.all_images[cells[rows]] if objective == "autoencoder" else None
@@ -358,8 +354,7 @@ def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: f
 
 
 def pretrain_step(agent: Agent, images: torch.Tensor, image_rows, actions: torch.Tensor, clean_images) -> dict:
-    """One Adam step of phi's self-supervised objective (on pretrain_inputs) plus, for DGRL, the commitment loss and one
-    EMA update of the codebook. Returns the detached metrics (the losses, DGRL's perplexity)."""
+    """One Adam step of phi's objective, plus (DGRL) the commitment loss and a codebook EMA update; detached metrics."""
     rep = agent.rep
     z = embed_images(rep, images, image_rows)
     _, vq_loss, codes = rep(z, update=True)  # DGRL: one pooled update for s and s', the mean of their commitment losses
@@ -617,8 +612,7 @@ def main(args: Args) -> None:
 
 @torch.no_grad()
 def evaluate(rep, q_network, embedder, layout: "MazeLayout", goal_cells: np.ndarray, max_steps: int):
-    """Greedy episodes from the start cell to every goal at once. Returns (reached, steps, path) per goal: steps is
-    max_steps for a goal not reached; path (time, goal) holds the cells visited, the start cell first."""
+    """Greedy episodes from START_CELL to all goals at once: reached, steps (max_steps if not), path (time, goal)."""
     device = embedder.device
     goals = torch.as_tensor(goal_cells, device=device)
     next_cell = torch.as_tensor(layout.next_cell, device=device)
@@ -698,8 +692,7 @@ def evaluate_checkpoint(args: Args, agent: Agent, embedder: CellEmbedder, layout
     saved_split = {key: saved.get(key) for key in wanted}
     if saved_split != wanted:
         refusal = f"was trained on the goal split {saved_split}, but these flags give {wanted}"
-        print(f"{os.path.basename(__file__)}: --checkpoint {args.checkpoint} {refusal}", file=sys.stderr)
-        raise SystemExit(2)
+        exit_on_errors([f"--checkpoint {args.checkpoint} {refusal}"])
     agent.rep.load_state_dict(saved["representation"])
     agent.q_network.load_state_dict(saved["q_network"])
     agent.rep.eval()
@@ -792,8 +785,7 @@ class MazeLayout:
 
 
 def goal_split(layout: MazeLayout, n_train: int, goal_seed: int, n_novel: int = N_NOVEL_GOALS) -> tuple:
-    """Disjoint (train, novel) goal cells, never the start cell. The novel cells depend only on goal_seed, and the train
-    cells are the first n_train of one seeded order, so K=4 goals are a subset of K=8, which are a subset of K=16."""
+    """Disjoint (train, novel) goals, never START_CELL; train: the first n_train of a seeded order (K=4 within K=8)."""
     candidates = np.array([cell for cell in range(layout.n_cells) if cell != START_CELL])
     order = np.random.default_rng(goal_seed).permutation(candidates)
     return np.sort(order[n_novel : n_novel + n_train]), np.sort(order[:n_novel])
@@ -858,8 +850,7 @@ class LoopState:
 
 
 def add_kept_scalar(writer: SummaryWriter, kept: list, tag: str, value: float, step: int) -> None:
-    """writer.add_scalar, keeping (tag, value, step) in `kept`: a run resumed in the DQN phase purges every tag from its
-    first unlogged step on, pre-training's too (the phases share TensorBoard's steps), and logs the kept ones again."""
+    """writer.add_scalar, keeping (tag, value, step) in `kept`: a run resumed in the DQN phase logs them again."""
     writer.add_scalar(tag, value, step)
     kept.append((tag, value, step))
 
@@ -934,7 +925,7 @@ MUST_MATCH = ("env_id", "n_train_goals", "goal_seed", "noise", "max_episode_step
 MUST_MATCH += ("rep", "embed_dim", "hidden_dim", "groups", "n_embed")  # the architecture
 
 
-# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+# --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
@@ -995,7 +986,7 @@ class Progress:
 
     def line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         times = f"{now - self.start_time:.0f}s elapsed, {left}"
         print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
@@ -1013,9 +1004,8 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save(header | entries, file)
+        torch.save(dict(script=os.path.basename(__file__), format=CHECKPOINT_FORMAT, args=vars(args)) | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
@@ -1023,34 +1013,26 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
-    only."""
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
-
-    def refuse(problem: str) -> None:
-        print(f"{script}: {shown}{problem}", file=sys.stderr)
-        raise SystemExit(2)
-
     try:
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        cause = f"{type(error).__name__}: {str(error)[:120]}"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
         if resume:
-            cause = f"{type(error).__name__}: {str(error)[:120]}"
-            advice = "start the run afresh without --resume, or put back an older copy of the file"
-            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
-        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = type(saved).__name__
-        if isinstance(saved, dict):
-            found = f"{saved.get('script')} format {saved.get('format')}"
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
+        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+    if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
+        got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        exit_on_errors([f"{shown} holds {got}" + (f": {its_version}" if resume else wanted)])
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
-        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'written'} before {older} existed; {its_version}"])
     if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
-        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}"])
     return saved
 
 
@@ -1079,8 +1061,8 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
-    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
+    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
+    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1099,12 +1081,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     return replayed
 
 
-# --- end of run management --------------------------------------------------------------------------------------------
-
-
-# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
-
-# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -1112,19 +1088,16 @@ FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads",
 def flag_text(key: str, value) -> str:
     """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
     name = key.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {value}"
+    return (f"--{name}" if value else f"--no-{name}") if isinstance(value, bool) else f"--{name} {value}"
 
 
 def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
-    that bound. NaN and infinite values are left to common_errors' message."""
+    """A message for each of `flags` (field names) outside [low, high]; low_open and high_open exclude that bound."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
         if isinstance(value, float) and not math.isfinite(value):
-            continue
+            continue  # common_errors' message
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
@@ -1133,13 +1106,10 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
-    errors = [
-        f"--{key.replace('_', '-')} must be a finite number; got {value}"
-        for key, value in vars(args).items()
-        if isinstance(value, float) and not math.isfinite(value)
-    ]
+    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
+    --resume's folder and the folder a training run writes to."""
+    infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
+    errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1168,12 +1138,10 @@ def common_errors(args) -> list[str]:
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        advice = "move it, or run elsewhere"
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        where = os.path.abspath(existing)
-        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): use a folder you can write to")
     return errors
 
 
@@ -1188,9 +1156,8 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
-    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life (the kernel drops it however the process ends); keep the returned
+    file. A second process on the folder exits 2 naming the holder; `check_only`: that refusal alone, no write."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -1205,12 +1172,11 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     if check_only:
         return lock.close()
     lock.truncate(0)
-    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    lock.flush()
+    print(f"pid {os.getpid()} on {os.uname().nodename}", file=lock, flush=True)
     return lock
 
 
-# --- end of the shared checks -----------------------------------------------------------------------------------------
+# --- end of the shared block ------------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:

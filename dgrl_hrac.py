@@ -2,23 +2,20 @@
 
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section "Ant
 Manipulation Control Domains" and appendix "Ant Manipulation tasks". The agent is HRAC (Zhang et al., NeurIPS 2020): a
-TD3 manager proposes a relative xy subgoal every k = 10 steps; a TD3 controller is rewarded for reaching it (the subgoal
-re-targeted after every step); HIRO's off-policy correction relabels the manager's stored subgoals; an adjacency network
-over 1 m grid cells, retrained every 50k steps with a contrastive loss, keeps the subgoals k-step reachable through an
-extra actor loss. DGRL (`--groups G`) passes the subgoal through an encoder and the shared-codebook bottleneck of
-vq.py: the controller's actor and critic see its discrete embedding z_q instead. `--groups 0` is plain HRAC.
+TD3 manager proposes a relative xy subgoal every k = 10 steps to a TD3 controller rewarded for reaching it; HIRO's
+off-policy correction relabels the manager's stored subgoals; an adjacency network over 1 m grid cells (a contrastive
+loss) keeps the subgoals k-step reachable by an extra actor loss. DGRL (`--groups G`; 0: plain HRAC) passes the subgoal
+through an encoder and vq.py's shared-codebook bottleneck: the controller's actor and critic see its z_q instead.
 
 The HIRO Ant suite as HRAC's authors use it: gymnasium's Ant edited in code (ctrl +-30, gear 1, timestep 0.02 with RK4,
 frame_skip 5) in structures of fixed, sliding and elevated blocks generated into MJCF at run time (rllab's and HIRO's
-maze generator, rewritten here); AntGather adds apples, bombs and range sensors.
+maze generator, rewritten here); AntGather adds apples, bombs and range sensors. Studies: benchmark/launch.py --preset
+hrac-antmaze-cpu (CPU) or hrac-paper; env speed and renders: benchmark/figures/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 
     python dgrl_hrac.py --env-id AntPush --groups 16      # DGRL G=16 on AntPush, the paper's 5M steps (a GPU job)
     python dgrl_hrac.py --env-id AntMaze --groups 0 --total-timesteps 300000   # HRAC: the short CPU run of the docs
     python dgrl_hrac.py --env-id AntFall --total-timesteps 2000 --ctrl-updates 50 --man-updates 5  # 15-second smoke run
     python dgrl_hrac.py --env-id AntPush --groups 16 --resume runs/<run_name>   # continue a stopped run, same flags
-
-The studies: python benchmark/launch.py --preset hrac-antmaze-cpu (CPU) or --preset hrac-paper; env speed and renders:
-benchmark/figures/hrac_envs.py. Docs: docs/dgrl_hrac.md.
 """
 
 import copy
@@ -218,8 +215,7 @@ class AdjacencyNet(nn.Module):
 
 
 class SubgoalEncoder(nn.Module):  # DGRL
-    """DGRL's bottleneck on the subgoal: subgoal / bounds -> MLP -> vq.py's shared-codebook quantizer -> z_q, which the
-    controller sees instead of the subgoal; a decoder's loss keeps the codes informative about the subgoal."""
+    """DGRL: subgoal / bounds -> MLP -> vq.py's quantizer -> z_q, the controller's input; a decoder reconstructs it."""
 
     def __init__(self, scale: np.ndarray, args: Args):
         super().__init__()
@@ -328,8 +324,7 @@ def off_policy_correction(controller: Actor, states, actions, subgoals, scale, n
     """HIRO's relabelling of manager transitions (states (B, k + 1, S), actions (B, k, A), subgoals (B, d)): of the
     stored subgoal, the achieved offset s_k - s_0 and it plus `noise` (clipped to +-scale), each re-targeted along the
     k steps, the one that makes the stored actions likeliest under the current controller (DGRL: via `goal_encoder`)."""
-    batch, k = actions.shape[:2]
-    d = subgoals.shape[-1]
+    (batch, k), d = actions.shape[:2], subgoals.shape[-1]
     achieved = states[:, -1, :d] - states[:, 0, :d]
     clipped = torch.clamp(achieved[:, None] + noise, -scale, scale)
     candidates = torch.cat([subgoals[:, None].to(clipped.dtype), achieved[:, None].to(clipped.dtype), clipped], 1)
@@ -364,8 +359,7 @@ def adjacency_loss(anet: AdjacencyNet, positions: torch.Tensor, subgoals: torch.
 
 
 class AdjacencyMemory:
-    """HRAC's adjacency labels over 1 m grid cells (round(s[:2])): cells t and t + j of one trajectory are adjacent for
-    1 <= j <= k - 1. The matrix persists over the run and grows as new cells are visited."""
+    """HRAC's adjacency labels, kept over the run: 1 m cells t and t + j (0 < j < k) of a trajectory are adjacent."""
 
     def __init__(self, k: int = 10):
         self.k, self.index, self.edges = k, {}, set()  # index: cell -> id, in the order of the ids
@@ -374,9 +368,8 @@ class AdjacencyMemory:
         cells = map(tuple, np.round(positions[:, :2]).astype(np.int64))
         ids = np.array([self.index.setdefault(cell, len(self.index)) for cell in cells], dtype=np.int64)
         for offset in range(1, min(self.k, len(ids))):
-            for a, b in zip(ids[:-offset], ids[offset:], strict=True):
-                if a != b:
-                    self.edges.add((min(a, b), max(a, b)))
+            pairs = zip(ids[:-offset], ids[offset:], strict=True)
+            self.edges.update((min(a, b), max(a, b)) for a, b in pairs if a != b)
 
     def labelled_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(cells_a (P, 2), cells_b (P, 2), labels (P,)) over every pair of distinct visited cells."""
@@ -396,8 +389,7 @@ class AdjacencyMemory:
 
 
 class Replay:
-    """A ring of preallocated numpy arrays, one per field (shapes given at construction); `sample` draws uniformly, or
-    returns every entry while there are no more than a batch (as HRAC's replay does, in the first episodes)."""
+    """A ring of numpy arrays, one per field; `sample` draws uniformly, or all entries while at most a batch (HRAC)."""
 
     def __init__(self, capacity: int, **shapes: tuple[int, ...]):
         self.capacity, self.size, self.position = capacity, 0, 0
@@ -459,7 +451,7 @@ def td3_update(level: Level, batch: dict, gamma: float, args: Args, actor_extra=
     return metrics | {"target_q": target_q.mean()}
 
 
-# --- The agent: updates and adjacency training ------------------------------------------------------------------------
+# --- The agent: updates, adjacency training, acting ------------------------------------------------------------------
 
 ENV_IDS = ("AntMaze", "AntMazeSparse", "AntPush", "AntFall", "AntGather")
 MANAGER_GOAL_DIMS = {"AntMaze": 2, "AntPush": 2, "AntFall": 3, "AntMazeSparse": 0, "AntGather": 0}
@@ -485,11 +477,9 @@ def as_tensors(sample: dict[str, np.ndarray], device: torch.device | str) -> dic
 
 
 def controller_update(agent: Agent, batch: dict[str, torch.Tensor], args: Args) -> dict[str, torch.Tensor]:
-    """One controller TD3 step. DGRL: the subgoals and next subgoals are quantized in one call (one EMA step of the
-    codebook); the critic loss reaches the encoder by the straight-through estimator. No host sync."""
-    encoder = agent.encoder
+    """One controller TD3 step, no host sync. DGRL: subgoals and next subgoals quantized in one call (one EMA step)."""
     extra, metrics = 0.0, {}  # under DGRL the encoder's losses, added to the critic loss
-    if encoder is not None:  # DGRL
+    if (encoder := agent.encoder) is not None:  # DGRL
         n = len(batch["goals"])
         z_q, vq_loss, codes = encoder(torch.cat([batch["goals"], batch["next_goals"]]), update=True)  # DGRL
         reconstruction = nn.functional.mse_loss(encoder.decoder(z_q[:n]), batch["goals"] / encoder.scale)  # DGRL
@@ -525,8 +515,7 @@ def manager_update(agent: Agent, batch: dict, args: Args, bounds: torch.Tensor) 
 
 
 def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, device, stop=()):
-    """`epochs` epochs over every pair of visited cells: (epochs run, the last epoch's mean loss, the accuracy of the
-    distances at the margins' midpoint); NaN figures without any pair or after a stop request (polled per epoch)."""
+    """`epochs` epochs on all visited-cell pairs: (epochs run, last epoch's loss, accuracy), NaNs if none or stopped."""
     cells_a, cells_b, labels = (torch.as_tensor(x, device=device) for x in memory.labelled_pairs())
     if len(labels) == 0:
         return epochs, float("nan"), float("nan")
@@ -547,14 +536,10 @@ def train_adjacency(anet, optimizer, memory, rng, args: Args, *, epochs: int, de
     return epochs, torch.stack(losses).mean().item(), accuracy
 
 
-# --- Acting: the manager's subgoals and the controller's actions ------------------------------------------------------
-
-
 @torch.no_grad()
 def act(agent: Agent, state: np.ndarray, goal: np.ndarray, *, manager: bool, noise: float, rng: np.random.Generator):
     """The manager's subgoal for (state, task goal) or the controller's torques for (xy-masked state, subgoal; DGRL: its
     z_q, codebook untouched), plus Gaussian noise of std `noise` clipped to the actor's range (subgoal bounds or 30)."""
-
     actor = agent.manager.actor if manager else agent.controller.actor
     device = actor.max_action.device
     state = torch.as_tensor(state if manager else controller_input(state), dtype=torch.float32, device=device)[None]
@@ -567,7 +552,7 @@ def act(agent: Agent, state: np.ndarray, goal: np.ndarray, *, manager: bool, noi
     return action
 
 
-# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+# --- The run: setup, the training loop, the end, evaluation -----------------------------------------------------------
 
 
 def main(args: Args) -> None:
@@ -780,38 +765,36 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Evaluation -------------------------------------------------------------------------------------------------------
+MUST_MATCH = ("env_id", "groups", "hidden_dim", "subgoal_scale", "k")  # what a checkpoint must match to be evaluated
+DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")  # and under DGRL (HRAC has no encoder or codebook)
 
 
 @torch.no_grad()
 def evaluate(env: "HiroAntEnv", agent: Agent, *, k: int, rng, episodes: int, frames: list | None = None, stop=()):
     """HRAC's deterministic evaluation, episodes ending at the first success (AntMazeSparse: reward > 0) or step 500:
     success rate, mean final distance and return, episodes run (fewer on a stop); `frames`: the first one's renders."""
-    successes, distances, returns = [], [], []
+    columns = {"success": [], "distance": [], "return": []}
     for episode in range(episodes):
-        if stop and successes:
+        if stop and columns["success"]:
             break
         state, _ = env.reset()
-        goal = manager_goal(env)
-        total = 0.0
+        goal, total = manager_goal(env), 0.0
         for t in range(EPISODE_STEPS):
             if t % k == 0:
                 subgoal = act(agent, state, goal, manager=True, noise=0.0, rng=rng)
             action = act(agent, state, subgoal, manager=False, noise=0.0, rng=rng)
             next_state, reward, terminated, truncated, info = env.step(action)
-            subgoal = subgoal_transition(state, subgoal, next_state)
-            state = next_state
+            subgoal, state = subgoal_transition(state, subgoal, next_state), next_state
             total += reward
             if frames is not None and episode == 0:
                 frames.append(env.render())
             reached = reward > 0 if env.env_id == "AntMazeSparse" else info["success"]
             if reached or terminated or truncated:
                 break
-        successes.append(float(reached))
-        distances.append(info.get("distance", float("nan")))
-        returns.append(total)
-    columns = {"success": successes, "distance": distances, "return": returns}
-    return {name: float(np.mean(values)) for name, values in columns.items()} | {"episodes": len(successes)}
+        columns["success"].append(float(reached))
+        columns["distance"].append(info.get("distance", float("nan")))
+        columns["return"].append(total)
+    return {name: float(np.mean(values)) for name, values in columns.items()} | {"episodes": len(columns["success"])}
 
 
 def evaluate_checkpoint(args: Args, agent: Agent, eval_env: "HiroAntEnv", rng, stop: list[int], device, run_name: str):
@@ -968,9 +951,8 @@ class HiroAntEnv(gym.Env):
         self._renderer = None
         if env_id == "AntMazeSparse":
             scaling, structure = STRUCTURES[env_id]
-            origin = structure_origin(structure)
             cells = [(i, j) for i, row in enumerate(structure) for j, c in enumerate(row) if c == "r"]
-            self.starts = np.array([cell_centre(i, j, scaling, origin) for i, j in cells])
+            self.starts = np.array([cell_centre(i, j, scaling, cells[0]) for i, j in cells])  # cells[0]: the origin
 
     def _observe(self) -> np.ndarray:
         obs = np.concatenate([self.data.qpos[:15], self.data.qvel[:14], [self.steps * 0.001]])
@@ -1023,8 +1005,7 @@ class HiroAntEnv(gym.Env):
         return self._observe(), reward, terminated, self.steps >= EPISODE_STEPS, info
 
     def state_dict(self) -> dict:
-        """What a resumed run needs to continue exactly: MuJoCo's integration state (time, qpos, qvel, warm start,
-        controls, applied forces), the step count, the success so far, the goal, AntGather's objects, the generator."""
+        """For --resume: MuJoCo's integration state (time, qpos, qvel, warm start, ctrl, forces) and the env's own."""
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         physics = np.empty(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, self.data, physics, spec)
@@ -1045,8 +1026,7 @@ class HiroAntEnv(gym.Env):
             self._renderer = mujoco.Renderer(self.model, 240, 240)
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._renderer.update_scene(self.data, camera="top")
-        # Markers drawn into the scene only (no bodies, so no physics): AntGather's apples (green) and bombs (red) as
-        # spheres; the other envs' goal as a translucent green disc of the success radius (at AntFall's goal height).
+        # Markers in the scene only (no physics): AntGather's apples and bombs, else the goal's success-radius disc.
         if self.env_id == "AntGather":
             shape = mujoco.mjtGeom.mjGEOM_SPHERE
             colours = [(0.1, 0.8, 0.1, 1) if kind > 0 else (0.9, 0.1, 0.1, 1) for kind in self.kinds]
@@ -1116,14 +1096,7 @@ def restore_training_state(saved: dict, agent: Agent, stores: dict, rng: np.rand
     return LoopState(**saved["loop"])
 
 
-# --- The run's constants ----------------------------------------------------------------------------------------------
-
-# The flags a checkpoint must match to be evaluated: shapes, env, subgoal range, k (DGRL: the encoder's and codebook's).
-MUST_MATCH = ("env_id", "groups", "hidden_dim", "subgoal_scale", "k")
-DGRL_MUST_MATCH = ("n_embed", "embed_dim", "encoder_hidden_dim")
-
-
-# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+# --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
@@ -1184,7 +1157,7 @@ class Progress:
 
     def line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         times = f"{now - self.start_time:.0f}s elapsed, {left}"
         print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
@@ -1202,9 +1175,8 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save(header | entries, file)
+        torch.save(dict(script=os.path.basename(__file__), format=CHECKPOINT_FORMAT, args=vars(args)) | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
@@ -1212,34 +1184,26 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
-    only."""
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
-
-    def refuse(problem: str) -> None:
-        print(f"{script}: {shown}{problem}", file=sys.stderr)
-        raise SystemExit(2)
-
     try:
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        cause = f"{type(error).__name__}: {str(error)[:120]}"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
         if resume:
-            cause = f"{type(error).__name__}: {str(error)[:120]}"
-            advice = "start the run afresh without --resume, or put back an older copy of the file"
-            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
-        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = type(saved).__name__
-        if isinstance(saved, dict):
-            found = f"{saved.get('script')} format {saved.get('format')}"
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
+        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+    if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
+        got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        exit_on_errors([f"{shown} holds {got}" + (f": {its_version}" if resume else wanted)])
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
-        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'written'} before {older} existed; {its_version}"])
     if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
-        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}"])
     return saved
 
 
@@ -1268,8 +1232,8 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
-    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
+    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
+    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1288,12 +1252,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     return replayed
 
 
-# --- end of run management --------------------------------------------------------------------------------------------
-
-
-# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
-
-# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -1301,19 +1259,16 @@ FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads",
 def flag_text(key: str, value) -> str:
     """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
     name = key.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {value}"
+    return (f"--{name}" if value else f"--no-{name}") if isinstance(value, bool) else f"--{name} {value}"
 
 
 def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
-    that bound. NaN and infinite values are left to common_errors' message."""
+    """A message for each of `flags` (field names) outside [low, high]; low_open and high_open exclude that bound."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
         if isinstance(value, float) and not math.isfinite(value):
-            continue
+            continue  # common_errors' message
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
@@ -1322,13 +1277,10 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
-    errors = [
-        f"--{key.replace('_', '-')} must be a finite number; got {value}"
-        for key, value in vars(args).items()
-        if isinstance(value, float) and not math.isfinite(value)
-    ]
+    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
+    --resume's folder and the folder a training run writes to."""
+    infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
+    errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1357,12 +1309,10 @@ def common_errors(args) -> list[str]:
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        advice = "move it, or run elsewhere"
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        where = os.path.abspath(existing)
-        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): use a folder you can write to")
     return errors
 
 
@@ -1377,9 +1327,8 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
-    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life (the kernel drops it however the process ends); keep the returned
+    file. A second process on the folder exits 2 naming the holder; `check_only`: that refusal alone, no write."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -1394,12 +1343,11 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     if check_only:
         return lock.close()
     lock.truncate(0)
-    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    lock.flush()
+    print(f"pid {os.getpid()} on {os.uname().nodename}", file=lock, flush=True)
     return lock
 
 
-# --- end of the shared checks -----------------------------------------------------------------------------------------
+# --- end of the shared block ------------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:

@@ -6,7 +6,7 @@ Grounding in KeyChest Maze Navigation Domain" and appendix "KeyChest Domain". Th
 trained contrastively; an A2C low level is rewarded for reaching it (Euclidean distance below 0.5, the paper's test).
 DGRL (`--groups G`) passes each subgoal through an encoder, vq.py's shared-codebook bottleneck and a decoder whose
 reconstruction grounds the codes; as in the paper, the low level sees the discrete embedding and is rewarded for
-reaching the raw subgoal (`--dgrl-goal decoded`, ours: the decoded one for both). `--groups 0` is plain HRAC.
+reaching the raw subgoal (`--dgrl-goal decoded`, ours: the decoded one for both). Docs: docs/dgrl_hrac_keychest.md.
 
     python dgrl_hrac_keychest.py --groups 16    # the paper's DGRL G=16: 2M frames (about 28 min on a CPU core)
     python dgrl_hrac_keychest.py --groups 0     # HRAC
@@ -14,8 +14,7 @@ reaching the raw subgoal (`--dgrl-goal decoded`, ours: the decoded one for both)
     python dgrl_hrac_keychest.py --total-timesteps 20000 --adj-init-steps 5000 --man-buffer-size 400 \
         --eval-frequency 5000                   # smoke run (about 30 s)
 
-The study: python benchmark/launch.py --preset keychest; update times: benchmark/speed/bench_hrac_keychest.py. Docs:
-docs/dgrl_hrac_keychest.md.
+The study: python benchmark/launch.py --preset keychest; update times: benchmark/speed/bench_hrac_keychest.py.
 """
 
 import copy
@@ -189,11 +188,9 @@ class Args:
 
 
 def mlp(in_dim: int, hidden_dim: int, out_dim: int, n_hidden: int = 2) -> nn.Sequential:
-    layers, width = [], in_dim
-    for _ in range(n_hidden):
-        layers += [nn.Linear(width, hidden_dim), nn.ReLU()]
-        width = hidden_dim
-    return nn.Sequential(*layers, nn.Linear(width, out_dim))
+    widths = [in_dim] + [hidden_dim] * n_hidden  # the inputs of the n_hidden ReLU layers, then of the output layer
+    layers = [module for width in widths[:-1] for module in (nn.Linear(width, hidden_dim), nn.ReLU())]
+    return nn.Sequential(*layers, nn.Linear(widths[-1], out_dim))
 
 
 class ManagerActor(nn.Module):
@@ -288,8 +285,7 @@ class Agent:
 def make_agent(args: Args, device: torch.device) -> Agent:
     """The agent of a run, on `device` (networks built in a fixed order, so a seed gives the same weights)."""
     dgrl = args.groups > 0
-    actor = ManagerActor(args.hidden_dim).to(device)
-    critic = TwinCritic(args.hidden_dim).to(device)
+    actor, critic = ManagerActor(args.hidden_dim).to(device), TwinCritic(args.hidden_dim).to(device)
     goal_ae = GoalAutoencoder(args).to(device) if dgrl else None  # DGRL
     goal_input_dim = args.embed_dim if dgrl and args.dgrl_goal == "embedding" else 2  # DGRL: the embedding as input
     controller = Controller(goal_input_dim, args.hidden_dim).to(device)
@@ -371,23 +367,14 @@ def segment_returns(rewards: torch.Tensor, discounts: torch.Tensor) -> torch.Ten
 def goal_reached(next_states: torch.Tensor, goals: torch.Tensor, threshold: float, rule: str) -> torch.Tensor:
     """1 where the next cell reaches the goal: nearer than `threshold` ("euclidean", paper) or in both axes ("box")."""
     offsets = next_states[:, :2] - goals
-    reached = offsets.norm(dim=1) < threshold if rule == "euclidean" else (offsets.abs() <= threshold).all(1)
-    return reached.float()
-
-
-def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.ndarray:
-    """True where no free cell reaches the subgoal point under `rule` (e.g. corners between cells, Euclidean at 0.5)."""
-    cells = torch.as_tensor(FREE_CELLS, dtype=torch.float32).repeat(len(goals), 1)
-    points = torch.as_tensor(goals, dtype=torch.float32).repeat_interleave(len(FREE_CELLS), 0)
-    return (goal_reached(cells, points, threshold, rule).view(len(goals), -1).amax(1) == 0).numpy()
+    return (offsets.norm(dim=1) < threshold if rule == "euclidean" else (offsets.abs() <= threshold).all(1)).float()
 
 
 def a2c_loss(logits, values, actions, returns, entropy_coef: float) -> tuple[torch.Tensor, ...]:
     """HRAC's A2C loss: mean of -A log pi(a) + A^2 - c H(pi), A = return - V (the original's unhalved value loss)."""
     log_probs, advantages = F.log_softmax(logits, 1), returns - values
     policy_loss = -(advantages.detach() * log_probs.gather(1, actions.unsqueeze(1)).squeeze(1)).mean()
-    value_loss = advantages.pow(2).mean()
-    entropy = -(log_probs.exp() * log_probs).sum(1).mean()
+    value_loss, entropy = advantages.pow(2).mean(), -(log_probs.exp() * log_probs).sum(1).mean()
     return policy_loss + value_loss - entropy_coef * entropy, policy_loss, value_loss, entropy
 
 
@@ -395,16 +382,14 @@ def contrastive_loss(emb_a, emb_b, labels, margin_pos: float, margin_neg: float)
     """HRAC's adjacency loss: mean(l * max(0, d - m+)) + mean((1 - l) * max(0, m- - d)), d = ||phi_a - phi_b||."""
     distances = torch.sqrt((emb_a - emb_b).pow(2).sum(1) + 1e-12)
     adjacent_term = (labels * (distances - margin_pos).clamp(min=0)).mean()
-    apart_term = ((1 - labels) * (margin_neg - distances).clamp(min=0)).mean()
-    return adjacent_term + apart_term
+    return adjacent_term + ((1 - labels) * (margin_neg - distances).clamp(min=0)).mean()
 
 
 def mark_adjacent(adjacency: np.ndarray, visited: np.ndarray, cells: np.ndarray, k: int) -> None:
     """Mark cells t and t+j of one trajectory (flat indices) adjacent in the (H*W, H*W) matrix, for 1 <= j < k."""
     visited[cells] = True
     for offset in range(1, min(k, len(cells))):
-        adjacency[cells[:-offset], cells[offset:]] = True
-        adjacency[cells[offset:], cells[:-offset]] = True
+        adjacency[cells[:-offset], cells[offset:]] = adjacency[cells[offset:], cells[:-offset]] = True
 
 
 def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None = None) -> None:
@@ -419,8 +404,7 @@ def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: f
 
 def train_adjacency(agent: Agent, adjacency: np.ndarray, visited: np.ndarray, epochs: int, args: Args, rng) -> float:
     """`epochs` passes over all pairs of visited cells in shuffled batches; the last epoch's mean loss (NaN if none)."""
-    anet, device = agent.adjacency, next(agent.adjacency.parameters()).device
-    cells = np.flatnonzero(visited)
+    anet, device, cells = agent.adjacency, next(agent.adjacency.parameters()).device, np.flatnonzero(visited)
     first, second = np.triu_indices(len(cells), 1)
     coordinates = torch.as_tensor(np.stack(np.divmod(cells, WIDTH), 1), dtype=torch.float32, device=device)
     labels_all = torch.as_tensor(adjacency[cells[first], cells[second]], dtype=torch.float32, device=device)
@@ -428,9 +412,8 @@ def train_adjacency(agent: Agent, adjacency: np.ndarray, visited: np.ndarray, ep
     anet.requires_grad_(True)
     losses = []
     for _ in range(epochs):
-        order = torch.as_tensor(rng.permutation(len(first)), device=device)
         losses = []
-        for batch in order.split(args.adj_batch_size):
+        for batch in torch.as_tensor(rng.permutation(len(first)), device=device).split(args.adj_batch_size):
             embeddings = anet(coordinates[first[batch]]), anet(coordinates[second[batch]])
             loss = contrastive_loss(*embeddings, labels_all[batch], args.adj_margin_pos, args.adj_margin_neg)
             learn(agent.adjacency_optimizer, loss)
@@ -479,10 +462,9 @@ def controller_update(agent: Agent, states, goals, actions, next_states, discoun
     goal_inputs, target_goals, ae_outputs = controller_goals(agent.goal_ae, goals, agent.dgrl_goal, update=True)  # DGRL
     figures = {}
     if agent.goal_ae is not None:
-        vq_loss, codes, reconstruction = ae_outputs
+        (vq_loss, codes, reconstruction), n_embed = ae_outputs, agent.goal_ae.vq.n_embed
         figures = goal_autoencoder_step(agent, goals, reconstruction, vq_loss)  # DGRL
-        figures["vq/perplexity"] = perplexity(codes, agent.goal_ae.vq.n_embed)
-        figures["vq/active_codes"] = active_codes(codes, agent.goal_ae.vq.n_embed)
+        figures |= {"vq/perplexity": perplexity(codes, n_embed), "vq/active_codes": active_codes(codes, n_embed)}
     intrinsic = args.ctrl_reward_scale * goal_reached(next_states, target_goals, args.goal_threshold, args.reach_rule)
     returns = segment_returns(intrinsic, discounts).float()
     logits, values = agent.controller(states, goal_inputs)  # DGRL: the embedding or the decoded subgoal, detached
@@ -507,8 +489,7 @@ def manager_update(agent: Agent, batch: tuple, args: Args, threshold: float, pol
     learn(agent.critic_optimizer, critic_loss)
     proposed = agent.actor(states)
     q_term = 0.0 if policy_term is False else -agent.critic.q1(torch.cat([states, proposed], 1)).mean() * policy_term
-    with torch.no_grad():
-        state_embeddings = agent.adjacency(states[:, :2])
+    state_embeddings = agent.adjacency(states[:, :2])  # no gradient: the adjacency network is frozen (trained apart)
     goal_loss = ((agent.adjacency(proposed) - state_embeddings).norm(dim=1) - threshold).clamp(min=0).mean()
     learn(agent.actor_optimizer, q_term + args.adj_weight * goal_loss)
     update_target(agent.actor_target, agent.actor, args.man_tau)
@@ -538,8 +519,7 @@ def propose_subgoals(actor, anet, states, *, threshold: float, explore: bool, n_
         return noisy[:, 0]
     reachable = (anet(noisy) - anet(states[:, :2]).unsqueeze(1)).norm(dim=2) < threshold
     pick = torch.where(reachable, torch.rand(reachable.shape, device=raw.device), -1.0).argmax(1)
-    chosen = noisy[torch.arange(len(states)), pick]
-    return torch.where(reachable.any(1, keepdim=True), chosen, raw)
+    return torch.where(reachable.any(1, keepdim=True), noisy[torch.arange(len(states)), pick], raw)
 
 
 class ControllerRollout:
@@ -626,9 +606,8 @@ def main(args: Args) -> None:
         set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
 
     # The updates under --fast, after the restore (under cudagraphs the A2C update, of varying length, stays compiled).
-    ctrl_fast = "compile" if args.fast == "cudagraphs" else args.fast
     ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder's too
-    update_controller = fast_update(controller_update, ctrl_fast, ctrl_optimizers)
+    update_controller = fast_update(controller_update, args.fast.replace("cudagraphs", "compile"), ctrl_optimizers)
     update_manager = fast_update(manager_update, args.fast, [agent.critic_optimizer, agent.actor_optimizer])
     update_goal_ae = fast_update(goal_autoencoder_update, args.fast, [agent.ae_optimizer]) if dgrl else None
     policy_terms = torch.arange(2.0, device=device).unbind() if args.fast == "cudagraphs" else (False, True)
@@ -651,8 +630,7 @@ def main(args: Args) -> None:
             mark_adjacent(loop.adjacency, loop.visited, loop.trajectories[env, : t_episode[env] + 2], args.k)
             loop.episodes += 1
         progress.heartbeat(loop.frames, "exploring")
-        # Not after the last step: the pre-training below logs at its frame, and a save must follow a frame's logs.
-        exploring = loop.frames < args.adj_init_steps
+        exploring = loop.frames < args.adj_init_steps  # not at the last step: the pre-training below logs at its frame
         if exploring and progress.resume_due(loop.frames, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # a run killed later resumes from here: what it logged before must be on disk
             save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)
@@ -709,21 +687,18 @@ def main(args: Args) -> None:
                 loop.figures |= update_manager(agent, batch, args, threshold, policy_term)
                 loop.man_updates += 1
 
-        # Adjacency: retrain on every pair of cells seen so far.
-        if loop.frames >= loop.next_adjacency:
+        if loop.frames >= loop.next_adjacency:  # retrain the adjacency network on every pair of cells seen so far
             loop.next_adjacency += args.adj_frequency
             adj_loss = train_adjacency(agent, loop.adjacency, loop.visited, args.adj_epochs, args, rng)
             loop.adj_accuracy = adjacency_accuracy(agent.adjacency, distances_bfs, args.k, threshold)
             writer.add_scalar("losses/adjacency_loss", adj_loss, loop.frames)
             writer.add_scalar("charts/adjacency_accuracy", loop.adj_accuracy, loop.frames)
 
-        # Log the latest update's losses.
         if loop.frames >= loop.next_log:
             loop.next_log += args.log_frequency
             for tag, value in loop.figures.items():
                 writer.add_scalar(tag, float(value), loop.frames)
 
-        # Evaluate, print progress, checkpoint.
         if loop.frames >= loop.next_eval:
             loop.next_eval += args.eval_frequency
             video = [] if args.capture_video and loop.evaluations % 10 == 0 else None
@@ -809,6 +784,20 @@ def evaluate(envs, agent: Agent, args: Args, frames: list | None = None, random_
     return returns.mean(), distances.mean().item() if len(distances) else float("nan"), reached.mean().item()
 
 
+def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.ndarray:
+    """True where no free cell reaches the subgoal point under `rule` (e.g. corners between cells, Euclidean at 0.5)."""
+    cells = torch.as_tensor(FREE_CELLS, dtype=torch.float32).repeat(len(goals), 1)
+    points = torch.as_tensor(goals, dtype=torch.float32).repeat_interleave(len(FREE_CELLS), 0)
+    return (goal_reached(cells, points, threshold, rule).view(len(goals), -1).amax(1) == 0).numpy()
+
+
+# What a checkpoint must have been saved with to be evaluated: the task, what evaluation measures (the k-step segments,
+# the reach test) and the networks' shapes; under DGRL also the autoencoder's and the low level's input.
+MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule", "hidden_dim")
+MUST_MATCH += ("adj_hidden_dim", "adj_embed_dim", "groups")
+DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")
+
+
 def evaluate_checkpoint(args: Args, agent: Agent, eval_envs: "KeyChestVecEnv", device: torch.device) -> None:
     """--checkpoint: load the saved networks, evaluate them (and uniform random subgoals), print the results."""
     must_match = MUST_MATCH + (DGRL_MUST_MATCH if args.groups else ())  # the autoencoder's flags only matter under DGRL
@@ -870,23 +859,20 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
 
     def __init__(self, num_envs: int, max_episode_steps=500, random_action_prob=0.25, terminate_at_chest=True):
         self.num_envs, self.max_episode_steps, self.terminate_at_chest = num_envs, max_episode_steps, terminate_at_chest
-        self.random_action_prob = random_action_prob
+        self.random_action_prob, self.rng = random_action_prob, np.random.default_rng()
         self.single_observation_space = gym.spaces.Box(0, max(HEIGHT, WIDTH) - 1, (3,), np.float32)
         self.single_action_space = gym.spaces.Discrete(len(MOVES))
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
-        self.rng = np.random.default_rng()
         self.position = np.zeros((num_envs, 2), dtype=np.int64)
-        self.has_key = np.zeros(num_envs, dtype=bool)
-        self.elapsed = np.zeros(num_envs, dtype=np.int64)
+        self.has_key, self.elapsed = np.zeros(num_envs, dtype=bool), np.zeros(num_envs, dtype=np.int64)
 
     def _observe(self) -> np.ndarray:
         return np.concatenate([self.position, self.has_key[:, None]], 1).astype(np.float32)
 
     def _reset_envs(self, mask: np.ndarray) -> None:
         self.position[mask] = FREE_CELLS[self.rng.integers(len(FREE_CELLS), size=int(mask.sum()))]
-        self.has_key[mask] = False
-        self.elapsed[mask] = 0
+        self.has_key[mask], self.elapsed[mask] = False, 0
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is not None:
@@ -930,8 +916,7 @@ class KeyChestVecEnv(gym.vector.VectorEnv):
         if subgoal is not None:
             row, col = np.clip(np.round(subgoal).astype(int), 0, (HEIGHT - 1, WIDTH - 1))
             cell = image[row * pixels : (row + 1) * pixels, col * pixels : (col + 1) * pixels]
-            for border in (cell[:2], cell[-2:], cell[:, :2], cell[:, -2:]):
-                border[:] = (0, 220, 0)
+            cell[:2] = cell[-2:] = cell[:, :2] = cell[:, -2:] = (0, 220, 0)  # a green border
         return image
 
     def state(self) -> dict:
@@ -1007,12 +992,11 @@ def new_loop_state(args: Args) -> LoopState:
 
 def training_state(loop: LoopState, agent: Agent, rng, replay, explore_rollout, rollout, eval_envs) -> dict:
     """Everything the run continues from (save_resume adds the global random states), episode statistics included."""
-    envs = rollout.envs
     return {
         "agent": {name: part.state_dict() for name, part in vars(agent).items() if hasattr(part, "state_dict")},
         "numpy_rng": rng.bit_generator.state,
-        "envs": {"explore": explore_rollout.envs.state(), "train": envs.env.state(), "eval": eval_envs.state()},
-        "episode_statistics": {name: getattr(envs, name) for name in EPISODE_STATISTICS},
+        "envs": {"explore": explore_rollout.envs.state(), "train": rollout.envs.env.state(), "eval": eval_envs.state()},
+        "episode_statistics": {name: getattr(rollout.envs, name) for name in EPISODE_STATISTICS},
         "rollouts": {"explore": explore_rollout.state(), "train": rollout.state()},
         "replay": replay.state(),
         "variables": copy.deepcopy(vars(loop)),
@@ -1035,16 +1019,7 @@ def restore_training_state(saved: dict, agent: Agent, rng, replay, explore_rollo
     return LoopState(**saved["variables"])
 
 
-# --- Flags a checkpoint must match ------------------------------------------------------------------------------------
-
-# What a checkpoint must have been saved with to be evaluated: the task, what evaluation measures (the k-step segments,
-# the reach test) and the networks' shapes; under DGRL also the autoencoder's and the low level's input.
-MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule", "hidden_dim")
-MUST_MATCH += ("adj_hidden_dim", "adj_embed_dim", "groups")
-DGRL_MUST_MATCH = ("embed_dim", "n_embed", "ae_hidden_dim", "dgrl_goal")
-
-
-# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+# --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
@@ -1105,7 +1080,7 @@ class Progress:
 
     def line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         times = f"{now - self.start_time:.0f}s elapsed, {left}"
         print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
@@ -1123,9 +1098,8 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save(header | entries, file)
+        torch.save(dict(script=os.path.basename(__file__), format=CHECKPOINT_FORMAT, args=vars(args)) | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
@@ -1133,34 +1107,26 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
-    only."""
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
-
-    def refuse(problem: str) -> None:
-        print(f"{script}: {shown}{problem}", file=sys.stderr)
-        raise SystemExit(2)
-
     try:
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        cause = f"{type(error).__name__}: {str(error)[:120]}"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
         if resume:
-            cause = f"{type(error).__name__}: {str(error)[:120]}"
-            advice = "start the run afresh without --resume, or put back an older copy of the file"
-            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
-        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = type(saved).__name__
-        if isinstance(saved, dict):
-            found = f"{saved.get('script')} format {saved.get('format')}"
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
+        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+    if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
+        got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        exit_on_errors([f"{shown} holds {got}" + (f": {its_version}" if resume else wanted)])
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
-        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'written'} before {older} existed; {its_version}"])
     if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
-        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}"])
     return saved
 
 
@@ -1189,8 +1155,8 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
-    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
+    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
+    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1209,12 +1175,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     return replayed
 
 
-# --- end of run management --------------------------------------------------------------------------------------------
-
-
-# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
-
-# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -1222,19 +1182,16 @@ FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads",
 def flag_text(key: str, value) -> str:
     """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
     name = key.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {value}"
+    return (f"--{name}" if value else f"--no-{name}") if isinstance(value, bool) else f"--{name} {value}"
 
 
 def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
-    that bound. NaN and infinite values are left to common_errors' message."""
+    """A message for each of `flags` (field names) outside [low, high]; low_open and high_open exclude that bound."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
         if isinstance(value, float) and not math.isfinite(value):
-            continue
+            continue  # common_errors' message
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
@@ -1243,13 +1200,10 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
-    errors = [
-        f"--{key.replace('_', '-')} must be a finite number; got {value}"
-        for key, value in vars(args).items()
-        if isinstance(value, float) and not math.isfinite(value)
-    ]
+    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
+    --resume's folder and the folder a training run writes to."""
+    infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
+    errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1278,12 +1232,10 @@ def common_errors(args) -> list[str]:
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        advice = "move it, or run elsewhere"
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        where = os.path.abspath(existing)
-        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): use a folder you can write to")
     return errors
 
 
@@ -1298,9 +1250,8 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
-    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life (the kernel drops it however the process ends); keep the returned
+    file. A second process on the folder exits 2 naming the holder; `check_only`: that refusal alone, no write."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -1315,12 +1266,11 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     if check_only:
         return lock.close()
     lock.truncate(0)
-    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    lock.flush()
+    print(f"pid {os.getpid()} on {os.uname().nodename}", file=lock, flush=True)
     return lock
 
 
-# --- end of the shared checks -----------------------------------------------------------------------------------------
+# --- end of the shared block ------------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:
@@ -1335,8 +1285,7 @@ def validate(args: Args) -> None:
     errors += range_errors(args, positive + " adj_margin_neg", 0, low_open=True)
     errors += range_errors(args, "man_gamma ctrl_gamma man_tau", 0, 1, low_open=True)
     errors += range_errors(args, "random_action_prob", 0, 1)
-    if errors:  # the checks below combine flags and assume each is in range
-        exit_on_errors(errors)
+    exit_on_errors(errors)  # the checks below combine flags and assume each is in range
     if args.groups < 0 or (args.groups and args.embed_dim % args.groups):
         divisors = [g for g in range(1, args.embed_dim + 1) if args.embed_dim % g == 0]
         wanted = f"0 (HRAC) or divide --embed-dim {args.embed_dim}: one of {divisors}"

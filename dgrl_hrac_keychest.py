@@ -422,15 +422,6 @@ def train_adjacency(agent: Agent, adjacency: np.ndarray, visited: np.ndarray, ep
     return torch.stack(losses).mean().item() if losses else float("nan")
 
 
-@torch.no_grad()
-def adjacency_accuracy(anet: AdjacencyNet, distances: np.ndarray, k: int, threshold: float) -> float:
-    """Agreement of `||phi_i - phi_j|| < threshold` with `BFS distance <= k` over all pairs of free cells."""
-    embeddings = anet(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=next(anet.parameters()).device))
-    predicted = (torch.cdist(embeddings, embeddings) < threshold).cpu().numpy()
-    first, second = np.triu_indices(len(FREE_CELLS), 1)
-    return float((predicted[first, second] == (distances[first, second] <= k)).mean())
-
-
 def controller_goals(goal_ae: GoalAutoencoder | None, goals: torch.Tensor, mode: str, update: bool = False):
     """(what the low level sees of raw subgoals g, the cells its reward is measured to; both detached), plus DGRL's
     (commitment loss, codes, reconstruction). HRAC: (g, g); DGRL "embedding": (embedding, g); "decoded": (g', g')."""
@@ -603,7 +594,7 @@ def main(args: Args) -> None:
     loop = new_loop_state(args)
     if saved is not None:  # continue the stopped run: its networks, replay, envs mid-episode and loop variables
         loop = restore_training_state(saved, agent, rng, replay, explore_rollout, rollout, eval_envs)
-        set_rng_states(saved["rng"])  # last: building the agent and the envs above drew from them
+        rng_states(restore=saved["rng"])  # last: building the agent and the envs above drew from them
 
     # The updates under --fast, after the restore (under cudagraphs the A2C update, of varying length, stays compiled).
     ctrl_optimizers = [agent.controller_optimizer] + ([agent.ae_optimizer] if dgrl else [])  # the autoencoder's too
@@ -629,7 +620,7 @@ def main(args: Args) -> None:
         for env in np.flatnonzero(done):
             mark_adjacent(loop.adjacency, loop.visited, loop.trajectories[env, : t_episode[env] + 2], args.k)
             loop.episodes += 1
-        progress.heartbeat(loop.frames, "exploring")
+        progress.line(loop.frames, "exploring", heartbeat=True)
         exploring = loop.frames < args.adj_init_steps  # not at the last step: the pre-training below logs at its frame
         if exploring and progress.resume_due(loop.frames, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()  # a run killed later resumes from here: what it logged before must be on disk
@@ -729,7 +720,7 @@ def main(args: Args) -> None:
                 write_video(f"videos/{run_name}/eval_{loop.frames}.mp4", video, fps=10)
             if args.save_model:
                 save_checkpoint(f"runs/{run_name}/{args.exp_name}.cleanrl_model", agent.state_dicts(), args)
-        progress.heartbeat(loop.frames)
+        progress.line(loop.frames, heartbeat=True)
         if progress.resume_due(loop.frames, args.checkpoint_every, args.checkpoint_every_steps):
             writer.flush()
             save_resume(run_name, training_state(loop, agent, rng, replay, explore_rollout, rollout, eval_envs), args)
@@ -791,6 +782,15 @@ def unreachable_subgoals(goals: np.ndarray, threshold: float, rule: str) -> np.n
     return (goal_reached(cells, points, threshold, rule).view(len(goals), -1).amax(1) == 0).numpy()
 
 
+@torch.no_grad()
+def adjacency_accuracy(anet: AdjacencyNet, distances: np.ndarray, k: int, threshold: float) -> float:
+    """Agreement of `||phi_i - phi_j|| < threshold` with `BFS distance <= k` over all pairs of free cells."""
+    embeddings = anet(torch.as_tensor(FREE_CELLS, dtype=torch.float32, device=next(anet.parameters()).device))
+    predicted = (torch.cdist(embeddings, embeddings) < threshold).cpu().numpy()
+    first, second = np.triu_indices(len(FREE_CELLS), 1)
+    return float((predicted[first, second] == (distances[first, second] <= k)).mean())
+
+
 # What a checkpoint must have been saved with to be evaluated: the task, what evaluation measures (the k-step segments,
 # the reach test) and the networks' shapes; under DGRL also the autoencoder's and the low level's input.
 MUST_MATCH = ("env_id", "max_episode_steps", "random_action_prob", "k", "goal_threshold", "reach_rule", "hidden_dim")
@@ -814,10 +814,8 @@ def evaluate_checkpoint(args: Args, agent: Agent, eval_envs: "KeyChestVecEnv", d
 
 def write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
     """Frames (H, W, 3) uint8 to an mp4 (moviepy loaded only here), one encoder thread: with more, the bytes vary."""
-    from moviepy import ImageSequenceClip
-
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None, threads=1)
+    importlib.import_module("moviepy").ImageSequenceClip(frames, fps=fps).write_videofile(path, logger=None, threads=1)
 
 
 # --- Environment ------------------------------------------------------------------------------------------------------
@@ -1022,7 +1020,9 @@ def restore_training_state(saved: dict, agent: Agent, rng, replay, explore_rollo
 # --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
-RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
+RESUME_FILE, LOCK_FILE = "resume.pt", "run.lock"  # in runs/{run_name}: the training state (--resume); the writer's lock
+FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
+              "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
 
 def seed_and_device(args) -> torch.device:
@@ -1049,13 +1049,8 @@ def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWr
 def stop_on_signals() -> list[int]:
     """Ctrl-C, SIGTERM, SIGUSR1/2 (Slurm's) stop the run after its step (a second: at once); the loop polls the list."""
     received = []
-
-    def request_stop(number, frame):
-        received.append(number)
-        signal.signal(number, signal.SIG_DFL)
-
-    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
-        signal.signal(number, request_stop)
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):  # note it; a second: the default
+        signal.signal(number, lambda number, frame: (received.append(number), signal.signal(number, signal.SIG_DFL)))
     return received
 
 
@@ -1078,17 +1073,15 @@ class Progress:
             return True
         return False
 
-    def line(self, step: int, figures: str, suffix: str = "") -> None:
+    def line(self, step: int, figures: str = "", heartbeat: bool = False) -> None:
         now = time.time()
+        if heartbeat and now - self.print_time <= 60:  # a heartbeat: only after a quiet minute, marked (running)
+            return
         rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
-        times = f"{now - self.start_time:.0f}s elapsed, {left}"
-        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
+        times = f"{now - self.start_time:.0f}s elapsed, {left}" + " (running)" * heartbeat
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}", flush=True)
         self.print_time, self.print_step = now, step
-
-    def heartbeat(self, step: int, figures: str = "") -> None:
-        if time.time() - self.print_time > 60:
-            self.line(step, figures, " (running)")
 
     def finish(self, stopped: bool, run_name: str, summary: str) -> None:
         outcome = "stopped" if stopped else "done"
@@ -1106,8 +1099,7 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
-    """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
+    """`path` if this script wrote it with these `must_match` flags (else exit 2); resume.pt unpickles: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
@@ -1115,10 +1107,9 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
         cause = f"{type(error).__name__}: {str(error)[:120]}"
-        advice = "start the run afresh without --resume, or put back an older copy of the file"
-        if resume:
-            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
-        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+        damaged = f"{path} cannot be read ({cause}); it is damaged or incomplete: start the run afresh without --resume"
+        foreign = f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"
+        exit_on_errors([f"{shown}: {damaged}, or put back an older copy of the file" if resume else foreign])
     if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
         got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
@@ -1130,16 +1121,13 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     return saved
 
 
-def rng_states() -> dict:
-    """The global random states a run draws from: Python's and torch's (CPU, and every GPU where there is one)."""
+def rng_states(restore: dict | None = None) -> dict:
+    """The global random states a run draws from (Python's, torch's CPU and GPUs'), first set to `restore` if given."""
+    if restore is not None:
+        random.setstate(restore["python"])
+        torch.set_rng_state(restore["torch"])
+        torch.cuda.set_rng_state_all(restore.get("cuda", []))
     return {"python": random.getstate(), "torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all()}
-
-
-def set_rng_states(states: dict) -> None:
-    """Restore rng_states(); a resumed run calls it last, after building its networks and envs (they draw from them)."""
-    random.setstate(states["python"])
-    torch.set_rng_state(states["torch"])
-    torch.cuda.set_rng_state_all(states.get("cuda", []))
 
 
 def save_resume(run_name: str, state: dict, args) -> None:
@@ -1155,8 +1143,7 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
-    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
+    """--fast: `update` as it is, compiled, or as CUDA graphs that later calls replay (torch's "reduce-overhead")."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -1173,10 +1160,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
         return torch.utils._pytree.tree_map_only(torch.Tensor, torch.clone, compiled(*args, **kwargs))
 
     return replayed
-
-
-FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
-              "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
 
 def flag_text(key: str, value) -> str:
@@ -1200,8 +1183,7 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
-    --resume's folder and the folder a training run writes to."""
+    """The checks every script makes: the common flags' values, and the folders a run reads from and writes to."""
     infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
     errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
@@ -1244,9 +1226,6 @@ def exit_on_errors(errors: list[str]) -> None:
     if errors:
         print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
         raise SystemExit(2)
-
-
-LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):

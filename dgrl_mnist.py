@@ -241,7 +241,7 @@ def main(args: Args) -> None:
         metrics = (update if len(batch) == args.batch_size else train_step)(model, painted(batch))
         loop.step += 1
         loop.images_seen += len(batch)
-        progress.heartbeat(loop.images_seen)
+        progress.line(loop.images_seen, heartbeat=True)
         if loop.step % 100 == 0:
             writer.add_scalar("losses/reconstruction", metrics["reconstruction"].item(), loop.step)
             if args.groups:  # the codebook's statistics
@@ -461,14 +461,16 @@ def restore_training_state(saved: dict, model: Model, generator: torch.Generator
     generator.set_state(saved["generator"])
     loop = LoopState(**saved["counters"])
     loop.order = None if loop.order is None else loop.order.to(device)
-    set_rng_states(saved["rng"])
+    rng_states(restore=saved["rng"])
     return loop
 
 
 # --- Run management and checks: identical in every script (tests/test_skeleton.py) ------------------------------------
 
 CHECKPOINT_FORMAT, RESUME_FORMAT = 2, 3  # the layouts of a checkpoint and of resume.pt, one number in every script
-RESUME_FILE = "resume.pt"  # in the run folder: the whole training state, for --resume
+RESUME_FILE, LOCK_FILE = "resume.pt", "run.lock"  # in runs/{run_name}: the training state (--resume); the writer's lock
+FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
+              "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
 
 def seed_and_device(args) -> torch.device:
@@ -495,13 +497,8 @@ def make_writer(args, run_name: str, purge_step: int | None = None) -> SummaryWr
 def stop_on_signals() -> list[int]:
     """Ctrl-C, SIGTERM, SIGUSR1/2 (Slurm's) stop the run after its step (a second: at once); the loop polls the list."""
     received = []
-
-    def request_stop(number, frame):
-        received.append(number)
-        signal.signal(number, signal.SIG_DFL)
-
-    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
-        signal.signal(number, request_stop)
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):  # note it; a second: the default
+        signal.signal(number, lambda number, frame: (received.append(number), signal.signal(number, signal.SIG_DFL)))
     return received
 
 
@@ -524,17 +521,15 @@ class Progress:
             return True
         return False
 
-    def line(self, step: int, figures: str, suffix: str = "") -> None:
+    def line(self, step: int, figures: str = "", heartbeat: bool = False) -> None:
         now = time.time()
+        if heartbeat and now - self.print_time <= 60:  # a heartbeat: only after a quiet minute, marked (running)
+            return
         rate = (step - self.print_step) / max(now - self.print_time, 1e-6)  # since the last line: this phase's rate
         left = f"{(self.total - step) / rate:.0f}s left" if rate > 0 else "time left unknown"
-        times = f"{now - self.start_time:.0f}s elapsed, {left}"
-        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}{suffix}", flush=True)
+        times = f"{now - self.start_time:.0f}s elapsed, {left}" + " (running)" * heartbeat
+        print(f"{self.unit} {step:>9}/{self.total}  {figures}  SPS {self.sps(step)}  {times}", flush=True)
         self.print_time, self.print_step = now, step
-
-    def heartbeat(self, step: int, figures: str = "") -> None:
-        if time.time() - self.print_time > 60:
-            self.line(step, figures, " (running)")
 
     def finish(self, stopped: bool, run_name: str, summary: str) -> None:
         outcome = "stopped" if stopped else "done"
@@ -552,8 +547,7 @@ def save_checkpoint(path: str, entries: dict, args) -> None:
 
 
 def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume: bool = False) -> dict:
-    """--checkpoint's file or --resume's resume.pt, if this script wrote it with the same `must_match` flags (else
-    exit 2, saying why). A checkpoint loads tensors only; a resume file (pickled envs) loads in full: yours only."""
+    """`path` if this script wrote it with these `must_match` flags (else exit 2); resume.pt unpickles: yours only."""
     script, shown = os.path.basename(__file__), f"--resume {args.resume}" if resume else f"--checkpoint {path}"
     layout = RESUME_FORMAT if resume else CHECKPOINT_FORMAT
     its_version = "continue it with the version that started it" if resume else "use its version"
@@ -561,10 +555,9 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
         saved = torch.load(path, map_location=device, weights_only=not resume)
     except Exception as error:  # truncated, empty or not a torch file: the file is left as it is
         cause = f"{type(error).__name__}: {str(error)[:120]}"
-        advice = "start the run afresh without --resume, or put back an older copy of the file"
-        if resume:
-            exit_on_errors([f"{shown}: {path} cannot be read ({cause}); it is damaged or incomplete: {advice}"])
-        exit_on_errors([f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"])
+        damaged = f"{path} cannot be read ({cause}); it is damaged or incomplete: start the run afresh without --resume"
+        foreign = f"{shown} is not a checkpoint ({cause}); pass a file that `{script} --save-model` wrote"
+        exit_on_errors([f"{shown}: {damaged}, or put back an older copy of the file" if resume else foreign])
     if not isinstance(saved, dict) or (saved.get("script"), saved.get("format")) != (script, layout):
         got = f"{saved.get('script')} format {saved.get('format')}" if isinstance(saved, dict) else type(saved).__name__
         wanted = f"; it needs one that {script} (format {CHECKPOINT_FORMAT}) wrote with --save-model"
@@ -576,16 +569,13 @@ def load_checkpoint(path: str, args, must_match: tuple[str, ...], device, resume
     return saved
 
 
-def rng_states() -> dict:
-    """The global random states a run draws from: Python's and torch's (CPU, and every GPU where there is one)."""
+def rng_states(restore: dict | None = None) -> dict:
+    """The global random states a run draws from (Python's, torch's CPU and GPUs'), first set to `restore` if given."""
+    if restore is not None:
+        random.setstate(restore["python"])
+        torch.set_rng_state(restore["torch"])
+        torch.cuda.set_rng_state_all(restore.get("cuda", []))
     return {"python": random.getstate(), "torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all()}
-
-
-def set_rng_states(states: dict) -> None:
-    """Restore rng_states(); a resumed run calls it last, after building its networks and envs (they draw from them)."""
-    random.setstate(states["python"])
-    torch.set_rng_state(states["torch"])
-    torch.cuda.set_rng_state_all(states.get("cuda", []))
 
 
 def save_resume(run_name: str, state: dict, args) -> None:
@@ -601,8 +591,7 @@ def load_resume(args) -> dict:
 
 
 def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
-    """--fast: `update` as it is (eager), compiled (torch.compile), or as CUDA graphs that later calls replay
-    (cudagraphs: torch.compile's "reduce-overhead" mode); the update stays a plain function, wrapped once."""
+    """--fast: `update` as it is, compiled, or as CUDA graphs that later calls replay (torch's "reduce-overhead")."""
     if fast == "eager":  # (the inductor import costs seconds: an eager run never loads it)
         return update
     torch._inductor.config.fallback_random = True  # compiled random draws as in eager: a seed gives the same numbers
@@ -619,10 +608,6 @@ def fast_update(update, fast: str, optimizers: list[torch.optim.Optimizer]):
         return torch.utils._pytree.tree_map_only(torch.Tensor, torch.clone, compiled(*args, **kwargs))
 
     return replayed
-
-
-FREE_FLAGS = ("resume", "checkpoint_every", "checkpoint_every_steps", "threads", "fast", "capture_video", "save_model",
-              "track", "wandb_project_name", "wandb_entity")  # fmt: skip
 
 
 def flag_text(key: str, value) -> str:
@@ -646,8 +631,7 @@ def range_errors(args, flags: str, low=-math.inf, high=math.inf, low_open=False,
 
 
 def common_errors(args) -> list[str]:
-    """The checks every script makes: finite floats, seed, threads, codebook, --track, --checkpoint, --exp-name, --fast,
-    --resume's folder and the folder a training run writes to."""
+    """The checks every script makes: the common flags' values, and the folders a run reads from and writes to."""
     infinite = [key for key, value in vars(args).items() if isinstance(value, float) and not math.isfinite(value)]
     errors = [f"--{key.replace('_', '-')} must be a finite number; got {getattr(args, key)}" for key in infinite]
     if not 0 <= args.seed < 2**64:
@@ -690,9 +674,6 @@ def exit_on_errors(errors: list[str]) -> None:
     if errors:
         print(f"{os.path.basename(__file__)}: invalid arguments:\n  " + "\n  ".join(errors), file=sys.stderr)
         raise SystemExit(2)
-
-
-LOCK_FILE = "run.lock"  # in runs/{run_name}: held by the one process that writes the run
 
 
 def hold_run_folder(run_name: str, check_only: bool = False):

@@ -280,7 +280,7 @@ def test_each_scripts_progress_lines_and_endings_read_as_the_protocol_says(scrip
     progress.print_time -= 10
     progress.line(400, "eval return 0.50  loss 0.10")
     progress.print_time -= 61  # a silent minute
-    progress.heartbeat(520)
+    progress.line(520, heartbeat=True)
     progress.finish(True, "KeyChest__G4__x__1__2", "520 frames")
     progress.finish(False, "KeyChest__G4__x__1__2", "1000 frames")
     line, heartbeat, stopped, done = capsys.readouterr().out.splitlines()
@@ -294,7 +294,8 @@ def test_each_scripts_progress_lines_and_endings_read_as_the_protocol_says(scrip
     assert protocol.ending([line, done], 1) is None and protocol.ending([line], 0) is None
     source = (ROOT / script).read_text()
     assert all(f"signal.{number.name}" in source for number in protocol.STOP_SIGNALS)
-    assert f'RESUME_FILE = "{protocol.RESUME_FILE}"' in source
+    module = importlib.import_module(script.removesuffix(".py"))
+    assert (module.RESUME_FILE, module.LOCK_FILE) == (protocol.RESUME_FILE, protocol.LOCK_FILE)
 
 
 # --- The local backend ----------------------------------------------------------------------------------------------------

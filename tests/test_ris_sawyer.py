@@ -848,10 +848,10 @@ def test_an_evaluation_cut_short_is_undone_by_restoring_the_eval_envs_and_the_rn
             return self.checks > 30
 
     sawyer.set_vector_env_state(envs, before[0])
-    sawyer.set_rng_states(before[1])
+    sawyer.rng_states(restore=before[1])
     assert sawyer.evaluate(envs, agent, "cpu", deterministic=False, stop=StopAfter()) is None
     sawyer.set_vector_env_state(envs, before[0])
-    sawyer.set_rng_states(before[1])
+    sawyer.rng_states(restore=before[1])
     assert sawyer.evaluate(envs, agent, "cpu", deterministic=False) == expected
     envs.close()
 

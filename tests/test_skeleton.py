@@ -23,16 +23,15 @@ SCRIPTS = sorted(path.name for path in ROOT.glob("dgrl_*.py"))
 MUJOCO_SCRIPTS = ["dgrl_hrac.py", "dgrl_ris.py", "dgrl_ris_sawyer.py"]
 WITHOUT_VIDEO = {"dgrl_mnist.py"}  # no environment to record
 SHARED_NAMES = [
-    "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE", "seed_and_device", "make_writer", "stop_on_signals", "Progress",
-    "save_checkpoint", "load_checkpoint", "rng_states", "set_rng_states", "save_resume", "load_resume",
-    "fast_update", "FREE_FLAGS", "flag_text", "range_errors", "common_errors", "exit_on_errors", "LOCK_FILE",
-    "hold_run_folder",  # the shared block: run management and checks
+    "CHECKPOINT_FORMAT, RESUME_FORMAT", "RESUME_FILE, LOCK_FILE", "FREE_FLAGS", "seed_and_device", "make_writer",
+    "stop_on_signals", "Progress", "save_checkpoint", "load_checkpoint", "rng_states", "save_resume", "load_resume",
+    "fast_update", "flag_text", "range_errors", "common_errors", "exit_on_errors", "hold_run_folder",  # the shared block
     "learn",  # beside the first update that steps an optimizer
     "write_video",  # beside the evaluation that records the videos
 ]  # fmt: skip
 BLOCK_START = "# --- Run management and checks: identical in every script (tests/test_skeleton.py) "
 BLOCK_END = "# --- end of the shared block "
-SHARED_BLOCK_LINES = 252  # the most the shared block (run management and checks) may take, its banners included
+SHARED_BLOCK_LINES = 233  # the most the shared block (run management and checks) may take, its banners included
 SPEED_SWITCH_LINES = 17  # the most --fast may take: fast_update, blank lines not counted
 MUJOCO_GL_DEFAULT = (
     'if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):\n    os.environ.setdefault("MUJOCO_GL", "egl")'
@@ -564,11 +563,11 @@ def test_the_heartbeat_gives_the_time_left_at_its_own_recent_rate(monkeypatch, c
     clock.now += 1
     progress.line(100, "loss 1.0")
     clock.now += 30
-    progress.heartbeat(130)  # not yet: half a minute of silence
+    progress.line(130, heartbeat=True)  # not yet: half a minute of silence
     clock.now += 31
-    progress.heartbeat(161)
+    progress.line(161, heartbeat=True)
     clock.now += 61
-    progress.heartbeat(222)
+    progress.line(222, heartbeat=True)
     lines = capsys.readouterr().out.splitlines()
     assert lines == [
         "step       100/1000  loss 1.0  SPS 100  1s elapsed, 9s left",

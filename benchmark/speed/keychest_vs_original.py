@@ -54,7 +54,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 ORIGINAL_PROGRESS = re.compile(r"^\s*Frames (\d+), Episode #")  # the original's log_train, after every episode
-OURS_PROGRESS = re.compile(r"^frame\s+(\d+)/\d+")  # Progress.line and Progress.heartbeat
+OURS_PROGRESS = re.compile(r"^frame\s+(\d+)/\d+")  # Progress.line (heartbeats too)
 
 
 def process_tree_cpu_seconds(root_pid: int) -> float:

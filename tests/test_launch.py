@@ -276,7 +276,8 @@ def test_each_scripts_progress_lines_and_endings_read_as_the_protocol_says(scrip
     silent minute, and the done and stopped lines (each with exit status 0; any other status is a failure)."""
     import importlib
 
-    progress = importlib.import_module(script.removesuffix(".py")).Progress(total=1000, unit="frame", start_step=100)
+    module = importlib.import_module(script.removesuffix(".py"))
+    progress = module.Progress(total=1000, unit="frame", start_step=100)
     progress.print_time -= 10
     progress.line(400, "eval return 0.50  loss 0.10")
     progress.print_time -= 61  # a silent minute
@@ -294,7 +295,6 @@ def test_each_scripts_progress_lines_and_endings_read_as_the_protocol_says(scrip
     assert protocol.ending([line, done], 1) is None and protocol.ending([line], 0) is None
     source = (ROOT / script).read_text()
     assert all(f"signal.{number.name}" in source for number in protocol.STOP_SIGNALS)
-    module = importlib.import_module(script.removesuffix(".py"))
     assert (module.RESUME_FILE, module.LOCK_FILE) == (protocol.RESUME_FILE, protocol.LOCK_FILE)
 
 
